@@ -1,0 +1,1 @@
+"""fischer-gateway: binds the Fischer 26E fleet to C2 systems."""

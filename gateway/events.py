@@ -1,0 +1,222 @@
+"""The typed events every stage of the gateway speaks.
+
+Events are frozen pydantic models with UTC-aware times and SI units in field names. They are
+validated once, where they are made (``normalise``), and never mutated afterwards. A sink
+receives events, never MAVLink messages.
+
+Each event has a ``kind`` discriminator and a stable ``event_id``: a receiver that gets the
+same event twice (delivery is at-least-once for durable kinds) can de-duplicate on it.
+"""
+
+from __future__ import annotations
+
+from enum import StrEnum
+from typing import Annotated, Literal
+
+from pydantic import AwareDatetime, BaseModel, ConfigDict, Field, TypeAdapter
+
+__all__ = [
+    "DURABLE_KINDS",
+    "LATEST_WINS_KINDS",
+    "Attitude",
+    "BlueForce",
+    "Detection",
+    "Event",
+    "EventKind",
+    "LinkState",
+    "Position",
+    "Sensor",
+    "Telemetry",
+    "Track",
+    "Velocity",
+    "event_adapter",
+    "latest_key",
+]
+
+
+class EventKind(StrEnum):
+    """The kinds of event, and so the keys of routes and sink declarations."""
+
+    TELEMETRY = "telemetry"
+    LINK_STATE = "link_state"
+    DETECTION = "detection"
+    TRACK = "track"
+    BLUE_FORCE = "blue_force"
+
+
+#: Kinds where only the newest event per key matters: a slow sink gets fresh data, not a backlog.
+LATEST_WINS_KINDS: frozenset[EventKind] = frozenset(
+    {EventKind.TELEMETRY, EventKind.LINK_STATE, EventKind.BLUE_FORCE}
+)
+#: Kinds that must never be dropped silently: delivered at least once, in order per sink.
+DURABLE_KINDS: frozenset[EventKind] = frozenset(EventKind) - LATEST_WINS_KINDS
+
+_FROZEN = ConfigDict(frozen=True, extra="forbid")
+
+
+class Position(BaseModel):
+    """A WGS 84 position. Altitudes are metres; any of them may be unknown."""
+
+    model_config = _FROZEN
+
+    lat_deg: float = Field(ge=-90.0, le=90.0)
+    lon_deg: float = Field(ge=-180.0, le=180.0)
+    alt_msl_m: float | None = None
+    alt_hae_m: float | None = None
+    alt_rel_home_m: float | None = None
+
+
+class Attitude(BaseModel):
+    """Euler angles in radians (aircraft body frame, NED)."""
+
+    model_config = _FROZEN
+
+    roll_rad: float
+    pitch_rad: float
+    yaw_rad: float
+
+
+class Velocity(BaseModel):
+    """Velocity over ground in the local NED frame, metres per second."""
+
+    model_config = _FROZEN
+
+    north_mps: float
+    east_mps: float
+    down_mps: float
+
+
+class Sensor(StrEnum):
+    """The sensor behind a detection."""
+
+    EO = "eo"
+    IR = "ir"
+    RF = "rf"
+
+
+class Telemetry(BaseModel):
+    """The latest known state of one airframe, merged from its MAVLink messages.
+
+    ``position`` is None until the airframe has reported one with a fix; a consumer that
+    needs a position must skip such events, never plot them at 0,0.
+    """
+
+    model_config = _FROZEN
+
+    kind: Literal[EventKind.TELEMETRY] = EventKind.TELEMETRY
+    event_id: str
+    airframe: str
+    time: AwareDatetime
+    position: Position | None = None
+    attitude: Attitude | None = None
+    velocity: Velocity | None = None
+    heading_deg: float | None = None
+    groundspeed_mps: float | None = None
+    airspeed_mps: float | None = None
+    climb_mps: float | None = None
+    gps_fix_type: int | None = None
+    satellites_visible: int | None = None
+    h_acc_m: float | None = None
+    battery_pct: float | None = None
+    battery_voltage_v: float | None = None
+    battery_current_a: float | None = None
+    battery_consumed_wh: float | None = None
+    battery_time_remaining_s: float | None = None
+    mav_type: int | None = None
+    autopilot: int | None = None
+    is_armed: bool | None = None
+    custom_mode: int | None = None
+    system_status: int | None = None
+    active_link: str | None = None
+
+
+class LinkState(BaseModel):
+    """A change in the health of one link of one airframe."""
+
+    model_config = _FROZEN
+
+    kind: Literal[EventKind.LINK_STATE] = EventKind.LINK_STATE
+    event_id: str
+    airframe: str
+    time: AwareDatetime
+    link: str
+    is_up: bool
+    is_active: bool
+    loss_pct: float = Field(ge=0.0, le=100.0)
+    last_heard: AwareDatetime | None = None
+    reason: str
+
+
+class Detection(BaseModel):
+    """One object detected by one sensor of one airframe."""
+
+    model_config = _FROZEN
+
+    kind: Literal[EventKind.DETECTION] = EventKind.DETECTION
+    event_id: str
+    airframe: str
+    time: AwareDatetime
+    sensor: Sensor
+    object_class: str
+    subtype: str = ""
+    confidence: float = Field(ge=0.0, le=1.0)
+    position: Position
+    sigma_h_m: float = Field(ge=0.0)
+
+
+class Track(BaseModel):
+    """A fused track built from one or more detections."""
+
+    model_config = _FROZEN
+
+    kind: Literal[EventKind.TRACK] = EventKind.TRACK
+    event_id: str
+    track_id: str
+    time: AwareDatetime
+    object_class: str
+    subtype: str = ""
+    confidence: float = Field(ge=0.0, le=1.0)
+    position: Position
+    cep50_m: float = Field(ge=0.0)
+    cep90_m: float = Field(ge=0.0)
+    velocity: Velocity | None = None
+    detection_ids: tuple[str, ...] = ()
+    airframes: tuple[str, ...] = ()
+    first_seen: AwareDatetime
+    last_seen: AwareDatetime
+    hostility: Literal["hostile", "suspect", "unknown", "neutral", "friend"] = "unknown"
+    sidc: str | None = None
+
+
+class BlueForce(BaseModel):
+    """A friendly unit's reported position (from CoT, NFFI ...), used for deconfliction."""
+
+    model_config = _FROZEN
+
+    kind: Literal[EventKind.BLUE_FORCE] = EventKind.BLUE_FORCE
+    event_id: str
+    uid: str
+    time: AwareDatetime
+    callsign: str = ""
+    position: Position
+    source: str
+
+
+Event = Annotated[
+    Telemetry | LinkState | Detection | Track | BlueForce,
+    Field(discriminator="kind"),
+]
+
+#: Validates or parses any event from Python objects or JSON (``event_adapter.validate_json``).
+event_adapter: TypeAdapter[Event] = TypeAdapter(Event)
+
+
+def latest_key(event: Event) -> str:
+    """The key under which a latest-wins event replaces its predecessor."""
+    if isinstance(event, Telemetry):
+        return event.airframe
+    if isinstance(event, LinkState):
+        return f"{event.airframe}\x00{event.link}"
+    if isinstance(event, BlueForce):
+        return event.uid
+    return event.event_id

@@ -1,0 +1,1 @@
+"""Simulated Fischer 26E airframes speaking the real wire protocol."""

@@ -1,0 +1,75 @@
+"""Test doubles shipped with the gateway, for its own tests and for third-party sinks."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import anyio
+
+from gateway.errors import PermanentSinkError, TransientSinkError
+from gateway.events import Event, EventKind
+from gateway.sink import SinkConfig
+
+__all__ = ["MemorySink", "MemorySinkConfig"]
+
+
+class MemorySinkConfig(SinkConfig):
+    """Options of the in-memory sink."""
+
+    kinds: frozenset[EventKind] = frozenset(EventKind)
+    fail_transient: bool = False
+    fail_permanent: bool = False
+    hang: bool = False
+
+
+class MemorySink:
+    """A sink that keeps every event it is sent, in order, for assertions.
+
+    It can be told to fail (transiently or permanently) or to hang, which is how the tests
+    show that one bad sink does not disturb the others.
+    """
+
+    config_model = MemorySinkConfig
+
+    def __init__(self, name: str, config: MemorySinkConfig | None = None) -> None:
+        self.name = name
+        self.config = config or MemorySinkConfig()
+        self.events: list[Event] = []
+        self.batches = 0
+        self.is_open = False
+        self.fail_transient = self.config.fail_transient
+        self.fail_permanent = self.config.fail_permanent
+        self.hang = self.config.hang
+        self._changed = anyio.Event()
+
+    @property
+    def kinds(self) -> frozenset[EventKind]:
+        """Every kind, unless the config narrows it."""
+        return self.config.kinds
+
+    async def open(self) -> None:
+        """Mark the sink open."""
+        self.is_open = True
+
+    async def send(self, batch: Sequence[Event]) -> None:
+        """Record ``batch``, or fail or hang as configured."""
+        if self.hang:
+            await anyio.sleep_forever()
+        if self.fail_permanent:
+            raise PermanentSinkError("memory sink told to reject", sink=self.name)
+        if self.fail_transient:
+            raise TransientSinkError("memory sink told to fail", sink=self.name)
+        self.events.extend(batch)
+        self.batches += 1
+        self._changed.set()
+        self._changed = anyio.Event()
+
+    async def aclose(self) -> None:
+        """Mark the sink closed."""
+        self.is_open = False
+
+    async def wait_for(self, count: int) -> list[Event]:
+        """Wait until at least ``count`` events have arrived; the caller sets the deadline."""
+        while len(self.events) < count:
+            await self._changed.wait()
+        return self.events

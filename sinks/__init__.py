@@ -1,0 +1,1 @@
+"""Output sinks of fischer-gateway, one module per output system."""
