@@ -74,7 +74,7 @@ def parse_endpoint(value: object) -> Endpoint:
     if isinstance(value, Endpoint):
         return value
     if not isinstance(value, str):
-        raise ValueError(f"expected a link URI string, found {type(value).__name__}")  # noqa: TRY004 - pydantic wants ValueError
+        raise ValueError(f"expected a link URI string, found {type(value).__name__}")
     parts = urlsplit(value)
     scheme = parts.scheme
     try:

@@ -63,6 +63,6 @@ class SinkClass(Protocol):
 
     config_model: ClassVar[type[SinkConfig]]
 
-    def __call__(self, name: str, config: Any) -> Sink:  # noqa: ANN401 - each sink's own model
+    def __call__(self, name: str, config: Any) -> Sink:
         """Build the sink ``name`` from its validated options."""
         ...

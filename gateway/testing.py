@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import anyio
 
@@ -10,7 +10,7 @@ from gateway.errors import PermanentSinkError, TransientSinkError
 from gateway.events import Event, EventKind
 from gateway.sink import SinkConfig
 
-__all__ = ["MemorySink", "MemorySinkConfig"]
+__all__ = ["MemorySink", "MemorySinkConfig", "eventually"]
 
 
 class MemorySinkConfig(SinkConfig):
@@ -73,3 +73,13 @@ class MemorySink:
         while len(self.events) < count:
             await self._changed.wait()
         return self.events
+
+
+async def eventually(predicate: Callable[[], bool], *, interval_s: float = 0.005) -> None:
+    """Wait until ``predicate()`` is true; the caller sets the deadline (``fail_after``).
+
+    For conditions nothing signals, such as a metric reaching a value; prefer an event or
+    ``MemorySink.wait_for`` where one exists.
+    """
+    while not predicate():  # noqa: ASYNC110 - polls a condition that has no event to wait on
+        await anyio.sleep(interval_s)

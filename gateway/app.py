@@ -1,0 +1,177 @@
+"""The daemon: builds every component from a Config and runs them in dependency order.
+
+Start-up: sink runners, then the health endpoint, then the links; only when every link is
+bound does the gateway report started (and systemd READY=1). Shutdown follows a fixed
+order: stop ingest (close links), let the sinks drain what is queued within half the
+deadline, then cancel and close them within the rest.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping
+from datetime import UTC, datetime
+from importlib.metadata import PackageNotFoundError, version
+from typing import Any
+
+import anyio
+import anyio.abc
+import structlog
+
+from gateway.bus import Bus
+from gateway.config import Config
+from gateway.health import HealthServer
+from gateway.ingest import Ingest
+from gateway.instruments import Instruments
+from gateway.links import Link, make_link
+from gateway.normalise import Clock
+from gateway.plugins import build_sink
+from gateway.sdnotify import SystemdNotifier
+from gateway.sink import Sink
+from gateway.sinkrunner import SinkRunner
+
+__all__ = ["Gateway", "utc_now"]
+
+log = structlog.get_logger(__name__)
+
+_LINK_CHECK_INTERVAL_S = 0.25
+
+
+def utc_now() -> datetime:
+    """The wall clock, UTC-aware: the default ``Clock``."""
+    return datetime.now(UTC)
+
+
+def _version() -> str:
+    try:
+        return version("fischer-gateway")
+    except PackageNotFoundError:
+        return "unknown"
+
+
+class Gateway:
+    """One gateway node: links → ingest → bus → sink runners, plus health."""
+
+    def __init__(
+        self,
+        config: Config,
+        *,
+        sinks: Mapping[str, Sink] | None = None,
+        clock: Clock = utc_now,
+        notifier: SystemdNotifier | None = None,
+        source: str = "<config>",
+    ) -> None:
+        self.config = config
+        self.instruments = Instruments()
+        self.notifier = notifier or SystemdNotifier()
+        given = dict(sinks or {})
+        self.runners: dict[str, SinkRunner] = {}
+        for entry in config.sinks:
+            sink = given.pop(entry.name, None) or build_sink(entry.type, entry.name, entry.options)
+            self.runners[entry.name] = SinkRunner(entry, sink, self.instruments)
+        if given:
+            raise ValueError(f"sinks given for names not in the config: {sorted(given)}")
+        self.bus = Bus(config.routes, self.runners, self.instruments, source=source)
+        self.ingest = Ingest(config.airframes, self.bus.publish, self.instruments, clock)
+        self.links: dict[str, Link] = {}
+        for airframe in config.airframes:
+            for link_cfg in airframe.links:
+                key = str(link_cfg.uri)
+                if key not in self.links:
+                    link = make_link(link_cfg, self.ingest.on_data, self.ingest.forget_peer)
+                    self.links[key] = link
+                    self.ingest.register_link(link.label, link_cfg.max_frame_bytes)
+        self.health: HealthServer | None = None
+        if config.health.enabled:
+            self.health = HealthServer(
+                config.health.host,
+                config.health.port,
+                registry=self.instruments.registry,
+                status=self.status,
+                is_ready=self.is_ready,
+            )
+        self.health_port: int | None = None
+        self._shutdown = anyio.Event()
+        self.stopped = anyio.Event()
+        self._started_mono = time.monotonic()
+        self._links_up = False
+        self.log = log.bind(node=config.gateway.node_id)
+
+    def is_ready(self) -> bool:
+        """True once every link is bound and every sink is open."""
+        return (
+            self._links_up
+            and all(link.is_bound for link in self.links.values())
+            and all(runner.is_open for runner in self.runners.values())
+        )
+
+    def shutdown(self) -> None:
+        """Ask the gateway to stop; ``run`` returns once it has drained and closed."""
+        self._shutdown.set()
+
+    async def run(
+        self, *, task_status: anyio.abc.TaskStatus[None] = anyio.TASK_STATUS_IGNORED
+    ) -> None:
+        """Run until ``shutdown()``; cancellation also stops it (without the drain)."""
+        try:
+            await self._run(task_status)
+        finally:
+            self.stopped.set()
+
+    async def _run(self, task_status: anyio.abc.TaskStatus[None]) -> None:
+        deadline_s = self.config.gateway.shutdown_deadline_s
+        async with anyio.create_task_group() as outer:
+            for runner in self.runners.values():
+                await outer.start(runner.run)
+            if self.health is not None:
+                self.health_port = await outer.start(self.health.run)
+            async with anyio.create_task_group() as ingest:
+                for link in self.links.values():
+                    await ingest.start(link.run)
+                ingest.start_soon(self._watch_links)
+                self._links_up = True
+                outer.start_soon(self.notifier.run_watchdog)
+                self.notifier.ready(f"{len(self.links)} links, {len(self.runners)} sinks")
+                self.log.info(
+                    "gateway_started",
+                    version=_version(),
+                    links=len(self.links),
+                    sinks=len(self.runners),
+                    health_port=self.health_port,
+                )
+                task_status.started()
+                await self._shutdown.wait()
+                self.notifier.stopping()
+                self.log.info("gateway_stopping", deadline_s=deadline_s)
+                ingest.cancel_scope.cancel()
+            self._links_up = False
+            for runner in self.runners.values():
+                runner.stop()
+            with anyio.move_on_after(deadline_s / 2) as drain:
+                for runner in self.runners.values():
+                    await runner.wait_done()
+            if drain.cancelled_caught:
+                left = {r.name: r.depth for r in self.runners.values() if any(r.depth)}
+                self.log.error("shutdown_drain_incomplete", undelivered=left)
+            for runner in self.runners.values():
+                runner.close_timeout_s = deadline_s / 2
+            outer.cancel_scope.cancel()
+        self.log.info("gateway_stopped")
+
+    async def _watch_links(self) -> None:
+        while True:
+            self.ingest.check_links()
+            await anyio.sleep(_LINK_CHECK_INTERVAL_S)
+
+    def status(self) -> dict[str, Any]:
+        """The whole node's state, for /status."""
+        return {
+            "node_id": self.config.gateway.node_id,
+            "version": _version(),
+            "uptime_s": round(time.monotonic() - self._started_mono, 3),
+            "ready": self.is_ready(),
+            "airframes": self.ingest.status(),
+            "links": [{**link.status(), "security": "unsecured"} for link in self.links.values()],
+            "unknown_sysids": sorted(self.ingest.unknown_sysids),
+            "sinks": [runner.status() for runner in self.runners.values()],
+        }

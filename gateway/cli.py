@@ -1,0 +1,220 @@
+"""The ``fischer-gateway`` command: run, demo, check-config, config-schema, replay, simulate.
+
+This is the only module that configures logging. Exit codes: 0 success, 1 runtime failure
+(a link that cannot be opened, ...), 2 a config error (systemd does not restart on it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import sys
+from collections.abc import Awaitable, Callable, Sequence
+from importlib.resources import files
+from pathlib import Path
+from typing import Any, TextIO
+
+import anyio
+import structlog
+
+from gateway.app import Gateway
+from gateway.config import Config, load_config, load_config_text
+from gateway.errors import ConfigError, GatewayError
+from gateway.logsetup import configure_logging
+from gateway.plugins import check_sink, load_plugin
+
+__all__ = ["main"]
+
+log = structlog.get_logger(__name__)
+
+EXIT_OK, EXIT_FAILURE, EXIT_CONFIG = 0, 1, 2
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="fischer-gateway",
+        description="Gateway between the Fischer 26E fleet and C2 systems.",
+    )
+    sub = parser.add_subparsers(dest="command", required=True)
+    run = sub.add_parser("run", help="run the daemon")
+    run.add_argument("--config", type=Path, required=True, help="YAML config file")
+    demo = sub.add_parser("demo", help="the gateway and two simulated airframes, on loopback")
+    demo.add_argument("--duration", type=float, default=None, help="stop after S seconds")
+    demo.add_argument("--udp-port", type=int, default=None, help="override the demo's UDP port")
+    demo.add_argument("--health-port", type=int, default=None, help="override the health port")
+    demo.add_argument("--archive", type=Path, default=None, help="where the JSONL archive goes")
+    check = sub.add_parser("check-config", help="validate a config file; exit 2 on errors")
+    check.add_argument("file", type=Path)
+    sub.add_parser("config-schema", help="print the JSON Schema of the config")
+    replay = sub.add_parser("replay", help="send a .tlog to a gateway as an airframe would")
+    replay.add_argument("file", type=Path)
+    replay.add_argument("--to", required=True, help="udp://HOST:PORT")
+    pace = replay.add_mutually_exclusive_group()
+    pace.add_argument("--speed", type=float, default=1.0, help="recorded speed times X")
+    pace.add_argument("--fast", action="store_true", help="as fast as possible")
+    simulate = sub.add_parser("simulate", help="simulated airframes sending to a gateway")
+    simulate.add_argument("--to", required=True, help="udp://HOST:PORT")
+    simulate.add_argument("--airframes", type=int, default=2)
+    simulate.add_argument("--duration", type=float, default=None)
+    return parser
+
+
+def _print_config_error(exc: ConfigError, stream: TextIO) -> None:
+    for issue in exc.issues:
+        print(issue, file=stream)
+    print(f"{len(exc.issues)} error(s)", file=stream)
+
+
+def _check_config(path: Path) -> int:
+    try:
+        config = load_config(path, check_sink=check_sink)
+        Gateway(config, source=str(path))  # route/sink kind checks need the built sinks
+    except ConfigError as exc:
+        _print_config_error(exc, sys.stderr)
+        return EXIT_CONFIG
+    out = sys.stdout
+    print(f"{path}: ok ({len(config.airframes)} airframes, {len(config.sinks)} sinks)", file=out)
+    for entry in config.sinks:
+        plugin = load_plugin(entry.type)
+        print(
+            f"  sink {entry.name}: type {entry.type} from {plugin.distribution} {plugin.version}",
+            file=out,
+        )
+    return EXIT_OK
+
+
+async def _serve(
+    gateway: Gateway, duration_s: float | None, extra: Callable[[], Awaitable[None]] | None = None
+) -> None:
+    async with anyio.create_task_group() as tg:
+
+        async def on_signal() -> None:
+            with anyio.open_signal_receiver(signal.SIGTERM, signal.SIGINT) as signals:
+                async for signum in signals:
+                    log.info("signal_received", signal=signal.Signals(signum).name)
+                    gateway.shutdown()
+
+        async def stop_after(delay_s: float) -> None:
+            await anyio.sleep(delay_s)
+            gateway.shutdown()
+
+        tg.start_soon(on_signal)
+        await tg.start(gateway.run)
+        if extra is not None:
+            tg.start_soon(extra)
+        if duration_s is not None:
+            tg.start_soon(stop_after, duration_s)
+        await gateway.stopped.wait()
+        tg.cancel_scope.cancel()
+
+
+def _run_async(fn: Any, *args: Any) -> None:
+    try:
+        import uvloop  # noqa: F401 - optional speed-up, absent on some platforms
+
+        options: dict[str, Any] = {"use_uvloop": True}
+    except ImportError:
+        options = {}
+    anyio.run(fn, *args, backend="asyncio", backend_options=options)
+
+
+def _demo_config(args: argparse.Namespace) -> Config:
+    text = files("gateway").joinpath("defaults/demo.yaml").read_text(encoding="utf-8")
+    data = load_config_text(text, "demo.yaml").model_dump(mode="json")
+    if args.udp_port is not None:
+        for airframe in data["airframes"]:
+            for link in airframe["links"]:
+                link["uri"] = f"udp://127.0.0.1:{args.udp_port}"
+    if args.health_port is not None:
+        data["health"]["port"] = args.health_port
+    if args.archive is not None:
+        for sink in data["sinks"]:
+            if sink["type"] == "jsonl":
+                sink["options"]["path"] = str(args.archive)
+    return Config.model_validate(data)
+
+
+def _demo(args: argparse.Namespace) -> int:
+    from gateway.sim.airframe import build_demo_fleet, run_fleet
+
+    config = _demo_config(args)
+    gateway = Gateway(config, source="demo.yaml")
+    fleet = build_demo_fleet(len(config.airframes))
+
+    async def simulate() -> None:
+        link = next(iter(gateway.links.values()))
+        port = getattr(link, "local_port", 0) or link.endpoint.port
+        await run_fleet(fleet, "127.0.0.1", [port] * len(fleet), duration_s=None, speed=1.0)
+
+    _run_async(_serve, gateway, args.duration, simulate)
+    return EXIT_OK
+
+
+def _replay(args: argparse.Namespace) -> int:
+    from gateway.tlog import parse_udp_target, replay_udp
+
+    host, port = parse_udp_target(args.to)
+    speed = None if args.fast else args.speed
+    sent = anyio.run(lambda: replay_udp(args.file, host, port, speed=speed))
+    log.info("replay_finished", file=str(args.file), frames=sent)
+    return EXIT_OK
+
+
+def _simulate(args: argparse.Namespace) -> int:
+    from gateway.sim.airframe import build_demo_fleet, run_fleet
+    from gateway.tlog import parse_udp_target
+
+    host, port = parse_udp_target(args.to)
+    fleet = build_demo_fleet(args.airframes)
+    _run_async(
+        lambda: run_fleet(fleet, host, [port] * len(fleet), duration_s=args.duration, speed=1.0)
+    )
+    return EXIT_OK
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``fischer-gateway`` console script."""
+    args = _parser().parse_args(argv)
+    if args.command == "config-schema":
+        print(json.dumps(Config.model_json_schema(), indent=2))  # noqa: T201 - the output
+        return EXIT_OK
+    if args.command == "check-config":
+        return _check_config(args.file)
+    # The demo prints events on stdout (the console sink), so its logs go to stderr.
+    configure_logging(
+        "info", sys.stderr if args.command in ("demo", "replay", "simulate") else None
+    )
+    try:
+        if args.command == "run":
+            config = load_config(args.config, check_sink=check_sink)
+            configure_logging(config.gateway.log_level)
+            gateway = Gateway(config, source=str(args.config))
+            _run_async(_serve, gateway, None)
+            return EXIT_OK
+        if args.command == "demo":
+            return _demo(args)
+        if args.command == "replay":
+            return _replay(args)
+        return _simulate(args)
+    except Exception as exc:
+        config_errors = [e for e in _leaves(exc) if isinstance(e, ConfigError)]
+        failures = [e for e in _leaves(exc) if isinstance(e, GatewayError)]
+        for error in config_errors:
+            _print_config_error(error, sys.stderr)
+        if config_errors:
+            return EXIT_CONFIG
+        if not failures:
+            raise
+        for error in failures:
+            log.error("gateway_failed", error=str(error), type=type(error).__name__)
+        return EXIT_FAILURE
+    except KeyboardInterrupt:
+        return EXIT_OK
+
+
+def _leaves(exc: BaseException) -> list[BaseException]:
+    """The exceptions inside (possibly nested) exception groups from task groups."""
+    if isinstance(exc, BaseExceptionGroup):
+        return [leaf for inner in exc.exceptions for leaf in _leaves(inner)]
+    return [exc]

@@ -1,0 +1,74 @@
+"""MAVLink 1 and 2 parsing on pymavlink, bounded and with errors translated once.
+
+One ``MavlinkParser`` per byte stream (a UDP peer, a TCP connection, a serial device): the
+parser is stateful, so two senders must never share one. pymavlink's v2.0 ``ardupilotmega``
+dialect reads MAVLink 1 frames too, and real logs mix both.
+"""
+
+from __future__ import annotations
+
+import struct
+from typing import Any
+
+from pymavlink.dialects.v20 import ardupilotmega as dialect
+
+from gateway.errors import Malformed, Oversize
+
+__all__ = ["MAX_FRAME_BYTES", "MavMessage", "MavlinkParser", "dialect"]
+
+#: 10-byte header + 255 payload + 2 CRC + 13 signature: nothing longer is one MAVLink frame.
+MAX_FRAME_BYTES = 280
+
+MavMessage = Any
+"""A pymavlink message object (pymavlink is untyped); never passes ``normalise``."""
+
+_BAD_TYPES = frozenset({"BAD_DATA"})
+
+
+class MavlinkParser:
+    """Turns chunks of bytes from one stream into MAVLink messages.
+
+    ``feed`` returns the good messages and counts what was not: ``bad`` (CRC or framing
+    failures, garbage bytes) and ``unknown`` (a message id this dialect does not know, whose
+    CRC cannot be checked). It raises ``Oversize`` for a chunk over ``max_chunk_bytes`` and
+    never lets a pymavlink exception escape: those become ``Malformed`` after the parser
+    state is reset.
+    """
+
+    __slots__ = ("_mav", "bad", "max_chunk_bytes", "unknown")
+
+    def __init__(self, *, max_chunk_bytes: int = 2048) -> None:
+        self.max_chunk_bytes = max_chunk_bytes
+        self.bad = 0
+        self.unknown = 0
+        self._mav = self._new_mav()
+
+    @staticmethod
+    def _new_mav() -> Any:
+        mav = dialect.MAVLink(None, srcSystem=0, srcComponent=0)
+        mav.robust_parsing = True
+        return mav
+
+    def feed(self, data: bytes) -> list[MavMessage]:
+        """Parse ``data``; return the complete, CRC-checked messages it finished."""
+        if len(data) > self.max_chunk_bytes:
+            raise Oversize(len(data), self.max_chunk_bytes)
+        try:
+            parsed = self._mav.parse_buffer(data)
+        except (dialect.MAVError, struct.error, IndexError, ValueError, TypeError) as exc:
+            # pymavlink's buffer is in an unknown state after it raised: start clean.
+            self._mav = self._new_mav()
+            self.bad += 1
+            raise Malformed(f"MAVLink parse failed: {type(exc).__name__}") from exc
+        if not parsed:
+            return []
+        good: list[MavMessage] = []
+        for msg in parsed:
+            name = msg.get_type()
+            if name in _BAD_TYPES:
+                self.bad += 1
+            elif name.startswith("UNKNOWN_"):
+                self.unknown += 1
+            else:
+                good.append(msg)
+        return good

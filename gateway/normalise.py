@@ -1,0 +1,166 @@
+"""MAVLink messages to typed events: the per-airframe state that merges the latest fields.
+
+This is the one place where values from the wire are checked: MAVLink's "unknown" sentinels
+(-1, UINT16_MAX, 0 for optional extensions, NaN) become None, units become SI, and a position
+of exactly 0,0 (an autopilot without a fix) becomes no position. After this, events are trusted.
+"""
+
+from __future__ import annotations
+
+import math
+import secrets
+from collections.abc import Callable
+from datetime import datetime
+from typing import Any
+
+from gateway.events import Attitude, Position, Telemetry, Velocity
+from gateway.mavlink import MavMessage
+
+__all__ = ["NORMALISED_TYPES", "AirframeState", "Clock"]
+
+Clock = Callable[[], datetime]
+"""Returns the current UTC-aware time; injected so tests control it."""
+
+_UINT16_MAX = 0xFFFF
+_MAV_AUTOPILOT_INVALID = 8
+_MAV_MODE_FLAG_SAFETY_ARMED = 128
+_BOOT_ID = secrets.token_hex(4)
+
+#: The MAVLink messages that change an airframe's Telemetry.
+NORMALISED_TYPES = frozenset(
+    {
+        "HEARTBEAT",
+        "SYS_STATUS",
+        "GLOBAL_POSITION_INT",
+        "GPS_RAW_INT",
+        "ATTITUDE",
+        "VFR_HUD",
+        "BATTERY_STATUS",
+    }
+)
+
+
+def _finite(value: float) -> float | None:
+    return value if math.isfinite(value) else None
+
+
+class AirframeState:
+    """The merged latest state of one airframe, and the Telemetry it yields.
+
+    ``apply`` takes one message of a type in ``NORMALISED_TYPES`` and returns a fresh
+    Telemetry snapshot; the state is only ever read and written from the event loop.
+    """
+
+    def __init__(self, airframe: str, clock: Clock) -> None:
+        self.airframe = airframe
+        self._clock = clock
+        self._seq = 0
+        self._fields: dict[str, Any] = {}
+        self._geoid_sep_m: float | None = None
+        self._handlers: dict[str, Callable[[MavMessage], None]] = {
+            "HEARTBEAT": self._heartbeat,
+            "SYS_STATUS": self._sys_status,
+            "GLOBAL_POSITION_INT": self._global_position,
+            "GPS_RAW_INT": self._gps_raw,
+            "ATTITUDE": self._attitude,
+            "VFR_HUD": self._vfr_hud,
+            "BATTERY_STATUS": self._battery_status,
+        }
+        self.active_link: str | None = None
+
+    def apply(self, name: str, msg: MavMessage) -> Telemetry | None:
+        """Merge ``msg`` (of type ``name``) and return the new snapshot, or None if ignored."""
+        handler = self._handlers.get(name)
+        if handler is None or handler(msg) is False:
+            return None
+        self._seq += 1
+        return Telemetry(
+            event_id=f"{self.airframe}-tel-{_BOOT_ID}-{self._seq}",
+            airframe=self.airframe,
+            time=self._clock(),
+            active_link=self.active_link,
+            **self._fields,
+        )
+
+    def _heartbeat(self, msg: MavMessage) -> bool:
+        # Ground stations and companion computers send heartbeats under the same sysid;
+        # only the autopilot's describes the vehicle.
+        if msg.autopilot == _MAV_AUTOPILOT_INVALID:
+            return False
+        f = self._fields
+        f["mav_type"] = msg.type
+        f["autopilot"] = msg.autopilot
+        f["is_armed"] = bool(msg.base_mode & _MAV_MODE_FLAG_SAFETY_ARMED)
+        f["custom_mode"] = msg.custom_mode
+        f["system_status"] = msg.system_status
+        return True
+
+    def _sys_status(self, msg: MavMessage) -> bool:
+        f = self._fields
+        f["battery_voltage_v"] = (
+            None if msg.voltage_battery == _UINT16_MAX else msg.voltage_battery / 1000.0
+        )
+        f["battery_current_a"] = None if msg.current_battery == -1 else msg.current_battery / 100.0
+        f["battery_pct"] = None if msg.battery_remaining < 0 else float(msg.battery_remaining)
+        return True
+
+    def _global_position(self, msg: MavMessage) -> bool:
+        f = self._fields
+        if msg.lat == 0 and msg.lon == 0:
+            f["position"] = None
+        else:
+            alt_msl_m = msg.alt / 1000.0
+            sep = self._geoid_sep_m
+            f["position"] = Position(
+                lat_deg=msg.lat / 1e7,
+                lon_deg=msg.lon / 1e7,
+                alt_msl_m=alt_msl_m,
+                alt_hae_m=None if sep is None else alt_msl_m + sep,
+                alt_rel_home_m=msg.relative_alt / 1000.0,
+            )
+        f["velocity"] = Velocity(
+            north_mps=msg.vx / 100.0, east_mps=msg.vy / 100.0, down_mps=msg.vz / 100.0
+        )
+        if msg.hdg != _UINT16_MAX:
+            f["heading_deg"] = msg.hdg / 100.0
+        return True
+
+    def _gps_raw(self, msg: MavMessage) -> bool:
+        f = self._fields
+        f["gps_fix_type"] = msg.fix_type
+        f["satellites_visible"] = None if msg.satellites_visible == 255 else msg.satellites_visible
+        # alt_ellipsoid and h_acc are MAVLink 2 extensions: absent (0) from MAVLink 1 senders.
+        alt_ellipsoid = getattr(msg, "alt_ellipsoid", 0)
+        if alt_ellipsoid and msg.fix_type >= 3:
+            self._geoid_sep_m = (alt_ellipsoid - msg.alt) / 1000.0
+        h_acc = getattr(msg, "h_acc", 0)
+        f["h_acc_m"] = h_acc / 1000.0 if h_acc else None
+        return True
+
+    def _attitude(self, msg: MavMessage) -> bool:
+        roll, pitch, yaw = _finite(msg.roll), _finite(msg.pitch), _finite(msg.yaw)
+        if roll is None or pitch is None or yaw is None:
+            return False
+        self._fields["attitude"] = Attitude(roll_rad=roll, pitch_rad=pitch, yaw_rad=yaw)
+        return True
+
+    def _vfr_hud(self, msg: MavMessage) -> bool:
+        f = self._fields
+        f["airspeed_mps"] = _finite(msg.airspeed)
+        f["groundspeed_mps"] = _finite(msg.groundspeed)
+        f["climb_mps"] = _finite(msg.climb)
+        return True
+
+    def _battery_status(self, msg: MavMessage) -> bool:
+        f = self._fields
+        if msg.battery_remaining >= 0:
+            f["battery_pct"] = float(msg.battery_remaining)
+        if msg.current_battery != -1:
+            f["battery_current_a"] = msg.current_battery / 100.0
+        # energy_consumed is in hectojoules: 1 hJ = 100 J = 1/36 Wh.
+        f["battery_consumed_wh"] = (
+            None if msg.energy_consumed == -1 else msg.energy_consumed * 100.0 / 3600.0
+        )
+        time_remaining = getattr(msg, "time_remaining", 0)
+        f["battery_time_remaining_s"] = float(time_remaining) if time_remaining else None
+        return True

@@ -1,0 +1,206 @@
+"""Config loading: every problem reported with file, line and key path."""
+
+from __future__ import annotations
+
+import json
+import textwrap
+from pathlib import Path
+
+import pytest
+
+from gateway.cli import main
+from gateway.config import Config, load_config, load_config_text, parse_endpoint
+from gateway.errors import ConfigError
+from gateway.plugins import check_sink
+
+GOOD = textwrap.dedent(
+    """\
+    gateway:
+      node_id: node-1
+    airframes:
+      - id: F26E-001
+        sysid: 1
+        links:
+          - uri: udp://127.0.0.1:14550
+      - id: F26E-002
+        sysid: 2
+        links:
+          - uri: tcp://10.0.0.2:5760
+            priority: 1
+          - uri: serial:///dev/ttyUSB0?baud=115200
+    sinks:
+      - name: archive
+        type: jsonl
+        options:
+          path: /tmp/archive.jsonl
+      - name: mem
+        type: memory
+    routes:
+      - sinks: [archive, mem]
+        kinds: [telemetry, detection]
+        airframes: [F26E-001]
+        max_rate_hz: 1
+    """
+)
+
+BAD = textwrap.dedent(
+    """\
+    gateway:
+      node_id: node-1
+    airframes:
+      - id: F26E-001
+        sysid: 1
+        links:
+          - uri: udp://127.0.0.1:14550
+            priorty: 2
+      - id: F26E-002
+        sysid: 1
+        links:
+          - uri: htp://10.0.0.2:5760
+    sinks:
+      - name: mem
+        type: memory
+    routes:
+      - sinks: [mem, nowhere]
+    """
+)
+
+
+class TestLoad:
+    """Loading a valid config and reading its values."""
+
+    def test_good_config_loads_with_parsed_links(self) -> None:
+        config = load_config_text(GOOD, "good.yaml", check_sink=check_sink)
+        assert config.gateway.node_id == "node-1"
+        tcp = config.airframes[1].links[0].uri
+        assert (tcp.scheme, tcp.mode, tcp.host, tcp.port) == ("tcp", "connect", "10.0.0.2", 5760)
+        serial = config.airframes[1].links[1].uri
+        assert (serial.device, serial.baud) == ("/dev/ttyUSB0", 115200)
+        assert config.routes[0].max_rate_hz == 1
+
+    def test_config_is_frozen(self) -> None:
+        config = load_config_text(GOOD)
+        with pytest.raises(ValueError, match="frozen"):
+            config.gateway.node_id = "x"  # type: ignore[misc]
+
+    def test_empty_file_gives_defaults(self) -> None:
+        assert load_config_text("") == Config()
+
+
+class TestErrors:
+    """Every error is reported, each with its line and key path."""
+
+    def test_typo_bad_uri_and_duplicate_sysid_are_all_reported_with_lines(self) -> None:
+        with pytest.raises(ConfigError) as info:
+            load_config_text(BAD, "bad.yaml")
+        by_key = {issue.key_path: issue for issue in info.value.issues}
+        assert by_key["airframes[0].links[0].priorty"].line == 8
+        assert "unknown key 'priorty'" in by_key["airframes[0].links[0].priorty"].message
+        assert by_key["airframes[1].sysid"].line == 10
+        assert "duplicate sysid 1" in by_key["airframes[1].sysid"].message
+        assert by_key["airframes[1].links[0].uri"].line == 12
+        assert "expected udp://, tcp:// or serial://" in by_key["airframes[1].links[0].uri"].message
+        assert "htp://10.0.0.2:5760" in by_key["airframes[1].links[0].uri"].message
+        assert by_key["routes[0].sinks[1]"].line == 17
+        assert str(by_key["airframes[1].sysid"]).startswith("bad.yaml:10 airframes[1].sysid: ")
+
+    def test_unknown_sink_type_and_bad_options_are_reported(self) -> None:
+        text = textwrap.dedent(
+            """\
+            sinks:
+              - name: a
+                type: nosuchsink
+              - name: b
+                type: jsonl
+                options:
+                  path: /tmp/x.jsonl
+                  max_bytez: 10
+            """
+        )
+        with pytest.raises(ConfigError) as info:
+            load_config_text(text, "s.yaml", check_sink=check_sink)
+        by_key = {issue.key_path: issue for issue in info.value.issues}
+        assert by_key["sinks[0].type"].line == 3
+        assert "unknown sink type 'nosuchsink'" in by_key["sinks[0].type"].message
+        assert "jsonl" in by_key["sinks[0].type"].message
+        assert by_key["sinks[1].options.max_bytez"].line == 8
+
+    def test_duplicate_yaml_key_is_an_error(self) -> None:
+        with pytest.raises(ConfigError) as info:
+            load_config_text("gateway:\n  node_id: a\n  node_id: b\n", "d.yaml")
+        (issue,) = info.value.issues
+        assert (issue.line, issue.key_path) == (3, "gateway.node_id")
+
+    def test_invalid_yaml_names_the_line(self) -> None:
+        with pytest.raises(ConfigError) as info:
+            load_config_text("gateway:\n  node_id: [unclosed\n", "y.yaml")
+        assert info.value.issues[0].line is not None
+
+    def test_missing_file_is_a_config_error(self, tmp_path: Path) -> None:
+        with pytest.raises(ConfigError, match="cannot read"):
+            load_config(tmp_path / "absent.yaml")
+
+    @pytest.mark.parametrize(
+        ("uri", "expected"),
+        [
+            ("udp://127.0.0.1", "HOST:PORT"),
+            ("udp://127.0.0.1:99999", "port"),
+            ("udp://127.0.0.1:14550?mode=sideways", "mode=listen or mode=connect"),
+            ("tcp://127.0.0.1:1?baud=9600", "only 'mode'"),
+            ("serial://dev/ttyUSB0", "serial:///dev/DEVICE"),
+            ("serial:///dev/ttyUSB0?baud=fast", "baud"),
+        ],
+    )
+    def test_bad_uris_say_what_was_expected(self, uri: str, expected: str) -> None:
+        with pytest.raises(ValueError, match=expected):
+            parse_endpoint(uri)
+
+
+class TestCli:
+    """check-config and config-schema as an operator runs them."""
+
+    def test_check_config_exits_2_and_prints_every_error(
+        self, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    ) -> None:
+        path = tmp_path / "bad.yaml"
+        path.write_text(BAD)
+        assert main(["check-config", str(path)]) == 2
+        err = capsys.readouterr().err
+        assert f"{path}:8 airframes[0].links[0].priorty" in err
+        assert f"{path}:10 airframes[1].sysid" in err
+        assert f"{path}:12 airframes[1].links[0].uri" in err
+        assert "4 error(s)" in err
+
+    def test_check_config_lists_sinks_with_distribution(
+        self, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    ) -> None:
+        path = tmp_path / "good.yaml"
+        path.write_text(GOOD)
+        assert main(["check-config", str(path)]) == 0
+        out = capsys.readouterr().out
+        assert "sink archive: type jsonl from fischer-gateway 0.1.0" in out
+        assert "sink mem: type memory from fischer-gateway" in out
+
+    def test_route_sending_a_kind_the_sink_refuses_is_an_error(
+        self, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    ) -> None:
+        path = tmp_path / "kinds.yaml"
+        path.write_text(
+            "sinks:\n  - name: m\n    type: memory\n    options: {kinds: [telemetry]}\n"
+            "routes:\n  - sinks: [m]\n    kinds: [detection]\n"
+        )
+        assert main(["check-config", str(path)]) == 2
+        assert "does not accept 'detection'" in capsys.readouterr().err
+
+    def test_config_schema_is_json_schema_of_the_models(
+        self, capsys: pytest.CaptureFixture[str]
+    ) -> None:
+        assert main(["config-schema"]) == 0
+        schema = json.loads(capsys.readouterr().out)
+        assert set(schema["properties"]) == {"gateway", "health", "airframes", "sinks", "routes"}
+        assert schema["$defs"]["LinkConfig"]["properties"]["uri"]["type"] == "string"
+
+    def test_example_config_is_valid(self) -> None:
+        example = Path(__file__).parents[2] / "config" / "example.yaml"
+        config = load_config(example, check_sink=check_sink)
+        assert config.airframes
