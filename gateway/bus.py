@@ -97,9 +97,14 @@ class Bus:
         for i, route in enumerate(self._routes):
             if route.kinds is not None and kind not in route.kinds:
                 continue
-            if route.airframes is not None and airframes is not None and "*" not in route.airframes:
-                if not any(a in route.airframes for a in airframes):
-                    continue
+            wanted = route.airframes
+            if (
+                wanted is not None
+                and airframes is not None
+                and "*" not in wanted
+                and not any(a in wanted for a in airframes)
+            ):
+                continue
             if route.classes is not None and cls is not None and cls not in route.classes:
                 continue
             for name in route.sinks:

@@ -269,7 +269,7 @@ def _found(value: object) -> str:
 
 def _issues_from_validation(exc: ValidationError, prefix: Loc) -> Iterator[tuple[Loc, str]]:
     for error in exc.errors():
-        loc: Loc = (*prefix, *(p for p in error["loc"] if isinstance(p, str | int)))
+        loc: Loc = (*prefix, *error["loc"])
         message = error["msg"].removeprefix("Value error, ")
         if error["type"] == "extra_forbidden":
             message = f"unknown key '{loc[-1]}' (a typo?); expected one of the documented keys"
@@ -333,7 +333,7 @@ def _cross_check(data: dict[str, Any]) -> Iterator[tuple[Loc, str]]:
 
 
 SinkChecker = Callable[[str, dict[str, Any]], None]
-"""Validates one sink's ``type`` and ``options``; raises ``ValidationError`` or ``SinkLoadError``."""
+"""Checks a sink's ``type`` and ``options``; raises ``ValidationError`` or ``SinkLoadError``."""
 
 
 def _sink_issues(data: dict[str, Any], check_sink: SinkChecker) -> Iterator[tuple[Loc, str]]:

@@ -17,7 +17,6 @@ import os
 import random
 import socket
 from collections.abc import Callable
-from typing import Any
 
 import anyio
 import anyio.abc
@@ -80,7 +79,7 @@ class _DatagramProtocol(asyncio.DatagramProtocol):
     def __init__(self, link: UdpLink) -> None:
         self.link = link
 
-    def datagram_received(self, data: bytes, addr: tuple[str | Any, int]) -> None:
+    def datagram_received(self, data: bytes, addr: tuple[str, int]) -> None:
         self.link.peers.add(addr)
         self.link.on_data(self.link.label, addr, data)
 
@@ -93,7 +92,7 @@ class UdpLink(Link):
 
     def __init__(self, config: LinkConfig, on_data: DataHandler, on_close: CloseHandler) -> None:
         super().__init__(config, on_data, on_close)
-        self.peers: set[object] = set()
+        self.peers: set[tuple[str, int]] = set()
         self._transport: asyncio.DatagramTransport | None = None
 
     async def run(

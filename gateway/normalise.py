@@ -57,7 +57,7 @@ class AirframeState:
         self._seq = 0
         self._fields: dict[str, Any] = {}
         self._geoid_sep_m: float | None = None
-        self._handlers: dict[str, Callable[[MavMessage], None]] = {
+        self._handlers: dict[str, Callable[[MavMessage], bool]] = {
             "HEARTBEAT": self._heartbeat,
             "SYS_STATUS": self._sys_status,
             "GLOBAL_POSITION_INT": self._global_position,
@@ -71,7 +71,7 @@ class AirframeState:
     def apply(self, name: str, msg: MavMessage) -> Telemetry | None:
         """Merge ``msg`` (of type ``name``) and return the new snapshot, or None if ignored."""
         handler = self._handlers.get(name)
-        if handler is None or handler(msg) is False:
+        if handler is None or not handler(msg):
             return None
         self._seq += 1
         return Telemetry(

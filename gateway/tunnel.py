@@ -1,0 +1,298 @@
+"""The AES-256-GCM tunnel between an airframe and the gateway: day keys, sealing, replay.
+
+Frame layout (all integers big-endian; docs/tunnel.md has the rationale)::
+
+    0   magic        2  b"F6"
+    2   version      1  1
+    3   key_day      2  days since 1970-01-01 (UTC) of the day key that sealed it
+    5   id_len       1  1..64
+    6   airframe id  id_len bytes, ASCII
+    .   sent_ms      6  sender's UTC clock, milliseconds since 1970
+    .   nonce       12  8-byte random session salt ‖ 4-byte counter
+    .   ciphertext   n  the MAVLink frame(s)
+    .   tag         16  GCM tag
+
+Everything before the ciphertext is the AEAD's associated data, so any change to the header
+fails authentication. Day keys are ``HKDF-SHA256(master, salt=b"YYYY-MM-DD", info=id)``;
+an airframe holds only its own day keys. A frame is accepted only if its key day is today,
+yesterday within the grace window after 00:00 UTC, or tomorrow within the clock-skew
+allowance; its ``sent_ms`` is within the freshness window of the receiver's clock; and its
+(session, counter) has not been seen (a sliding window per airframe, link and session).
+Sessions idle for longer than the freshness window are forgotten: their frames are too old
+to be accepted anyway, so forgetting them cannot re-open a replay.
+"""
+
+from __future__ import annotations
+
+import os
+import struct
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from datetime import UTC, date, datetime, timedelta
+
+from cryptography.exceptions import InvalidTag
+from cryptography.hazmat.primitives import hashes
+from cryptography.hazmat.primitives.ciphers.aead import AESGCM
+from cryptography.hazmat.primitives.kdf.hkdf import HKDF
+
+from gateway.errors import AuthenticationFailed, Malformed, Oversize, Replayed
+
+__all__ = [
+    "MAGIC",
+    "MAX_ID_BYTES",
+    "OVERHEAD_BYTES",
+    "DayKeys",
+    "ReplayWindow",
+    "Sealer",
+    "TunnelOpener",
+    "day_number",
+    "derive_day_key",
+]
+
+MAGIC = b"F6"
+VERSION = 1
+MAX_ID_BYTES = 64
+_EPOCH = date(1970, 1, 1)
+_TAG = 16
+_NONCE = 12
+_FIXED = struct.Struct(">2sBHB")  # magic, version, key_day, id_len
+#: Bytes a sealed frame adds to its payload, for an airframe id of 8 bytes.
+OVERHEAD_BYTES = _FIXED.size + 8 + 6 + _NONCE + _TAG
+
+Clock = Callable[[], datetime]
+
+
+def day_number(day: date) -> int:
+    """Days since 1970-01-01: the key day as written in frames."""
+    return (day - _EPOCH).days
+
+
+def derive_day_key(master: bytes, airframe: str, day: date) -> bytes:
+    """The 32-byte AES key of ``airframe`` for the UTC ``day``."""
+    if len(master) < 32:
+        raise ValueError("the master key must be at least 32 bytes")
+    hkdf = HKDF(
+        algorithm=hashes.SHA256(),
+        length=32,
+        salt=day.isoformat().encode("ascii"),
+        info=airframe.encode("ascii"),
+    )
+    return hkdf.derive(master)
+
+
+class DayKeys:
+    """Where an endpoint's day keys come from: the master (gateway) or a key set (airframe).
+
+    ``key(airframe, day)`` returns None when this holder has no key for that pair, which
+    the opener treats as an authentication failure.
+    """
+
+    def __init__(
+        self,
+        *,
+        master: bytes | None = None,
+        keys: Mapping[tuple[str, date], bytes] | None = None,
+    ) -> None:
+        if (master is None) == (keys is None):
+            raise ValueError("give either a master key or a set of day keys")
+        self._master = master
+        self._keys = dict(keys or {})
+        self._cache: dict[tuple[str, int], AESGCM] = {}
+
+    def aead(self, airframe: str, day: date) -> AESGCM | None:
+        """The cipher for (airframe, day), derived once and cached."""
+        cache_key = (airframe, day_number(day))
+        cipher = self._cache.get(cache_key)
+        if cipher is None:
+            if self._master is not None:
+                key: bytes | None = derive_day_key(self._master, airframe, day)
+            else:
+                key = self._keys.get((airframe, day))
+            if key is None:
+                return None
+            if len(self._cache) > 4096:
+                self._cache.clear()
+            cipher = AESGCM(key)
+            self._cache[cache_key] = cipher
+        return cipher
+
+
+class Sealer:
+    """Seals outgoing payloads for one airframe; one per sending endpoint and process."""
+
+    def __init__(self, airframe: str, keys: DayKeys, clock: Clock) -> None:
+        raw_id = airframe.encode("ascii")
+        if not 1 <= len(raw_id) <= MAX_ID_BYTES:
+            raise ValueError(f"airframe id must be 1..{MAX_ID_BYTES} ASCII bytes")
+        self.airframe = airframe
+        self._id = raw_id
+        self._keys = keys
+        self._clock = clock
+        self._new_session()
+
+    def _new_session(self) -> None:
+        self._salt = os.urandom(8)
+        self._counter = 0
+
+    def seal(self, payload: bytes) -> bytes:
+        """Encrypt and authenticate ``payload`` under today's key."""
+        now = self._clock()
+        day = now.date()
+        cipher = self._keys.aead(self.airframe, day)
+        if cipher is None:
+            raise AuthenticationFailed(f"no day key for {self.airframe} on {day}")
+        if self._counter >= 0xFFFFFFFF:
+            # A nonce must never repeat under one key: a fresh random salt starts a new session.
+            self._new_session()
+        self._counter += 1
+        nonce = self._salt + self._counter.to_bytes(4, "big")
+        sent_ms = int(now.timestamp() * 1000)
+        header = (
+            _FIXED.pack(MAGIC, VERSION, day_number(day), len(self._id))
+            + self._id
+            + sent_ms.to_bytes(6, "big")
+            + nonce
+        )
+        return header + cipher.encrypt(nonce, payload, header)
+
+
+@dataclass(slots=True)
+class ReplayWindow:
+    """A sliding window over the counters of one session (RFC 4303 style bitmap)."""
+
+    size: int = 1024
+    highest: int = 0
+    bitmap: int = 0
+    last_seen_ms: int = 0
+
+    def check(self, counter: int) -> bool:
+        """True if ``counter`` is new and inside the window (does not record it)."""
+        if counter > self.highest:
+            return True
+        offset = self.highest - counter
+        return offset < self.size and not (self.bitmap >> offset) & 1
+
+    def record(self, counter: int) -> None:
+        """Mark ``counter`` as seen; call only after the frame authenticated."""
+        if counter > self.highest:
+            shift = counter - self.highest
+            self.bitmap = ((self.bitmap << shift) | 1) & ((1 << self.size) - 1)
+            self.highest = counter
+        else:
+            self.bitmap |= 1 << (self.highest - counter)
+
+
+@dataclass(frozen=True, slots=True)
+class Opened:
+    """An authenticated frame: who sent it and the plaintext."""
+
+    airframe: str
+    payload: bytes
+    key_day: date
+    sent: datetime
+
+
+@dataclass(slots=True)
+class _Sessions:
+    windows: dict[bytes, ReplayWindow] = field(default_factory=dict)
+
+
+class TunnelOpener:
+    """Authenticates and decrypts frames from many airframes; fails closed.
+
+    ``open_frame`` raises ``Malformed``, ``Oversize``, ``AuthenticationFailed`` (bad tag,
+    unknown airframe, key day outside the accepted range) or ``Replayed`` (seen before, or
+    too old); it never returns unauthenticated data. Replay state is kept per ``stream``
+    (the caller passes the link), so a frame duplicated on two links passes once per link
+    and link-level de-duplication decides.
+    """
+
+    def __init__(
+        self,
+        keys: DayKeys,
+        airframes: frozenset[str],
+        clock: Clock,
+        *,
+        grace_s: float = 600.0,
+        skew_s: float = 120.0,
+        freshness_s: float = 30.0,
+        max_frame_bytes: int = 2048,
+    ) -> None:
+        self._keys = keys
+        self._airframes = airframes
+        self._clock = clock
+        self.grace_s = grace_s
+        self.skew_s = skew_s
+        self.freshness_s = freshness_s
+        self.max_frame_bytes = max_frame_bytes
+        self._streams: dict[tuple[object, str], _Sessions] = {}
+
+    def accepted_days(self, now: datetime) -> tuple[date, ...]:
+        """The key days a frame may use at ``now``: today, plus neighbours near midnight."""
+        today = now.date()
+        days = [today]
+        midnight = datetime(today.year, today.month, today.day, tzinfo=UTC)
+        if (now - midnight).total_seconds() <= self.grace_s:
+            days.append(today - timedelta(days=1))
+        if (midnight + timedelta(days=1) - now).total_seconds() <= self.skew_s:
+            days.append(today + timedelta(days=1))
+        return tuple(days)
+
+    def open_frame(self, frame: bytes, stream: object = None) -> Opened:
+        """Authenticate ``frame`` (from link ``stream``) and return its plaintext."""
+        if len(frame) > self.max_frame_bytes:
+            raise Oversize(len(frame), self.max_frame_bytes)
+        if len(frame) < _FIXED.size:
+            raise Malformed("shorter than a tunnel header")
+        magic, version, key_day, id_len = _FIXED.unpack_from(frame)
+        if magic != MAGIC:
+            raise Malformed("not a tunnel frame (bad magic)")
+        if version != VERSION:
+            raise Malformed(f"tunnel version {version} is not supported")
+        id_end = _FIXED.size + id_len
+        header_end = id_end + 6 + _NONCE
+        if id_len == 0 or id_len > MAX_ID_BYTES or len(frame) < header_end + _TAG:
+            raise Malformed("tunnel header lengths are inconsistent")
+        try:
+            airframe = frame[_FIXED.size : id_end].decode("ascii")
+        except UnicodeDecodeError as exc:
+            raise Malformed("airframe id is not ASCII") from exc
+        if airframe not in self._airframes:
+            raise AuthenticationFailed("frame from an unknown airframe")
+        now = self._clock()
+        day = _EPOCH + timedelta(days=key_day)
+        if day not in self.accepted_days(now):
+            raise AuthenticationFailed("key day outside the accepted range")
+        cipher = self._keys.aead(airframe, day)
+        if cipher is None:
+            raise AuthenticationFailed("no key for this airframe and day")
+        header = frame[:header_end]
+        nonce = frame[id_end + 6 : header_end]
+        sent_ms = int.from_bytes(frame[id_end : id_end + 6], "big")
+        sessions = self._streams.setdefault((stream, airframe), _Sessions())
+        salt, counter = nonce[:8], int.from_bytes(nonce[8:], "big")
+        window = sessions.windows.get(salt)
+        if window is not None and not window.check(counter):
+            raise Replayed("frame counter already seen or behind the window")
+        try:
+            payload = cipher.decrypt(nonce, frame[header_end:], header)
+        except InvalidTag as exc:
+            raise AuthenticationFailed("authentication tag did not verify") from exc
+        # Freshness is judged only after authentication, so a forged timestamp costs nothing.
+        now_ms = int(now.timestamp() * 1000)
+        if abs(now_ms - sent_ms) > self.freshness_s * 1000:
+            raise Replayed("frame is older (or newer) than the freshness window")
+        if window is None:
+            self._forget_idle(sessions, now_ms)
+            window = ReplayWindow()
+            sessions.windows[salt] = window
+        window.record(counter)
+        window.last_seen_ms = now_ms
+        sent = datetime.fromtimestamp(sent_ms / 1000, tz=UTC)
+        return Opened(airframe, payload, day, sent)
+
+    def _forget_idle(self, sessions: _Sessions, now_ms: int) -> None:
+        limit = self.freshness_s * 1000 * 2
+        idle = [s for s, w in sessions.windows.items() if now_ms - w.last_seen_ms > limit]
+        for salt in idle:
+            del sessions.windows[salt]

@@ -1,0 +1,83 @@
+"""The Sink contract, run over every sink installed under the entry-point group."""
+
+from __future__ import annotations
+
+import re
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import anyio
+import pytest
+from pydantic import ValidationError
+
+from gateway.errors import SinkLoadError
+from gateway.events import EventKind, Position, Telemetry
+from gateway.plugins import GROUP, available, build_sink, load_plugin
+from gateway.sink import Sink, SinkConfig
+
+ROOT = Path(__file__).resolve().parents[2]
+SINK_TYPES = sorted(available())
+
+#: Options that let each built-in sink run inside a test's temporary directory.
+OPTIONS: dict[str, Any] = {"jsonl": lambda tmp: {"path": str(tmp / "contract.jsonl")}}
+
+
+def options_for(type_name: str, tmp_path: Path) -> dict[str, Any]:
+    make = OPTIONS.get(type_name)
+    return make(tmp_path) if make else {}
+
+
+def test_builtin_sinks_are_registered_as_entry_points() -> None:
+    assert {"console", "jsonl", "memory"} <= set(SINK_TYPES)
+
+
+@pytest.mark.parametrize("type_name", SINK_TYPES)
+def test_sink_declares_a_frozen_strict_config_model(type_name: str) -> None:
+    plugin = load_plugin(type_name)
+    assert issubclass(plugin.factory.config_model, SinkConfig)
+    with pytest.raises(ValidationError, match="Extra inputs"):
+        plugin.factory.config_model.model_validate({"no_such_option_anywhere": 1})
+
+
+@pytest.mark.parametrize("type_name", SINK_TYPES)
+def test_sink_opens_takes_a_batch_and_closes(type_name: str, tmp_path: Path) -> None:
+    sink = build_sink(type_name, f"contract-{type_name}", options_for(type_name, tmp_path))
+    assert isinstance(sink, Sink)
+    assert sink.kinds <= frozenset(EventKind)
+    assert EventKind.TELEMETRY in sink.kinds
+    event = Telemetry(
+        event_id="c-1",
+        airframe="F26E-001",
+        time=datetime(2026, 11, 22, 12, tzinfo=UTC),
+        position=Position(lat_deg=65.8, lon_deg=21.7, alt_msl_m=250.0),
+    )
+
+    async def exercise() -> None:
+        with anyio.fail_after(5):
+            await sink.open()
+            await sink.send([event])
+            await sink.aclose()
+
+    anyio.run(exercise)
+
+
+@pytest.mark.parametrize("type_name", SINK_TYPES)
+def test_every_sink_has_a_test_module_and_a_readme_entry(type_name: str) -> None:
+    plugin = load_plugin(type_name)
+    if plugin.distribution != "fischer-gateway":
+        pytest.skip("third-party sink")
+    readme = (ROOT / "README.md").read_text()
+    assert re.search(rf"\*\*`{type_name}`\*\*", readme), f"README has no entry for {type_name}"
+    if type_name != "memory":
+        assert (ROOT / "tests" / "sinks" / f"test_{type_name}.py").exists()
+
+
+def test_unknown_sink_type_names_the_installed_ones() -> None:
+    with pytest.raises(SinkLoadError, match=r"unknown sink type 'nope'.*jsonl"):
+        load_plugin("nope")
+
+
+def test_group_name_is_the_documented_one() -> None:
+    assert GROUP == "fischer_gateway.sinks"
+    assert 'entry-points."fischer_gateway.sinks"' in (ROOT / "pyproject.toml").read_text()
