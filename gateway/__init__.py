@@ -6,7 +6,7 @@ everything else is internal and may change.
 
 from gateway.app import Gateway as Gateway
 from gateway.config import Config as Config
-from gateway.config import load_config as load_config
+from gateway.configfile import load_config as load_config
 from gateway.errors import GatewayError as GatewayError
 from gateway.errors import PermanentSinkError as PermanentSinkError
 from gateway.errors import TransientSinkError as TransientSinkError

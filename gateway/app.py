@@ -20,13 +20,16 @@ import structlog
 
 from gateway.bus import Bus
 from gateway.config import Config
+from gateway.errors import LinkUnavailable
 from gateway.health import HealthServer
-from gateway.ingest import Ingest
+from gateway.ingest import Ingest, LinkIntake
 from gateway.instruments import Instruments
 from gateway.links import Link, make_link
 from gateway.normalise import Clock
+from gateway.passthrough import Passthrough
 from gateway.plugins import build_sink
 from gateway.sdnotify import SystemdNotifier
+from gateway.security import Security
 from gateway.sink import Sink
 from gateway.sinkrunner import SinkRunner
 
@@ -72,15 +75,41 @@ class Gateway:
         if given:
             raise ValueError(f"sinks given for names not in the config: {sorted(given)}")
         self.bus = Bus(config.routes, self.runners, self.instruments, source=source)
-        self.ingest = Ingest(config.airframes, self.bus.publish, self.instruments, clock)
+        self.security = Security.from_config(config, clock)
+        self.ingest = Ingest(
+            config.airframes,
+            self.bus.publish,
+            self.instruments,
+            clock,
+            opener=self.security.opener,
+            verifiers=self.security.verifiers,
+        )
         self.links: dict[str, Link] = {}
+        self._links_by_label: dict[str, Link] = {}
+        self._link_security: dict[str, str] = {}
         for airframe in config.airframes:
             for link_cfg in airframe.links:
                 key = str(link_cfg.uri)
-                if key not in self.links:
-                    link = make_link(link_cfg, self.ingest.on_data, self.ingest.forget_peer)
-                    self.links[key] = link
-                    self.ingest.register_link(link.label, link_cfg.max_frame_bytes)
+                if key in self.links:
+                    continue
+                link = make_link(link_cfg, self.ingest.on_data, self.ingest.forget_peer)
+                self.links[key] = link
+                self._links_by_label[link.label] = link
+                self._link_security[link.label] = link_cfg.security
+                self.ingest.register_link(
+                    LinkIntake(
+                        link.label,
+                        link_cfg.security,
+                        is_stream=link_cfg.uri.scheme != "udp",
+                        max_chunk_bytes=link_cfg.max_frame_bytes,
+                    )
+                )
+        self.passthroughs: dict[str, Passthrough] = {}
+        for airframe in config.airframes:
+            if airframe.passthrough is not None:
+                passthrough = Passthrough(airframe.id, airframe.passthrough, self.send_to_airframe)
+                self.passthroughs[airframe.id] = passthrough
+                self.ingest.set_passthrough(airframe.id, passthrough.forward)
         self.health: HealthServer | None = None
         if config.health.enabled:
             self.health = HealthServer(
@@ -128,6 +157,8 @@ class Gateway:
             async with anyio.create_task_group() as ingest:
                 for link in self.links.values():
                     await ingest.start(link.run)
+                for passthrough in self.passthroughs.values():
+                    await ingest.start(passthrough.run)
                 ingest.start_soon(self._watch_links)
                 self._links_up = True
                 outer.start_soon(self.notifier.run_watchdog)
@@ -162,6 +193,19 @@ class Gateway:
         while True:
             self.ingest.check_links()
             await anyio.sleep(_LINK_CHECK_INTERVAL_S)
+
+    async def send_to_airframe(self, airframe: str, frames: bytes) -> None:
+        """Send raw MAVLink ``frames`` to ``airframe`` on its active link, sealed as needed.
+
+        Raises ``LinkUnavailable`` when no link of the airframe is up.
+        """
+        label = self.ingest.active_link(airframe)
+        if label is None:
+            raise LinkUnavailable(airframe, "no link of this airframe is up")
+        link = self._links_by_label[label]
+        if self._link_security[label] == "tunnel":
+            frames = self.security.seal(airframe, frames, stream=link.endpoint.scheme != "udp")
+        await link.send(frames)
 
     def status(self) -> dict[str, Any]:
         """The whole node's state, for /status."""

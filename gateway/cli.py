@@ -19,7 +19,8 @@ import anyio
 import structlog
 
 from gateway.app import Gateway
-from gateway.config import Config, load_config, load_config_text
+from gateway.config import Config
+from gateway.configfile import load_config, load_config_text
 from gateway.errors import ConfigError, GatewayError
 from gateway.logsetup import configure_logging
 from gateway.plugins import check_sink, load_plugin

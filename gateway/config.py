@@ -1,30 +1,26 @@
-"""The gateway's configuration: pydantic models of the YAML, and loading that names lines.
+"""The gateway's configuration: pydantic models of the YAML and the link URI type.
 
-Everything is validated once, at load. ``load_config`` reports every problem it finds, each
-as ``FILE:LINE key.path: what was expected, what was found``, by raising one ``ConfigError``.
-Secrets never live in this file: options that need one take a path to it.
+Everything is validated once, at load (``gateway.configfile``), never at the point of use.
+Unknown keys are errors, models are frozen, units are in field names. Secrets never live in
+the config: options that need one take a path to a file or a systemd credential name.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Any, Literal
 from urllib.parse import parse_qsl, urlsplit
 
-import yaml
 from pydantic import (
     BaseModel,
     BeforeValidator,
     ConfigDict,
     Field,
     PlainSerializer,
-    ValidationError,
     WithJsonSchema,
 )
 
-from gateway.errors import ConfigError, ConfigIssue, SinkLoadError
 from gateway.events import EventKind
 
 __all__ = [
@@ -35,10 +31,9 @@ __all__ = [
     "HealthConfig",
     "LinkConfig",
     "RouteConfig",
+    "SigningConfig",
     "SinkEntry",
-    "format_loc",
-    "load_config",
-    "load_config_text",
+    "TunnelConfig",
     "parse_endpoint",
 ]
 
@@ -126,12 +121,50 @@ EndpointField = Annotated[
 ]
 
 
+class SigningConfig(BaseModel):
+    """MAVLink 2 signing for an airframe whose autopilot cannot run the tunnel."""
+
+    model_config = _FROZEN
+
+    key_file: Path = Field(description="32 raw bytes or 64 hex digits; mode 0600 or stricter.")
+    require_signed: bool = Field(
+        default=True, description="false accepts unsigned frames too: for the lab only."
+    )
+    accept_unsigned_msgids: tuple[int, ...] = Field(
+        default=(), description="Unsigned message ids accepted anyway, e.g. 109 RADIO_STATUS."
+    )
+
+
+class TunnelConfig(BaseModel):
+    """The AES-256-GCM tunnel's key source and time windows."""
+
+    model_config = _FROZEN
+
+    master_key_file: Path | None = Field(
+        default=None, description="32+ raw bytes or hex; must not be group/world-readable."
+    )
+    master_key_credential: str | None = Field(
+        default=None,
+        pattern=_ID,
+        description="Name of a systemd credential (LoadCredential=) holding the master key.",
+    )
+    grace_s: float = Field(
+        default=600.0, ge=0, le=86400, description="Yesterday's key accepted after 00:00."
+    )
+    skew_s: float = Field(default=120.0, ge=0, le=3600, description="Tomorrow's key before 00:00.")
+    freshness_s: float = Field(default=30.0, gt=0, le=3600, description="Max frame age.")
+
+
 class LinkConfig(BaseModel):
     """One transport to an airframe."""
 
     model_config = _FROZEN
 
     uri: EndpointField
+    security: Literal["tunnel", "signed", "unsecured"] = Field(
+        description="tunnel: AES-256-GCM frames; signed: MAVLink 2 signing; unsecured must "
+        "be chosen explicitly and is shown as such on /status."
+    )
     name: str | None = Field(default=None, pattern=_ID, description="Defaults to the URI.")
     priority: int = Field(default=0, ge=0, le=100, description="Lower is preferred.")
     max_frame_bytes: int = Field(default=2048, ge=64, le=65535)
@@ -153,6 +186,21 @@ class AirframeConfig(BaseModel):
     sysid: int = Field(ge=1, le=255, description="MAVLink system id.")
     links: tuple[LinkConfig, ...] = Field(min_length=1)
     link_timeout_s: float = Field(default=3.0, gt=0)
+    failback_hold_s: float = Field(
+        default=3.0, ge=0, description="A preferred link must be up this long to take over again."
+    )
+    dedup_window_s: float = Field(
+        default=0.5,
+        gt=0,
+        lt=1.0,
+        description="A frame seen again on another link within this window is delivered once.",
+    )
+    signing: SigningConfig | None = None
+    passthrough: EndpointField | None = Field(
+        default=None,
+        description="A plain local MAVLink endpoint (udp:// only) for QGroundControl, "
+        "MAVProxy or MAVSDK; keep it on loopback.",
+    )
 
 
 class SinkEntry(BaseModel):
@@ -213,199 +261,7 @@ class Config(BaseModel):
 
     gateway: GatewayConfig = GatewayConfig()
     health: HealthConfig = HealthConfig()
+    tunnel: TunnelConfig = TunnelConfig()
     airframes: tuple[AirframeConfig, ...] = ()
     sinks: tuple[SinkEntry, ...] = ()
     routes: tuple[RouteConfig, ...] = ()
-
-
-Loc = tuple[str | int, ...]
-
-
-def format_loc(loc: Loc) -> str:
-    """``('airframes', 0, 'links', 1, 'uri')`` → ``airframes[0].links[1].uri``."""
-    out = ""
-    for part in loc:
-        if isinstance(part, int):
-            out += f"[{part}]"
-        else:
-            out += f".{part}" if out else str(part)
-    return out or "(top level)"
-
-
-class _Lines:
-    """Line numbers (1-based) of every key and item of a composed YAML document."""
-
-    def __init__(self) -> None:
-        self.by_loc: dict[Loc, int] = {(): 1}
-        self.duplicates: list[tuple[Loc, int]] = []
-
-    def walk(self, node: yaml.Node, loc: Loc) -> None:
-        self.by_loc.setdefault(loc, node.start_mark.line + 1)
-        if isinstance(node, yaml.MappingNode):
-            seen: set[str] = set()
-            for key_node, value_node in node.value:
-                key = str(key_node.value)
-                child = (*loc, key)
-                if key in seen:
-                    self.duplicates.append((child, key_node.start_mark.line + 1))
-                    continue
-                seen.add(key)
-                self.by_loc[child] = key_node.start_mark.line + 1
-                self.walk(value_node, child)
-        elif isinstance(node, yaml.SequenceNode):
-            for index, item in enumerate(node.value):
-                self.walk(item, (*loc, index))
-
-    def line(self, loc: Loc) -> int:
-        while loc not in self.by_loc:
-            loc = loc[:-1]
-        return self.by_loc[loc]
-
-
-def _found(value: object) -> str:
-    text = repr(value)
-    return text if len(text) <= 60 else text[:57] + "..."
-
-
-def _issues_from_validation(exc: ValidationError, prefix: Loc) -> Iterator[tuple[Loc, str]]:
-    for error in exc.errors():
-        loc: Loc = (*prefix, *error["loc"])
-        message = error["msg"].removeprefix("Value error, ")
-        if error["type"] == "extra_forbidden":
-            message = f"unknown key '{loc[-1]}' (a typo?); expected one of the documented keys"
-        elif error["type"] != "missing" and "found" not in message:
-            message = f"{message}, found {_found(error.get('input'))}"
-        yield loc, message
-
-
-def _cross_check(data: dict[str, Any]) -> Iterator[tuple[Loc, str]]:
-    """Checks across items, made on the raw data so they report even if other items fail."""
-    airframes = data.get("airframes")
-    ids: dict[object, int] = {}
-    sysids: dict[object, int] = {}
-    if isinstance(airframes, list):
-        for i, item in enumerate(airframes):
-            if not isinstance(item, dict):
-                continue
-            for key, seen in (("id", ids), ("sysid", sysids)):
-                value = item.get(key)
-                if value is None:
-                    continue
-                if value in seen:
-                    yield (
-                        ("airframes", i, key),
-                        (f"duplicate {key} {value!r}, already used by airframes[{seen[value]}]"),
-                    )
-                else:
-                    seen[value] = i
-    sink_names: dict[object, int] = {}
-    sinks = data.get("sinks")
-    if isinstance(sinks, list):
-        for i, item in enumerate(sinks):
-            if isinstance(item, dict) and "name" in item:
-                if item["name"] in sink_names:
-                    yield (
-                        ("sinks", i, "name"),
-                        (
-                            f"duplicate sink name {item['name']!r}, already used by "
-                            f"sinks[{sink_names[item['name']]}]"
-                        ),
-                    )
-                else:
-                    sink_names[item["name"]] = i
-    routes = data.get("routes")
-    if isinstance(routes, list):
-        for i, route in enumerate(routes):
-            if not isinstance(route, dict):
-                continue
-            for j, name in enumerate(route.get("sinks") or ()):
-                if name not in sink_names:
-                    yield (
-                        ("routes", i, "sinks", j),
-                        (f"expected the name of a configured sink, found {name!r}"),
-                    )
-            for j, name in enumerate(route.get("airframes") or ()):
-                if name != "*" and name not in ids:
-                    yield (
-                        ("routes", i, "airframes", j),
-                        (f"expected the id of a configured airframe, found {name!r}"),
-                    )
-
-
-SinkChecker = Callable[[str, dict[str, Any]], None]
-"""Checks a sink's ``type`` and ``options``; raises ``ValidationError`` or ``SinkLoadError``."""
-
-
-def _sink_issues(data: dict[str, Any], check_sink: SinkChecker) -> Iterator[tuple[Loc, str]]:
-    sinks = data.get("sinks")
-    if not isinstance(sinks, list):
-        return
-    for i, item in enumerate(sinks):
-        if not isinstance(item, dict) or not isinstance(item.get("type"), str):
-            continue
-        options = item.get("options") or {}
-        if not isinstance(options, dict):
-            continue
-        try:
-            check_sink(item["type"], options)
-        except ValidationError as exc:
-            yield from _issues_from_validation(exc, ("sinks", i, "options"))
-        except SinkLoadError as exc:
-            yield ("sinks", i, "type"), str(exc)
-
-
-def load_config_text(
-    text: str, source: str = "<config>", *, check_sink: SinkChecker | None = None
-) -> Config:
-    """Parse and validate YAML ``text``; raise ``ConfigError`` listing every problem.
-
-    ``check_sink``, when given, also validates each sink's type and options (the plugin
-    loader provides it), so those problems are reported with their lines too.
-    """
-    try:
-        node = yaml.compose(text, Loader=yaml.SafeLoader)
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        line = mark.line + 1 if mark is not None else None
-        problem = getattr(exc, "problem", None) or str(exc)
-        issue = ConfigIssue(source, line, "(yaml)", f"not valid YAML: {problem}")
-        raise ConfigError([issue]) from exc
-    if data is None:
-        data = {}
-    if not isinstance(data, dict):
-        issue = ConfigIssue(source, 1, "(top level)", "expected a mapping of sections")
-        raise ConfigError([issue])
-    lines = _Lines()
-    if node is not None:
-        lines.walk(node, ())
-    found: list[tuple[Loc, str]] = [
-        (loc, "duplicate key; the later value would silently win") for loc, _ in lines.duplicates
-    ]
-    config: Config | None = None
-    try:
-        config = Config.model_validate(data)
-    except ValidationError as exc:
-        found.extend(_issues_from_validation(exc, ()))
-    found.extend(_cross_check(data))
-    if check_sink is not None:
-        found.extend(_sink_issues(data, check_sink))
-    if found or config is None:
-        dup_lines = dict(lines.duplicates)
-        issues = [
-            ConfigIssue(source, dup_lines.get(loc) or lines.line(loc), format_loc(loc), message)
-            for loc, message in found
-        ]
-        issues.sort(key=lambda issue: (issue.line or 0, issue.key_path))
-        raise ConfigError(issues)
-    return config
-
-
-def load_config(path: Path, *, check_sink: SinkChecker | None = None) -> Config:
-    """Read and validate the config file at ``path``; raise ``ConfigError`` naming its lines."""
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        issue = ConfigIssue(str(path), None, "(file)", f"cannot read: {exc.strerror}")
-        raise ConfigError([issue]) from exc
-    return load_config_text(text, str(path), check_sink=check_sink)

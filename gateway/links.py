@@ -135,6 +135,18 @@ class UdpLink(Link):
             return 0
         return int(self._transport.get_extra_info("sockname")[1])
 
+    def send_nowait(self, data: bytes) -> bool:
+        """Send without waiting (UDP never blocks); False if there is nobody to send to."""
+        transport = self._transport
+        if transport is None:
+            return False
+        if self.endpoint.mode == "connect":
+            transport.sendto(data)
+            return True
+        for peer in self.peers:
+            transport.sendto(data, peer)
+        return bool(self.peers)
+
     async def send(self, data: bytes) -> None:
         transport = self._transport
         if transport is None:

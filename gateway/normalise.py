@@ -68,6 +68,10 @@ class AirframeState:
         }
         self.active_link: str | None = None
 
+    def set_active_link(self, label: str | None) -> None:
+        """Record which link is active; later snapshots carry it."""
+        self.active_link = label
+
     def apply(self, name: str, msg: MavMessage) -> Telemetry | None:
         """Merge ``msg`` (of type ``name``) and return the new snapshot, or None if ignored."""
         handler = self._handlers.get(name)

@@ -31,8 +31,8 @@ def config(tmp_path: Path, *sinks: str, udp_port: int = 0) -> Config:
             "gateway": {"shutdown_deadline_s": 2},
             "health": {"port": 0},
             "airframes": [
-                {"id": "F26E-001", "sysid": 1, "links": [{"uri": f"udp://127.0.0.1:{udp_port}"}]},
-                {"id": "F26E-002", "sysid": 2, "links": [{"uri": f"udp://127.0.0.1:{udp_port}"}]},
+                {"id": "F26E-001", "sysid": 1, "links": [{"uri": f"udp://127.0.0.1:{udp_port}", "security": "unsecured"}]},
+                {"id": "F26E-002", "sysid": 2, "links": [{"uri": f"udp://127.0.0.1:{udp_port}", "security": "unsecured"}]},
             ],
             "sinks": [
                 {
@@ -210,7 +210,7 @@ def test_sigterm_stops_the_daemon_within_the_deadline(tmp_path: Path) -> None:
     path = tmp_path / "c.yaml"
     path.write_text(
         "gateway: {shutdown_deadline_s: 2}\nhealth: {port: 0}\n"
-        "airframes:\n  - {id: A, sysid: 1, links: [{uri: 'udp://127.0.0.1:0'}]}\n"
+        "airframes:\n  - {id: A, sysid: 1, links: [{uri: 'udp://127.0.0.1:0', security: unsecured}]}\n"
         f"sinks:\n  - {{name: j, type: jsonl, options: {{path: '{tmp_path / 'a.jsonl'}'}}}}\n"
         "routes:\n  - {sinks: [j]}\n"
     )

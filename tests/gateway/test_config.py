@@ -9,7 +9,8 @@ from pathlib import Path
 import pytest
 
 from gateway.cli import main
-from gateway.config import Config, load_config, load_config_text, parse_endpoint
+from gateway.config import Config, parse_endpoint
+from gateway.configfile import load_config, load_config_text
 from gateway.errors import ConfigError
 from gateway.plugins import check_sink
 
@@ -22,12 +23,15 @@ GOOD = textwrap.dedent(
         sysid: 1
         links:
           - uri: udp://127.0.0.1:14550
+            security: unsecured
       - id: F26E-002
         sysid: 2
         links:
           - uri: tcp://10.0.0.2:5760
+            security: unsecured
             priority: 1
           - uri: serial:///dev/ttyUSB0?baud=115200
+            security: unsecured
     sinks:
       - name: archive
         type: jsonl
@@ -52,11 +56,13 @@ BAD = textwrap.dedent(
         sysid: 1
         links:
           - uri: udp://127.0.0.1:14550
+            security: unsecured
             priorty: 2
       - id: F26E-002
         sysid: 1
         links:
           - uri: htp://10.0.0.2:5760
+            security: unsecured
     sinks:
       - name: mem
         type: memory
@@ -94,15 +100,15 @@ class TestErrors:
         with pytest.raises(ConfigError) as info:
             load_config_text(BAD, "bad.yaml")
         by_key = {issue.key_path: issue for issue in info.value.issues}
-        assert by_key["airframes[0].links[0].priorty"].line == 8
+        assert by_key["airframes[0].links[0].priorty"].line == 9
         assert "unknown key 'priorty'" in by_key["airframes[0].links[0].priorty"].message
-        assert by_key["airframes[1].sysid"].line == 10
+        assert by_key["airframes[1].sysid"].line == 11
         assert "duplicate sysid 1" in by_key["airframes[1].sysid"].message
-        assert by_key["airframes[1].links[0].uri"].line == 12
+        assert by_key["airframes[1].links[0].uri"].line == 13
         assert "expected udp://, tcp:// or serial://" in by_key["airframes[1].links[0].uri"].message
         assert "htp://10.0.0.2:5760" in by_key["airframes[1].links[0].uri"].message
-        assert by_key["routes[0].sinks[1]"].line == 17
-        assert str(by_key["airframes[1].sysid"]).startswith("bad.yaml:10 airframes[1].sysid: ")
+        assert by_key["routes[0].sinks[1]"].line == 19
+        assert str(by_key["airframes[1].sysid"]).startswith("bad.yaml:11 airframes[1].sysid: ")
 
     def test_unknown_sink_type_and_bad_options_are_reported(self) -> None:
         text = textwrap.dedent(
@@ -166,9 +172,9 @@ class TestCli:
         path.write_text(BAD)
         assert main(["check-config", str(path)]) == 2
         err = capsys.readouterr().err
-        assert f"{path}:8 airframes[0].links[0].priorty" in err
-        assert f"{path}:10 airframes[1].sysid" in err
-        assert f"{path}:12 airframes[1].links[0].uri" in err
+        assert f"{path}:9 airframes[0].links[0].priorty" in err
+        assert f"{path}:11 airframes[1].sysid" in err
+        assert f"{path}:13 airframes[1].links[0].uri" in err
         assert "4 error(s)" in err
 
     def test_check_config_lists_sinks_with_distribution(

@@ -28,7 +28,7 @@ def make_ingest(*sysids: int) -> tuple[Ingest, list[Event], Instruments]:
     inst = Instruments()
     airframes = [
         AirframeConfig(
-            id=f"AF-{s}", sysid=s, links=(LinkConfig(uri="udp://127.0.0.1:1", name="l"),)
+            id=f"AF-{s}", sysid=s, links=(LinkConfig(uri="udp://127.0.0.1:1", name="l", security="unsecured"),)
         )
         for s in sysids
     ]

@@ -1,0 +1,70 @@
+"""The gateway's security material, built once from config: tunnel opener, sealers, verifiers.
+
+The gateway holds the master key (from a 0600 file or a systemd credential) and derives
+every airframe's day keys from it; airframes hold only their own day keys.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+from gateway.config import Config
+from gateway.deframe import frame_for_stream
+from gateway.keys import read_credential, read_key_file
+from gateway.normalise import Clock
+from gateway.signing import SigningVerifier
+from gateway.tunnel import DayKeys, Sealer, TunnelOpener
+
+__all__ = ["Security"]
+
+
+@dataclass
+class Security:
+    """Tunnel opener and sealers, and MAVLink signing verifiers by sysid."""
+
+    opener: TunnelOpener | None = None
+    sealers: dict[str, Sealer] = field(default_factory=dict)
+    verifiers: dict[int, SigningVerifier] = field(default_factory=dict)
+
+    @classmethod
+    def from_config(cls, config: Config, clock: Clock) -> Security:
+        """Read the keys the config names; raise ``ConfigError`` naming a bad key file."""
+        tunnelled = [
+            a for a in config.airframes if any(link.security == "tunnel" for link in a.links)
+        ]
+        security = cls()
+        if tunnelled:
+            tunnel = config.tunnel
+            if tunnel.master_key_file is not None:
+                master = read_key_file(tunnel.master_key_file)
+            else:
+                assert tunnel.master_key_credential is not None  # noqa: S101 - config checked
+                master = read_credential(tunnel.master_key_credential)
+            keys = DayKeys(master=master)
+            max_frame = max(link.max_frame_bytes for a in tunnelled for link in a.links)
+            security.opener = TunnelOpener(
+                keys,
+                frozenset(a.id for a in tunnelled),
+                clock,
+                grace_s=tunnel.grace_s,
+                skew_s=tunnel.skew_s,
+                freshness_s=tunnel.freshness_s,
+                max_frame_bytes=max_frame,
+            )
+            security.sealers = {a.id: Sealer(a.id, keys, clock) for a in tunnelled}
+        for airframe in config.airframes:
+            if airframe.signing is not None:
+                signing = airframe.signing
+                security.verifiers[airframe.sysid] = SigningVerifier(
+                    read_key_file(signing.key_file, exact=True),
+                    require_signed=signing.require_signed,
+                    clock=time.time,
+                    accept_unsigned_msgids=frozenset(signing.accept_unsigned_msgids),
+                )
+        return security
+
+    def seal(self, airframe: str, frames: bytes, *, stream: bool) -> bytes:
+        """Seal outbound MAVLink ``frames`` for ``airframe`` (length-prefixed on streams)."""
+        sealed = self.sealers[airframe].seal(frames)
+        return frame_for_stream(sealed) if stream else sealed
