@@ -10,7 +10,7 @@ import argparse
 import json
 import signal
 import sys
-from collections.abc import Awaitable, Callable, Sequence
+from collections.abc import Callable, Coroutine, Sequence
 from importlib.resources import files
 from pathlib import Path
 from typing import Any, TextIO
@@ -86,7 +86,9 @@ def _check_config(path: Path) -> int:
 
 
 async def _serve(
-    gateway: Gateway, duration_s: float | None, extra: Callable[[], Awaitable[None]] | None = None
+    gateway: Gateway,
+    duration_s: float | None,
+    extra: Callable[[], Coroutine[Any, Any, None]] | None = None,
 ) -> None:
     async with anyio.create_task_group() as tg:
 
@@ -201,14 +203,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     except Exception as exc:
         config_errors = [e for e in _leaves(exc) if isinstance(e, ConfigError)]
         failures = [e for e in _leaves(exc) if isinstance(e, GatewayError)]
-        for error in config_errors:
-            _print_config_error(error, sys.stderr)
+        for config_error in config_errors:
+            _print_config_error(config_error, sys.stderr)
         if config_errors:
             return EXIT_CONFIG
         if not failures:
             raise
-        for error in failures:
-            log.error("gateway_failed", error=str(error), type=type(error).__name__)
+        for failure in failures:
+            log.error("gateway_failed", error=str(failure), type=type(failure).__name__)
         return EXIT_FAILURE
     except KeyboardInterrupt:
         return EXIT_OK

@@ -139,7 +139,9 @@ def _link_checks(data: dict[str, Any]) -> Iterator[tuple[Loc, str]]:
     airframes = data.get("airframes")
     if not isinstance(airframes, list):
         return
-    tunnel = data.get("tunnel") if isinstance(data.get("tunnel"), dict) else {}
+    tunnel = data.get("tunnel")
+    if not isinstance(tunnel, dict):
+        tunnel = {}
     has_master = bool(tunnel.get("master_key_file") or tunnel.get("master_key_credential"))
     by_uri: dict[str, tuple[object, object, Loc]] = {}
     by_name: dict[object, tuple[str, Loc]] = {}
