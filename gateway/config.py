@@ -78,7 +78,7 @@ def parse_endpoint(value: object) -> Endpoint:
         raise ValueError(f"expected key=value query parameters, found {parts.query!r}") from exc
     if scheme == "serial":
         device = parts.path
-        if not device.startswith("/"):
+        if parts.netloc or not device.startswith("/"):
             raise ValueError(f"expected serial:///dev/DEVICE, found {value!r}")
         unknown = set(params) - {"baud"}
         if unknown:

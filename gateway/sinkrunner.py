@@ -178,17 +178,25 @@ class SinkRunner:
 
     async def _deliver(self, items: list[_Item]) -> None:
         batch = [event for event, _ in items]
+        settled = False
         try:
             with anyio.fail_after(self.entry.send_timeout_s):
                 await self.sink.send(batch)
+            settled = True
         except PermanentSinkError as exc:
+            settled = True
             self._failed["permanent"].inc()
             self._dead_letter(items, str(exc))
             return
         except Exception as exc:  # noqa: BLE001 - isolation boundary around one sink call
+            settled = True
             self._put_back(items)
             await self._backoff("send", exc)
             return
+        finally:
+            if not settled:
+                # Cancelled mid-send (shutdown): the batch is still ours, keep it queued.
+                self._put_back(items)
         now = time.monotonic()
         observe = self._latency.observe
         for _, ingest_mono in items:

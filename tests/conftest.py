@@ -3,7 +3,18 @@
 from __future__ import annotations
 
 import pytest
+import structlog
 import uvloop
+
+
+@pytest.fixture(autouse=True, scope="session")
+def quiet_logs() -> None:
+    """Log records go nowhere unless a test captures them (``structlog.testing``)."""
+    structlog.configure(
+        processors=[structlog.processors.JSONRenderer()],
+        logger_factory=structlog.ReturnLoggerFactory(),
+        cache_logger_on_first_use=False,
+    )
 
 
 @pytest.fixture(

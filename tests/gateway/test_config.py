@@ -203,7 +203,14 @@ class TestCli:
     ) -> None:
         assert main(["config-schema"]) == 0
         schema = json.loads(capsys.readouterr().out)
-        assert set(schema["properties"]) == {"gateway", "health", "airframes", "sinks", "routes"}
+        assert set(schema["properties"]) == {
+            "gateway",
+            "health",
+            "tunnel",
+            "airframes",
+            "sinks",
+            "routes",
+        }
         assert schema["$defs"]["LinkConfig"]["properties"]["uri"]["type"] == "string"
 
     def test_example_config_is_valid(self) -> None:

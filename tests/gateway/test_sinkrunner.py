@@ -93,9 +93,9 @@ class TestDelivery:
                 assert runner.state == "retrying"
                 sink.fail_transient = False
                 await sink.wait_for(5)
+                assert runner.state == "open"
                 tg.cancel_scope.cancel()
         assert [e.event_id for e in sink.events] == [f"det-{n}" for n in range(5)]
-        assert runner.state == "open"
         assert inst.sink_latency.labels("m").count == 5  # type: ignore[attr-defined]
 
     @pytest.mark.anyio
