@@ -101,8 +101,10 @@ def parse_endpoint(value: object) -> Endpoint:
         raise ValueError(
             f"expected {scheme}://HOST:PORT with a port 1-65535, found {value!r}"
         ) from exc
-    if not host or not port or parts.path not in ("", "/"):
+    if not host or port is None or parts.path not in ("", "/"):
         raise ValueError(f"expected {scheme}://HOST:PORT, found {value!r}")
+    if port == 0 and mode == "connect":
+        raise ValueError(f"expected a port to connect to (1-65535), found {value!r}")
     return Endpoint(scheme, mode, host=host, port=port, text=value)  # type: ignore[arg-type]
 
 

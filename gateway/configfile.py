@@ -70,7 +70,12 @@ def _found(value: object) -> str:
 
 
 def _issues_from_validation(exc: ValidationError, prefix: Loc) -> Iterator[tuple[Loc, str]]:
-    for error in exc.errors():
+    errors = exc.errors()
+    inner = {tuple(e["loc"][:n]) for e in errors for n in range(len(e["loc"]))}
+    for error in errors:
+        if error["type"] == "too_short" and tuple(error["loc"]) in inner:
+            # pydantic also reports a list as too short when one of its items failed.
+            continue
         loc: Loc = (*prefix, *error["loc"])
         message = error["msg"].removeprefix("Value error, ")
         if error["type"] == "extra_forbidden":

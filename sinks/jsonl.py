@@ -1,4 +1,9 @@
-"""The JSONL archive sink: one event per line, rotated by size and age, pruned by count."""
+"""The JSONL archive sink: one event per line, rotated by size and age, pruned by count.
+
+Lines end with ``\n`` only; read them with ``split("\n")``, not ``str.splitlines()``,
+which also splits on the Unicode separators JSON leaves unescaped. A rotated file is named
+after the time it was started.
+"""
 
 from __future__ import annotations
 
@@ -81,7 +86,7 @@ class JsonlSink:
             raise self._error("open", exc) from exc
 
     def _rotated_name(self) -> Path:
-        stamp = datetime.fromtimestamp(self._clock(), tz=UTC).strftime("%Y%m%dT%H%M%SZ")
+        stamp = datetime.fromtimestamp(self._opened_at, tz=UTC).strftime("%Y%m%dT%H%M%SZ")
         stem = self._path.stem
         candidate = self._path.with_name(f"{stem}-{stamp}{self._path.suffix}")
         counter = 1

@@ -92,7 +92,10 @@ class SimulatedAirframe:
         return lat, lon, track % (2 * math.pi), bank
 
     def _encode(self, msg: mav.MAVLink_message) -> bytes:
-        return bytes(msg.pack(self._mav))
+        frame = bytes(msg.pack(self._mav))
+        # pack() does not advance the sequence number (send() would); receivers count gaps.
+        self._mav.seq = (self._mav.seq + 1) % 256
+        return frame
 
     def frames_at(self, t_s: float) -> list[bytes]:
         """The frames due at sim time ``t_s`` (each schedule fires once its period passed)."""

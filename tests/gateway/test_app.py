@@ -12,13 +12,13 @@ from pathlib import Path
 
 import anyio
 import pytest
-from gateway.sim.airframe import SimulatedAirframe
-from gateway.tlog import replay_udp
 
 from gateway.app import Gateway
 from gateway.config import Config
 from gateway.events import Telemetry, event_adapter
+from gateway.sim.airframe import SimulatedAirframe
 from gateway.testing import MemorySink, eventually
+from gateway.tlog import replay_udp
 
 CORPUS = Path(__file__).resolve().parents[2].parent / "shared" / "corpus"
 SMALL_TLOG = CORPUS / "mavlink" / "arducopter_hw_ground_small.tlog"
@@ -31,8 +31,16 @@ def config(tmp_path: Path, *sinks: str, udp_port: int = 0) -> Config:
             "gateway": {"shutdown_deadline_s": 2},
             "health": {"port": 0},
             "airframes": [
-                {"id": "F26E-001", "sysid": 1, "links": [{"uri": f"udp://127.0.0.1:{udp_port}", "security": "unsecured"}]},
-                {"id": "F26E-002", "sysid": 2, "links": [{"uri": f"udp://127.0.0.1:{udp_port}", "security": "unsecured"}]},
+                {
+                    "id": "F26E-001",
+                    "sysid": 1,
+                    "links": [{"uri": f"udp://127.0.0.1:{udp_port}", "security": "unsecured"}],
+                },
+                {
+                    "id": "F26E-002",
+                    "sysid": 2,
+                    "links": [{"uri": f"udp://127.0.0.1:{udp_port}", "security": "unsecured"}],
+                },
             ],
             "sinks": [
                 {
@@ -210,7 +218,8 @@ def test_sigterm_stops_the_daemon_within_the_deadline(tmp_path: Path) -> None:
     path = tmp_path / "c.yaml"
     path.write_text(
         "gateway: {shutdown_deadline_s: 2}\nhealth: {port: 0}\n"
-        "airframes:\n  - {id: A, sysid: 1, links: [{uri: 'udp://127.0.0.1:0', security: unsecured}]}\n"
+        "airframes:\n  - {id: A, sysid: 1, links: "
+        "[{uri: 'udp://127.0.0.1:0', security: unsecured}]}\n"
         f"sinks:\n  - {{name: j, type: jsonl, options: {{path: '{tmp_path / 'a.jsonl'}'}}}}\n"
         "routes:\n  - {sinks: [j]}\n"
     )
@@ -260,6 +269,7 @@ def test_demo_runs_for_its_duration_and_archives_events(tmp_path: Path) -> None:
         check=False,
     )
     assert result.returncode == 0, result.stderr
-    assert "F26E-001" in result.stdout and "F26E-002" in result.stdout
+    assert "F26E-001" in result.stdout
+    assert "F26E-002" in result.stdout
     kinds = {json.loads(line)["kind"] for line in archive.read_text().splitlines()}
     assert {"telemetry", "link_state"} <= kinds

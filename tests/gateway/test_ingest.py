@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterator
 from datetime import UTC, datetime
 from pathlib import Path
 
 import pytest
-from gateway.tlog import read_tlog
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from pymavlink import mavutil
@@ -15,8 +15,9 @@ from pymavlink.dialects.v20 import ardupilotmega as mav
 
 from gateway.config import AirframeConfig, LinkConfig
 from gateway.events import Event, LinkState, Telemetry
-from gateway.ingest import Ingest
+from gateway.ingest import Ingest, LinkIntake
 from gateway.instruments import Instruments
+from gateway.tlog import read_tlog
 
 CORPUS = Path(__file__).resolve().parents[2].parent / "shared" / "corpus"
 SMALL_TLOG = CORPUS / "mavlink" / "arducopter_hw_ground_small.tlog"
@@ -28,12 +29,14 @@ def make_ingest(*sysids: int) -> tuple[Ingest, list[Event], Instruments]:
     inst = Instruments()
     airframes = [
         AirframeConfig(
-            id=f"AF-{s}", sysid=s, links=(LinkConfig(uri="udp://127.0.0.1:1", name="l", security="unsecured"),)
+            id=f"AF-{s}",
+            sysid=s,
+            links=(LinkConfig(uri="udp://127.0.0.1:1", name="l", security="unsecured"),),
         )
         for s in sysids
     ]
     ingest = Ingest(airframes, events.append, inst, lambda: T0)
-    ingest.register_link("l", 2048)
+    ingest.register_link(LinkIntake("l", "unsecured", is_stream=False))
     return ingest, events, inst
 
 
@@ -42,10 +45,14 @@ def encoder(sysid: int, compid: int = 1) -> mav.MAVLink:
     return m
 
 
+def pack(m: mav.MAVLink, msg: mav.MAVLink_message) -> bytes:
+    frame = bytes(msg.pack(m))
+    m.seq = (m.seq + 1) % 256  # pack() does not advance it; send() would
+    return frame
+
+
 def gpi(m: mav.MAVLink, lat: int, lon: int, alt: int) -> bytes:
-    return bytes(
-        m.global_position_int_encode(1000, lat, lon, alt, 5000, 100, -200, 30, 9000).pack(m)
-    )
+    return pack(m, m.global_position_int_encode(1000, lat, lon, alt, 5000, 100, -200, 30, 9000))
 
 
 def telemetry_of(events: list[Event]) -> list[Telemetry]:
@@ -143,7 +150,7 @@ class TestLinkHealth:
         ingest.on_data("l", "p", gpi(encoder(7), 1, 1, 1))
         up = [e for e in events if isinstance(e, LinkState)]
         assert [(e.is_up, e.is_active) for e in up] == [(True, True)]
-        ingest.check_links(now_mono=1e12)
+        ingest.check_links(now_mono=time.monotonic() + 100)
         states = [e for e in events if isinstance(e, LinkState)]
         assert [(e.is_up, e.is_active) for e in states] == [(True, True), (False, False)]
         assert telemetry_of(events)[-1].active_link == "l"

@@ -34,9 +34,7 @@ def verifier(require: bool = True) -> SigningVerifier:
 
 
 def test_the_spec_digest_example_verifies() -> None:
-    frame = bytes.fromhex(
-        "fd0901000007010000000000000001030004033d9b0378563412000023958ef297af"
-    )
+    frame = bytes.fromhex("fd0901000007010000000000000001030004033d9b0378563412000023958ef297af")
     v = SigningVerifier(KEY, require_signed=True, clock=lambda: 1420070400 + 0x12345678 / 1e5)
     assert v.verify(frame) is True
 
