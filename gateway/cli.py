@@ -1,4 +1,4 @@
-"""The ``fischer-gateway`` command: run, demo, check-config, config-schema, replay, simulate.
+"""The ``fischer-gateway`` command: run, demo, check-config, config-schema, replay, simulate, keys.
 
 This is the only module that configures logging. Exit codes: 0 success, 1 runtime failure
 (a link that cannot be opened, ...), 2 a config error (systemd does not restart on it).
@@ -8,9 +8,12 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import secrets
 import signal
 import sys
 from collections.abc import Callable, Coroutine, Sequence
+from datetime import date, timedelta
 from importlib.resources import files
 from pathlib import Path
 from typing import Any, TextIO
@@ -18,12 +21,14 @@ from typing import Any, TextIO
 import anyio
 import structlog
 
-from gateway.app import Gateway
+from gateway.app import Gateway, utc_now
 from gateway.config import Config
 from gateway.configfile import load_config, load_config_text
-from gateway.errors import ConfigError, GatewayError
+from gateway.errors import ConfigError, ConfigIssue, GatewayError
+from gateway.keys import load_day_keys, read_key_file, write_day_keys
 from gateway.logsetup import configure_logging
 from gateway.plugins import check_sink, load_plugin
+from gateway.tunnel import DayKeys, Sealer
 
 __all__ = ["main"]
 
@@ -58,7 +63,67 @@ def _parser() -> argparse.ArgumentParser:
     simulate.add_argument("--to", required=True, help="udp://HOST:PORT")
     simulate.add_argument("--airframes", type=int, default=2)
     simulate.add_argument("--duration", type=float, default=None)
+    for sub_parser in (replay, simulate):
+        sub_parser.add_argument(
+            "--key-dir", type=Path, default=None, help="day keys: seal frames in the tunnel"
+        )
+        sub_parser.add_argument(
+            "--airframe-id",
+            action="append",
+            default=None,
+            help="airframe id(s) whose day keys seal the frames (one per simulated airframe)",
+        )
+    keys = sub.add_parser("keys", help="tunnel key material")
+    keys_sub = keys.add_subparsers(dest="keys_command", required=True)
+    new = keys_sub.add_parser("new", help="write a new random master key (mode 0600)")
+    new.add_argument("--out", type=Path, required=True)
+    derive = keys_sub.add_parser("derive", help="an airframe's day keys, never the master")
+    derive.add_argument("--master", type=Path, required=True, help="master key file")
+    derive.add_argument("--airframe", required=True)
+    derive.add_argument("--from", dest="first", type=date.fromisoformat, required=True)
+    derive.add_argument("--days", type=int, default=30)
+    derive.add_argument("--out", type=Path, required=True, help="directory for the day keys")
     return parser
+
+
+def _sealers(args: argparse.Namespace, count: int) -> list[Sealer | None]:
+    if args.key_dir is None:
+        return [None] * count
+    ids = args.airframe_id or []
+    if len(ids) != count:
+        raise ConfigError(
+            [
+                ConfigIssue(
+                    "(command line)",
+                    None,
+                    "--airframe-id",
+                    f"--key-dir needs {count} --airframe-id value(s), found {len(ids)}",
+                )
+            ]
+        )
+    return [
+        Sealer(airframe, DayKeys(keys=load_day_keys(args.key_dir, airframe)), utc_now)
+        for airframe in ids
+    ]
+
+
+def _keys(args: argparse.Namespace) -> int:
+    if args.keys_command == "new":
+        fd = os.open(args.out, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        with os.fdopen(fd, "w", encoding="ascii") as handle:
+            handle.write(secrets.token_hex(32) + "\n")
+        print(f"wrote a new master key to {args.out} (mode 600)")  # noqa: T201 - the output
+        return EXIT_OK
+    if args.days < 1:
+        print("--days must be at least 1", file=sys.stderr)  # noqa: T201 - the output
+        return EXIT_CONFIG
+    master = read_key_file(args.master)
+    written = write_day_keys(master, args.airframe, args.first, args.days, args.out)
+    print(  # noqa: T201 - the output
+        f"wrote {len(written)} day keys for {args.airframe} to {args.out} "
+        f"({args.first} .. {args.first + timedelta(days=args.days - 1)})"
+    )
+    return EXIT_OK
 
 
 def _print_config_error(exc: ConfigError, stream: TextIO) -> None:
@@ -159,7 +224,9 @@ def _replay(args: argparse.Namespace) -> int:
 
     host, port = parse_udp_target(args.to)
     speed = None if args.fast else args.speed
-    sent = anyio.run(lambda: replay_udp(args.file, host, port, speed=speed))
+    (sealer,) = _sealers(args, 1) if args.key_dir else (None,)
+    seal = sealer.seal if sealer else None
+    sent = anyio.run(lambda: replay_udp(args.file, host, port, speed=speed, seal=seal))
     log.info("replay_finished", file=str(args.file), frames=sent)
     return EXIT_OK
 
@@ -170,8 +237,11 @@ def _simulate(args: argparse.Namespace) -> int:
 
     host, port = parse_udp_target(args.to)
     fleet = build_demo_fleet(args.airframes)
+    sealers = _sealers(args, len(fleet))
     _run_async(
-        lambda: run_fleet(fleet, host, [port] * len(fleet), duration_s=args.duration, speed=1.0)
+        lambda: run_fleet(
+            fleet, host, [port] * len(fleet), duration_s=args.duration, speed=1.0, sealers=sealers
+        )
     )
     return EXIT_OK
 
@@ -184,6 +254,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_OK
     if args.command == "check-config":
         return _check_config(args.file)
+    if args.command == "keys":
+        try:
+            return _keys(args)
+        except ConfigError as exc:
+            _print_config_error(exc, sys.stderr)
+            return EXIT_CONFIG
+        except FileExistsError:
+            print(f"{args.out} exists; not overwriting a key", file=sys.stderr)  # noqa: T201
+            return EXIT_CONFIG
     # The demo prints events on stdout (the console sink), so its logs go to stderr.
     configure_logging(
         "info", sys.stderr if args.command in ("demo", "replay", "simulate") else None

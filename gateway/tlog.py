@@ -9,7 +9,7 @@ signed). ``read_tlog`` streams records with bounded memory and resynchronises af
 from __future__ import annotations
 
 import struct
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from urllib.parse import urlsplit
@@ -111,12 +111,13 @@ async def replay_udp(
     port: int,
     *,
     speed: float | None = 1.0,
+    seal: Callable[[bytes], bytes] | None = None,
     task_status: anyio.abc.TaskStatus[None] = anyio.TASK_STATUS_IGNORED,
 ) -> int:
     """Send each frame of ``path`` as one datagram; return how many were sent.
 
     ``speed`` scales the recorded pacing (2.0 is twice as fast); None sends as fast as the
-    socket takes them.
+    socket takes them. ``seal``, when given, wraps each frame (the tunnel's ``Sealer.seal``).
     """
     if speed is not None and speed <= 0:
         raise ValueError(f"speed must be positive, found {speed}")
@@ -135,6 +136,6 @@ async def replay_udp(
             elif sent % 64 == 0:
                 # Let the receiver (often in this process) keep up.
                 await anyio.lowlevel.checkpoint()
-            await sock.send(record.frame)
+            await sock.send(seal(record.frame) if seal else record.frame)
             sent += 1
     return sent
