@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from contextlib import aclosing
 import socket
 
 import anyio
@@ -73,10 +74,10 @@ async def test_mavsdk_gets_position_and_battery_through_the_passthrough() -> Non
             system = await gcs.first_autopilot(timeout_s=20.0)
             assert system is not None
             telemetry = telemetry_plugin.TelemetryAsync(system)
-            async for position in telemetry.subscribe_position():
-                break
-            async for battery in telemetry.subscribe_battery():
-                break
+            async with aclosing(telemetry.subscribe_position()) as updates:
+                position = await anext(updates)
+            async with aclosing(telemetry.subscribe_battery()) as updates:
+                battery = await anext(updates)
             await eventually(lambda: "HEARTBEAT" in uplinked)
             tg.cancel_scope.cancel()
         await sock.aclose()
