@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import math
-from contextlib import aclosing
 import socket
+from contextlib import aclosing
 
 import anyio
 import pytest
