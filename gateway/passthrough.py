@@ -13,7 +13,7 @@ from collections.abc import Awaitable, Callable
 import anyio
 import anyio.abc
 import structlog
-from anyio.streams.memory import MemoryObjectReceiveStream, MemoryObjectSendStream
+from anyio.streams.memory import MemoryObjectSendStream
 
 from gateway.config import Endpoint, LinkConfig
 from gateway.errors import LinkError
@@ -40,9 +40,7 @@ class Passthrough:
         config = LinkConfig(uri=endpoint, security="unsecured", name=f"{airframe}-passthrough")
         self.link = UdpLink(config, self._from_gcs, lambda _label, _peer: None)
         self._send_to_airframe = send_to_airframe
-        self._send: MemoryObjectSendStream[bytes]
-        self._receive: MemoryObjectReceiveStream[bytes]
-        self._send, self._receive = anyio.create_memory_object_stream[bytes](_UPLINK_QUEUE)
+        self._send: MemoryObjectSendStream[bytes] | None = None
         self.downlink_frames = 0
         self.uplink_frames = 0
         self.uplink_dropped = 0
@@ -54,9 +52,11 @@ class Passthrough:
             self.downlink_frames += 1
 
     def _from_gcs(self, _label: str, _peer: object, data: bytes) -> None:
+        if self._send is None:
+            return
         try:
             self._send.send_nowait(data)
-        except anyio.WouldBlock:
+        except (anyio.WouldBlock, anyio.BrokenResourceError, anyio.ClosedResourceError):
             self.uplink_dropped += 1
             if self._log_limit.allow("full"):
                 log.warning("passthrough_uplink_dropped", airframe=self.airframe)
@@ -65,10 +65,12 @@ class Passthrough:
         self, *, task_status: anyio.abc.TaskStatus[None] = anyio.TASK_STATUS_IGNORED
     ) -> None:
         """Bind the local endpoint and forward ground-station traffic until cancelled."""
-        async with anyio.create_task_group() as tg:
+        send, receive = anyio.create_memory_object_stream[bytes](_UPLINK_QUEUE)
+        self._send = send
+        async with send, receive, anyio.create_task_group() as tg:
             await tg.start(self.link.run)
             task_status.started()
-            async for data in self._receive:
+            async for data in receive:
                 try:
                     await self._send_to_airframe(self.airframe, data)
                 except LinkError as exc:
