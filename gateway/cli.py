@@ -28,7 +28,7 @@ from gateway.errors import ConfigError, ConfigIssue, GatewayError
 from gateway.keys import load_day_keys, read_key_file, write_day_keys
 from gateway.logsetup import configure_logging
 from gateway.plugins import check_sink, load_plugin
-from gateway.tunnel import DayKeys, Sealer
+from gateway.tunnel import DayKeys, Sealer, derive_day_key
 
 __all__ = ["main"]
 
@@ -196,10 +196,18 @@ def _demo_config(args: argparse.Namespace) -> Config:
                 link["uri"] = f"udp://127.0.0.1:{args.udp_port}"
     if args.health_port is not None:
         data["health"]["port"] = args.health_port
-    if args.archive is not None:
-        for sink in data["sinks"]:
-            if sink["type"] == "jsonl":
-                sink["options"]["path"] = str(args.archive)
+    archive = Path(args.archive or "fischer-demo/archive.jsonl")
+    for sink in data["sinks"]:
+        if sink["type"] == "jsonl":
+            sink["options"]["path"] = str(archive)
+    # The demo's tunnel master key lives next to its archive, created on first run.
+    master = archive.parent / "demo-master.key"
+    if not master.exists():
+        archive.parent.mkdir(parents=True, exist_ok=True)
+        fd = os.open(master, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        with os.fdopen(fd, "w", encoding="ascii") as handle:
+            handle.write(secrets.token_hex(32) + "\n")
+    data["tunnel"]["master_key_file"] = str(master)
     return Config.model_validate(data)
 
 
@@ -209,11 +217,30 @@ def _demo(args: argparse.Namespace) -> int:
     config = _demo_config(args)
     gateway = Gateway(config, source="demo.yaml")
     fleet = build_demo_fleet(len(config.airframes))
+    assert config.tunnel.master_key_file is not None  # noqa: S101 - set by _demo_config
+    master = read_key_file(config.tunnel.master_key_file)
+    today = utc_now().date()
+    # Each simulated airframe gets only its own day keys (today and tomorrow), as in the field.
+    sealers: list[Sealer | None] = [
+        Sealer(
+            airframe.id,
+            DayKeys(
+                keys={
+                    (airframe.id, day): derive_day_key(master, airframe.id, day)
+                    for day in (today, today + timedelta(days=1))
+                }
+            ),
+            utc_now,
+        )
+        for airframe in config.airframes
+    ]
 
     async def simulate() -> None:
         link = next(iter(gateway.links.values()))
         port = getattr(link, "local_port", 0) or link.endpoint.port
-        await run_fleet(fleet, "127.0.0.1", [port] * len(fleet), duration_s=None, speed=1.0)
+        await run_fleet(
+            fleet, "127.0.0.1", [port] * len(fleet), duration_s=None, speed=1.0, sealers=sealers
+        )
 
     _run_async(_serve, gateway, args.duration, simulate)
     return EXIT_OK

@@ -140,7 +140,8 @@ class LinkHealth:
         for link in self.links.values():
             link.is_active = link is best
             state = (link.is_up, link.is_active)
-            if link.published == state:
+            if link.published == state or (link.published is None and not link.is_up):
+                # Nothing changed, or a link never heard: its first state is "up" when heard.
                 continue
             link.published = state
             self._seq += 1
