@@ -10,7 +10,7 @@ from gateway.errors import PermanentSinkError, TransientSinkError
 from gateway.events import Event, EventKind
 from gateway.sink import SinkConfig
 
-__all__ = ["MemorySink", "MemorySinkConfig", "eventually"]
+__all__ = ["MemorySink", "MemorySinkConfig", "NullSink", "NullSinkConfig", "eventually"]
 
 
 class MemorySinkConfig(SinkConfig):
@@ -83,3 +83,35 @@ async def eventually(predicate: Callable[[], bool], *, interval_s: float = 0.005
     """
     while not predicate():  # noqa: ASYNC110 - polls a condition that has no event to wait on
         await anyio.sleep(interval_s)
+
+
+class NullSinkConfig(SinkConfig):
+    """Options of the null sink."""
+
+    kinds: frozenset[EventKind] = frozenset(EventKind)
+
+
+class NullSink:
+    """Accepts and counts events, keeping none: for benchmarks and route checks."""
+
+    config_model = NullSinkConfig
+
+    def __init__(self, name: str, config: NullSinkConfig | None = None) -> None:
+        self.name = name
+        self.config = config or NullSinkConfig()
+        self.count = 0
+
+    @property
+    def kinds(self) -> frozenset[EventKind]:
+        """Every kind, unless the config narrows it."""
+        return self.config.kinds
+
+    async def open(self) -> None:
+        """Nothing to open."""
+
+    async def send(self, batch: Sequence[Event]) -> None:
+        """Count the batch."""
+        self.count += len(batch)
+
+    async def aclose(self) -> None:
+        """Nothing to close."""
