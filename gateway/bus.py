@@ -131,13 +131,13 @@ class Bus:
         if not targets:
             return
         now = time.monotonic()
+        slot = latest_key(event)
         for target in targets:
             interval = target.min_interval_s
-            if interval is not None:
-                rate_key = latest_key(event)
-                last = target.last_sent.get(rate_key)
+            if interval is not None and slot is not None:
+                last = target.last_sent.get(slot)
                 if last is not None and now - last < interval:
                     self._inst.sink_rate_limited.labels(target.runner.name).inc()
                     continue
-                target.last_sent[rate_key] = now
-            target.runner.offer(event, now)
+                target.last_sent[slot] = now
+            target.runner.offer_slot(event, now, slot)

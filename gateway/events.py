@@ -10,8 +10,9 @@ same event twice (delivery is at-least-once for durable kinds) can de-duplicate 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from enum import StrEnum
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import AwareDatetime, BaseModel, ConfigDict, Field, TypeAdapter
 
@@ -211,12 +212,14 @@ Event = Annotated[
 event_adapter: TypeAdapter[Event] = TypeAdapter(Event)
 
 
-def latest_key(event: Event) -> str:
-    """The key under which a latest-wins event replaces its predecessor."""
-    if isinstance(event, Telemetry):
-        return event.airframe
-    if isinstance(event, LinkState):
-        return f"{event.airframe}\x00{event.link}"
-    if isinstance(event, BlueForce):
-        return event.uid
-    return event.event_id
+_SLOTS: dict[type, Callable[[Any], str]] = {
+    Telemetry: lambda e: "telemetry\x00" + e.airframe,
+    LinkState: lambda e: f"link_state\x00{e.airframe}\x00{e.link}",
+    BlueForce: lambda e: "blue_force\x00" + e.uid,
+}
+
+
+def latest_key(event: Event) -> str | None:
+    """The slot a latest-wins event replaces its predecessor in; None for durable kinds."""
+    slot = _SLOTS.get(type(event))
+    return None if slot is None else slot(event)

@@ -5,10 +5,12 @@ do not authenticate or parse are counted by reason and logged (rate-limited); a 
 an unknown system id is counted and logged once per sysid; a frame that already arrived on
 another link of the same airframe is delivered once. What is left becomes Telemetry, goes
 to the airframe's passthrough if it has one, and updates link health (``linkhealth``).
+Telemetry snapshots are coalesced per pass of the event loop (see ``flush``).
 """
 
 from __future__ import annotations
 
+import asyncio
 import time
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import asdict, dataclass, field
@@ -84,6 +86,8 @@ class Ingest:
             self._by_id[cfg.id] = airframe
         self._intakes: dict[str, LinkIntake] = {}
         self._unknown_sysids: set[int] = set()
+        self._dirty: dict[str, _Airframe] = {}
+        self._flush_pending = False
         self._reject_log = RateLimit(interval_s=10.0)
 
     def register_link(self, intake: LinkIntake) -> None:
@@ -181,10 +185,26 @@ class Ingest:
         if airframe.passthrough is not None:
             airframe.passthrough(bytes(buf))
         name = msg.get_type()
-        if name in NORMALISED_TYPES:
-            event = airframe.state.apply(name, msg)
-            if event is not None:
-                self._publish(event)
+        if name in NORMALISED_TYPES and airframe.state.update(name, msg):
+            self._dirty[airframe.config.id] = airframe
+            if not self._flush_pending:
+                self._schedule_flush()
+
+    def _schedule_flush(self) -> None:
+        # Telemetry is latest-wins, so the frames read in one pass of the event loop make one
+        # snapshot per airframe: under load the work per frame shrinks instead of queueing.
+        self._flush_pending = True
+        try:
+            asyncio.get_running_loop().call_soon(self.flush)
+        except RuntimeError:  # no loop (a synchronous caller): publish at once
+            self.flush()
+
+    def flush(self) -> None:
+        """Publish one Telemetry snapshot for every airframe updated since the last flush."""
+        self._flush_pending = False
+        dirty, self._dirty = self._dirty, {}
+        for airframe in dirty.values():
+            self._publish(airframe.state.snapshot())
 
     def _duplicate(self, airframe: _Airframe, buf: bytes | bytearray, now_mono: float) -> bool:
         """True if the same frame arrived on another link within the de-duplication window."""

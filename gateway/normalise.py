@@ -72,11 +72,13 @@ class AirframeState:
         """Record which link is active; later snapshots carry it."""
         self.active_link = label
 
-    def apply(self, name: str, msg: MavMessage) -> Telemetry | None:
-        """Merge ``msg`` (of type ``name``) and return the new snapshot, or None if ignored."""
+    def update(self, name: str, msg: MavMessage) -> bool:
+        """Merge ``msg`` (of type ``name``); True if the state changed."""
         handler = self._handlers.get(name)
-        if handler is None or not handler(msg):
-            return None
+        return handler is not None and handler(msg)
+
+    def snapshot(self) -> Telemetry:
+        """The merged state now, as a new Telemetry event."""
         self._seq += 1
         return Telemetry(
             event_id=f"{self.airframe}-tel-{_BOOT_ID}-{self._seq}",
@@ -85,6 +87,10 @@ class AirframeState:
             active_link=self.active_link,
             **self._fields,
         )
+
+    def apply(self, name: str, msg: MavMessage) -> Telemetry | None:
+        """``update`` then ``snapshot``; None if the message changed nothing."""
+        return self.snapshot() if self.update(name, msg) else None
 
     def _heartbeat(self, msg: MavMessage) -> bool:
         # Ground stations and companion computers send heartbeats under the same sysid;

@@ -48,9 +48,10 @@ class SinkRunner:
         self.sink = sink
         self.name = entry.name
         self.kinds = sink.kinds
-        self._latest: dict[tuple[str, str], _Item] = {}
+        self._latest: dict[str, _Item] = {}
         self._durable: deque[_Item] = deque()
         self._wake = anyio.Event()
+        self._waiting = False
         self._stopping = False
         self._done = anyio.Event()
         self.dead_letters: deque[tuple[Event, str]] = deque(maxlen=DEAD_LETTER_KEEP)
@@ -77,11 +78,15 @@ class SinkRunner:
 
     def offer(self, event: Event, ingest_mono: float) -> None:
         """Queue ``event`` by its kind's policy; wake the sender."""
-        if event.kind in LATEST_WINS_KINDS:
-            key = (event.kind.value, latest_key(event))
-            if key in self._latest:
+        self.offer_slot(event, ingest_mono, latest_key(event))
+
+    def offer_slot(self, event: Event, ingest_mono: float, slot: str | None) -> None:
+        """``offer`` with the event's ``latest_key`` already computed (once, by the bus)."""
+        if slot is not None:
+            latest = self._latest
+            if slot in latest:
                 self._superseded.inc()
-            self._latest[key] = (event, ingest_mono)
+            latest[slot] = (event, ingest_mono)
         elif len(self._durable) >= self.entry.queue_max:
             self._overflow.inc()
             if self._overflow_log.allow("overflow"):
@@ -95,7 +100,9 @@ class SinkRunner:
             return
         else:
             self._durable.append((event, ingest_mono))
-        self._wake.set()
+        if self._waiting:
+            self._waiting = False
+            self._wake.set()
 
     @property
     def depth(self) -> tuple[int, int]:
@@ -105,6 +112,7 @@ class SinkRunner:
     def stop(self) -> None:
         """Ask the runner to finish: it drains what is queued, then closes the sink."""
         self._stopping = True
+        self._waiting = False
         self._wake.set()
 
     async def wait_done(self) -> None:
@@ -125,6 +133,7 @@ class SinkRunner:
                     if self._stopping:
                         break
                     self._wake = anyio.Event()
+                    self._waiting = True
                     await self._wake.wait()
                     continue
                 await self._deliver(self._take())
@@ -171,10 +180,10 @@ class SinkRunner:
         durable = [item for item in items if item[0].kind not in LATEST_WINS_KINDS]
         self._durable.extendleft(reversed(durable))
         for item in items:
-            event = item[0]
-            if event.kind in LATEST_WINS_KINDS:
+            slot = latest_key(item[0])
+            if slot is not None:
                 # A newer value that arrived during the failed send wins over the retry.
-                self._latest.setdefault((event.kind.value, latest_key(event)), item)
+                self._latest.setdefault(slot, item)
 
     async def _deliver(self, items: list[_Item]) -> None:
         batch = [event for event, _ in items]

@@ -1,0 +1,401 @@
+"""Ingest benchmark: fischer-gateway against a bare pymavlink parse loop (and MAVProxy).
+
+Reproducible: ``python bench/ingest.py`` (``--help`` for options). Prints a Markdown table.
+
+Part A, the pipeline on one core (no sockets): the same datagrams (N airframes x a realistic
+message mix, optionally sealed in the tunnel) go through (1) a bare pymavlink
+``parse_buffer`` loop and (2) the gateway's ingest → normalise → bus → five sink runners,
+run until every sink has its last event. The ratio is (2)/(1) in messages per second.
+
+Part B, the daemon over UDP loopback: ``fischer-gateway run`` in its own process with five
+null sinks, fed by a sender process at a fixed share of the rate part A measured. Reports
+loss (frames the gateway counted vs sent), the ingest→sink delivery latency p50/p99/p99.9
+from the gateway's own histogram (kernel socket time excluded), CPU and RSS of the daemon.
+With ``--mavproxy`` and MAVProxy installed, the same load through ``mavproxy.py`` forwarding.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import multiprocessing
+import os
+import platform
+import re
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+import urllib.request
+from datetime import UTC, datetime
+from pathlib import Path
+
+import anyio
+import anyio.lowlevel
+from pymavlink.dialects.v20 import ardupilotmega as mav
+
+from gateway.app import Gateway
+from gateway.config import Config
+from gateway.logsetup import configure_logging
+from gateway.sim.airframe import SimProfile, SimulatedAirframe
+from gateway.testing import NullSink
+from gateway.tunnel import DayKeys, Sealer
+
+MASTER = bytes(range(32))
+SINKS = 5
+
+
+def airframe_id(i: int) -> str:
+    return f"F26E-{i:04d}"
+
+
+def make_datagrams(
+    airframes: int, seconds: float, tunnel: bool, ids: list[str] | None = None
+) -> list[bytes]:
+    """One datagram per frame, interleaved across airframes in time order.
+
+    ``ids``, when given, receives the airframe id of each datagram.
+    """
+    profile = SimProfile(position_hz=10, gps_hz=0.0001, status_hz=2, heartbeat_hz=1)
+    sims = [SimulatedAirframe(i % 250 + 1, profile, phase_rad=i) for i in range(airframes)]
+    keys = DayKeys(master=MASTER)
+    sealers = [Sealer(airframe_id(i), keys, lambda: datetime.now(UTC)) for i in range(airframes)]
+    out: list[bytes] = []
+    t = 0.0
+    while t < seconds:
+        for i, sim in enumerate(sims):
+            for frame in sim.frames_at(t):
+                out.append(sealers[i].seal(frame) if tunnel else frame)
+                if ids is not None:
+                    ids.append(airframe_id(i))
+        t += 0.05
+    return out
+
+
+def config(airframes: int, tunnel: bool, port: int, key_file: str | None) -> Config:
+    return Config.model_validate(
+        {
+            "gateway": {"shutdown_deadline_s": 2},
+            "health": {"port": 0},
+            "tunnel": {"master_key_file": key_file} if key_file else {},
+            "airframes": [
+                {
+                    "id": airframe_id(i),
+                    "sysid": i % 250 + 1,
+                    "links": [
+                        {
+                            "uri": f"udp://127.0.0.1:{port}",
+                            "security": "tunnel" if tunnel else "unsecured",
+                            "name": "bench",
+                        }
+                    ],
+                }
+                for i in range(min(airframes, 250))
+            ],
+            "sinks": [
+                {"name": f"null{n}", "type": "null", "queue_max": 100_000, "batch_max": 500}
+                for n in range(SINKS)
+            ],
+            "routes": [{"sinks": [f"null{n}" for n in range(SINKS)]}],
+        }
+    )
+
+
+def bare_pymavlink(datagrams: list[bytes], tunnel: bool) -> float:
+    """Messages per second of pymavlink alone (one parser, one parse_buffer per datagram)."""
+    parser = mav.MAVLink(None)
+    parser.robust_parsing = True
+    if tunnel:
+        from gateway.tunnel import TunnelOpener
+
+        opener = TunnelOpener(
+            DayKeys(master=MASTER),
+            frozenset(airframe_id(i) for i in range(250)),
+            lambda: datetime.now(UTC),
+            freshness_s=3600,
+        )
+    start = time.perf_counter()
+    count = 0
+    for data in datagrams:
+        payload = opener.open_frame(data, "b").payload if tunnel else data
+        count += len(parser.parse_buffer(payload) or ())
+    return count / (time.perf_counter() - start)
+
+
+def gateway_pipeline(datagrams: list[bytes], airframes: int, tunnel: bool, key: str) -> float:
+    """Messages per second through ingest, normalise, bus and five sink runners."""
+    cfg = config(airframes, tunnel, 0, key if tunnel else None)
+    sinks = {f"null{n}": NullSink(f"null{n}") for n in range(SINKS)}
+    gateway = Gateway(cfg, sinks=dict(sinks))
+    if tunnel:
+        assert gateway.security.opener is not None
+        gateway.security.opener.freshness_s = 3600
+    total = len(datagrams)
+
+    async def run() -> float:
+        async with anyio.create_task_group() as tg:
+            for runner in gateway.runners.values():
+                await tg.start(runner.run)
+            on_data = gateway.ingest.on_data
+            start = time.perf_counter()
+            for index, data in enumerate(datagrams):
+                on_data("bench", "peer", data)
+                if index % 256 == 0:
+                    await (
+                        anyio.lowlevel.checkpoint()
+                    )  # let the sink runners drain, as the loop would
+            for runner in gateway.runners.values():
+                runner.stop()
+            for runner in gateway.runners.values():
+                await runner.wait_done()
+            elapsed = time.perf_counter() - start
+            tg.cancel_scope.cancel()
+        return elapsed
+
+    from gateway.ingest import LinkIntake
+
+    gateway.ingest.register_link(
+        LinkIntake("bench", "tunnel" if tunnel else "unsecured", is_stream=False)
+    )
+    elapsed = anyio.run(run, backend_options={"use_uvloop": True})
+    frames = gateway.instruments.link_frames.labels("bench").value
+    assert frames == total, (frames, total)
+    return total / elapsed
+
+
+def sender(
+    port: int,
+    datagrams: list[bytes],
+    rate: float,
+    seconds: float,
+    out: object,
+    ids: list[str] | None = None,
+) -> None:
+    """Send ``datagrams`` round-robin at ``rate`` per second for ``seconds`` (own process).
+
+    With ``ids`` (the airframe of each datagram) every send is sealed afresh, since a
+    re-sent sealed frame would rightly be rejected as a replay.
+    """
+    sealers = {}
+    if ids is not None:
+        keys = DayKeys(master=MASTER)
+        sealers = {i: Sealer(i, keys, lambda: datetime.now(UTC)) for i in set(ids)}
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.connect(("127.0.0.1", port))
+    start = time.perf_counter()
+    sent = 0
+    n = len(datagrams)
+    while True:
+        now = time.perf_counter() - start
+        if now >= seconds:
+            break
+        due = int(now * rate)
+        while sent < due:
+            index = sent % n
+            data = datagrams[index]
+            sock.send(sealers[ids[index]].seal(data) if ids is not None else data)
+            sent += 1
+        time.sleep(0.0005)
+    out.value = sent  # type: ignore[attr-defined]
+
+
+def metric(text: str, name: str, labels: str = "") -> float:
+    total = 0.0
+    for line in text.splitlines():
+        if line.startswith((name + "{" + labels, name + " ")):
+            total += float(line.rsplit(" ", 1)[1])
+    return total
+
+
+def quantile(text: str, q: float) -> float:
+    """A quantile of the summed delivery-latency histogram, by linear interpolation (ms)."""
+    buckets: dict[float, float] = {}
+    for line in text.splitlines():
+        if line.startswith("fg_sink_delivery_latency_seconds_bucket"):
+            le = re.search(r'le="([^"]+)"', line)
+            assert le is not None
+            bound = math.inf if le.group(1) == "+Inf" else float(le.group(1))
+            buckets[bound] = buckets.get(bound, 0) + float(line.rsplit(" ", 1)[1])
+    ordered = sorted(buckets.items())
+    total = ordered[-1][1]
+    target = q * total
+    prev_bound, prev_count = 0.0, 0.0
+    for bound, count in ordered:
+        if count >= target:
+            if math.isinf(bound):
+                return prev_bound * 1000
+            share = (target - prev_count) / max(count - prev_count, 1)
+            return (prev_bound + share * (bound - prev_bound)) * 1000
+        prev_bound, prev_count = bound, count
+    return math.nan
+
+
+def daemon_run(
+    datagrams: list[bytes],
+    ids: list[str],
+    airframes: int,
+    tunnel: bool,
+    rate: float,
+    seconds: float,
+    key: str,
+) -> dict[str, float]:
+    """The daemon in its own process under a fixed load; loss, latency, CPU, RSS."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        health = probe.getsockname()[1]
+    cfg = config(airframes, tunnel, port, key if tunnel else None).model_dump(mode="json")
+    cfg["health"]["port"] = health
+    if tunnel:
+        cfg["tunnel"]["freshness_s"] = 3600
+    import yaml
+
+    path = Path(tempfile.mkdtemp()) / "bench.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "gateway", "run", "--config", str(path)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    try:
+        url = f"http://127.0.0.1:{health}"
+        for _ in range(200):
+            try:
+                urllib.request.urlopen(url + "/readyz", timeout=1)  # noqa: S310 - loopback
+                break
+            except OSError:
+                time.sleep(0.05)
+        cpu0 = _cpu_s(proc.pid)
+        sent = multiprocessing.Value("q", 0)
+        child = multiprocessing.Process(
+            target=sender, args=(port, datagrams, rate, seconds, sent, ids if tunnel else None)
+        )
+        t0 = time.perf_counter()
+        child.start()
+        child.join()
+        time.sleep(0.5)
+        wall = time.perf_counter() - t0
+        cpu = _cpu_s(proc.pid) - cpu0
+        text = urllib.request.urlopen(url + "/metrics", timeout=5).read().decode()  # noqa: S310
+        frames = metric(text, "fg_link_frames_total")
+        return {
+            "sent": sent.value,
+            "loss_pct": 100.0 * (1 - frames / max(sent.value, 1)),
+            "p50_ms": quantile(text, 0.5),
+            "p99_ms": quantile(text, 0.99),
+            "p999_ms": quantile(text, 0.999),
+            "cpu_pct": 100.0 * cpu / wall,
+            "rss_mb": _rss_mb(proc.pid),
+        }
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=15)
+
+
+def _cpu_s(pid: int) -> float:
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _rss_mb(pid: int) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    return math.nan
+
+
+def mavproxy_rate(datagrams: list[bytes], rate: float, seconds: float) -> float | None:
+    """Share of datagrams MAVProxy forwards at ``rate`` (None if MAVProxy is absent)."""
+    exe = shutil.which("mavproxy.py")
+    if exe is None:
+        return None
+    ports = []
+    for _ in range(2):
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+            probe.bind(("127.0.0.1", 0))
+            ports.append(probe.getsockname()[1])
+    out = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    out.bind(("127.0.0.1", ports[1]))
+    out.settimeout(0.2)
+    proc = subprocess.Popen(
+        [exe, f"--master=udpin:127.0.0.1:{ports[0]}", f"--out=udp:127.0.0.1:{ports[1]}",
+         "--daemon", "--non-interactive", "--nowait", "--state-basedir", tempfile.mkdtemp()],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )  # fmt: skip
+    try:
+        time.sleep(3)
+        sent = multiprocessing.Value("q", 0)
+        child = multiprocessing.Process(
+            target=sender, args=(ports[0], datagrams, rate, seconds, sent)
+        )
+        child.start()
+        received = 0
+        deadline = time.perf_counter() + seconds + 2
+        while time.perf_counter() < deadline:
+            try:
+                received += len(out.recv(65536)) > 0
+            except TimeoutError:
+                continue
+        child.join()
+        return received / max(sent.value, 1)
+    finally:
+        proc.terminate()
+        proc.wait(timeout=10)
+        out.close()
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--airframes", default="1,100,250", help="at most 250: 8-bit sysids")
+    parser.add_argument("--seconds", type=float, default=5.0)
+    parser.add_argument("--mavproxy", action="store_true")
+    args = parser.parse_args()
+    configure_logging("warning", sys.stderr)
+    key_dir = Path(tempfile.mkdtemp())
+    key = key_dir / "master.key"
+    key.write_text(MASTER.hex())
+    key.chmod(0o600)
+    print(f"# ingest benchmark, {datetime.now(UTC):%Y-%m-%d %H:%M} UTC")
+    print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
+          f"Python {platform.python_version()}, {platform.platform()}")  # fmt: skip
+    print("\n## A. pipeline on one core (messages/s)\n")
+    print("| airframes | tunnel | bare pymavlink | gateway (ingest+normalise+5 sinks) | ratio |")
+    print("| --- | --- | --- | --- | --- |")
+    capacity: dict[tuple[int, bool], float] = {}
+    for n in (int(x) for x in args.airframes.split(",")):
+        for tunnel in (False, True):
+            datagrams = make_datagrams(n, max(1.0, 40_000 / (n * 13)), tunnel)
+            bare = bare_pymavlink(datagrams, tunnel)
+            ours = gateway_pipeline(datagrams, n, tunnel, str(key))
+            capacity[(n, tunnel)] = ours
+            mode = "on" if tunnel else "off"
+            print(f"| {n} | {mode} | {bare:,.0f} | {ours:,.0f} | {ours / bare:.2f} |")
+    print("\n## B. daemon over UDP loopback, tunnel on, 5 null sinks\n")
+    head = (
+        "| airframes | load | offered msg/s | loss % | p50 ms | p99 ms | p99.9 ms | CPU % | RSS |"
+    )
+    print(head)
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    for n in (int(x) for x in args.airframes.split(",")):
+        ids: list[str] = []
+        datagrams = make_datagrams(n, 2.0, False, ids)
+        for share in (0.1, 0.8):
+            rate = capacity[(n, True)] * share
+            r = daemon_run(datagrams, ids, n, True, rate, args.seconds, str(key))
+            print(f"| {n} | {share:.0%} | {r['sent'] / args.seconds:,.0f} | {r['loss_pct']:.3f} | "
+                  f"{r['p50_ms']:.2f} | {r['p99_ms']:.2f} | {r['p999_ms']:.2f} | "
+                  f"{r['cpu_pct']:.0f} | {r['rss_mb']:.0f} |")  # fmt: skip
+    if args.mavproxy:
+        datagrams = make_datagrams(100, 2.0, False)
+        share = mavproxy_rate(datagrams, capacity[(100, False)] * 0.8, args.seconds)
+        found = "not installed" if share is None else f"{share:.1%} of datagrams forwarded"
+        print(f"\nMAVProxy forwarding at 80 % of our capacity: {found}")
+
+
+if __name__ == "__main__":
+    main()
