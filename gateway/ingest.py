@@ -25,6 +25,7 @@ from gateway.instruments import Instruments
 from gateway.linkhealth import LinkHealth
 from gateway.logsetup import RateLimit
 from gateway.mavlink import MavlinkParser, MavMessage
+from gateway.metrics import CounterChild
 from gateway.normalise import NORMALISED_TYPES, AirframeState, Clock
 from gateway.signing import SigningVerifier
 from gateway.tunnel import TunnelOpener
@@ -47,6 +48,7 @@ class LinkIntake:
     max_chunk_bytes: int = 2048
     parsers: dict[object, MavlinkParser] = field(default_factory=dict)
     deframers: dict[object, StreamDeframer] = field(default_factory=dict)
+    counters: tuple[CounterChild, CounterChild, CounterChild] | None = None
 
 
 @dataclass(slots=True)
@@ -92,7 +94,14 @@ class Ingest:
 
     def register_link(self, intake: LinkIntake) -> None:
         """Declare a link endpoint before it delivers data."""
-        self._intakes[intake.label] = intake
+        label = intake.label
+        inst = self._inst
+        intake.counters = (
+            inst.link_bytes.labels(label),
+            inst.link_chunks.labels(label),
+            inst.link_frames.labels(label),
+        )
+        self._intakes[label] = intake
 
     def set_passthrough(self, airframe: str, forward: Callable[[bytes], None]) -> None:
         """Forward every accepted frame of ``airframe`` (raw MAVLink) to ``forward``."""
@@ -108,9 +117,10 @@ class Ingest:
     def on_data(self, label: str, peer: object, data: bytes) -> None:
         """Take one datagram or stream read from link ``label``; never raises."""
         intake = self._intakes[label]
-        inst = self._inst
-        inst.link_bytes.labels(label).inc(len(data))
-        inst.link_chunks.labels(label).inc()
+        counters = intake.counters
+        assert counters is not None  # noqa: S101 - set by register_link
+        counters[0].value += len(data)
+        counters[1].value += 1
         if intake.security != "tunnel":
             for msg in self._parse(intake, peer, data):
                 self._frame(intake, msg, None)
@@ -155,7 +165,7 @@ class Ingest:
 
     def _frame(self, intake: LinkIntake, msg: MavMessage, sealed_by: _Airframe | None) -> None:
         label = intake.label
-        self._inst.link_frames.labels(label).inc()
+        intake.counters[2].value += 1  # type: ignore[index]
         sysid = msg.get_srcSystem()
         airframe = self._by_sysid.get(sysid)
         if airframe is None:

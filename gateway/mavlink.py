@@ -53,8 +53,19 @@ class MavlinkParser:
         """Parse ``data``; return the complete, CRC-checked messages it finished."""
         if len(data) > self.max_chunk_bytes:
             raise Oversize(len(data), self.max_chunk_bytes)
+        mav = self._mav
         try:
-            parsed = self._mav.parse_buffer(data)
+            # parse_buffer() always asks for one more message; a datagram usually holds
+            # exactly one frame, so stop as soon as the buffer is empty.
+            first = mav.parse_char(data)
+            if first is None:
+                parsed = []
+            elif mav.buf_len() == 0:
+                parsed = [first]
+            else:
+                parsed = [first]
+                while (more := mav.parse_char(b"")) is not None:
+                    parsed.append(more)
         except (dialect.MAVError, struct.error, IndexError, ValueError, TypeError) as exc:
             # pymavlink's buffer is in an unknown state after it raised: start clean.
             self._mav = self._new_mav()
