@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable, Sequence
 
 import anyio
@@ -10,7 +11,14 @@ from gateway.errors import PermanentSinkError, TransientSinkError
 from gateway.events import Event, EventKind
 from gateway.sink import SinkConfig
 
-__all__ = ["MemorySink", "MemorySinkConfig", "NullSink", "NullSinkConfig", "eventually"]
+__all__ = [
+    "MemorySink",
+    "MemorySinkConfig",
+    "NullSink",
+    "NullSinkConfig",
+    "eventually",
+    "fuzz_examples",
+]
 
 
 class MemorySinkConfig(SinkConfig):
@@ -115,3 +123,9 @@ class NullSink:
 
     async def aclose(self) -> None:
         """Nothing to close."""
+
+
+def fuzz_examples(default: int) -> int:
+    """Examples per fuzz property: ``default``, or ``$FISCHER_FUZZ_EXAMPLES`` for long runs."""
+    value = os.environ.get("FISCHER_FUZZ_EXAMPLES", "")
+    return int(value) if value.isdigit() else default

@@ -7,12 +7,15 @@ import textwrap
 from pathlib import Path
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from gateway.cli import main
 from gateway.config import Config, parse_endpoint
 from gateway.configfile import load_config, load_config_text
 from gateway.errors import ConfigError
 from gateway.plugins import check_sink
+from gateway.testing import fuzz_examples
 
 GOOD = textwrap.dedent(
     """\
@@ -217,3 +220,17 @@ class TestCli:
         example = Path(__file__).parents[2] / "config" / "example.yaml"
         config = load_config(example, check_sink=check_sink)
         assert config.airframes
+
+
+@settings(max_examples=fuzz_examples(300), deadline=None)
+@given(st.text(max_size=400) | st.binary(max_size=400).map(lambda b: b.decode("latin-1")))
+def test_arbitrary_text_gives_a_config_or_a_config_error(text: str) -> None:
+    """The loader's only failure is ConfigError, whatever the file holds."""
+    try:
+        load_config_text(text, "fuzz.yaml", check_sink=check_sink)
+    except ConfigError as exc:
+        issues = exc.issues
+    else:
+        return
+    assert issues
+    assert all(issue.source == "fuzz.yaml" for issue in issues)

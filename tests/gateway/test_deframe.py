@@ -8,6 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from gateway.deframe import StreamDeframer, frame_for_stream
+from gateway.testing import fuzz_examples
 from gateway.tunnel import DayKeys, Opened, Sealer, TunnelOpener
 
 NOW = datetime(2026, 11, 22, 12, tzinfo=UTC)
@@ -47,7 +48,7 @@ def test_frames_survive_garbage_and_arbitrary_splits(
         assert received == payloads
 
 
-@settings(max_examples=500, deadline=None)
+@settings(max_examples=fuzz_examples(500), deadline=None)
 @given(st.binary(max_size=3000))
 def test_arbitrary_bytes_never_raise_and_stay_bounded(blob: bytes) -> None:
     _, opener = make()

@@ -17,6 +17,7 @@ from gateway.config import AirframeConfig, LinkConfig
 from gateway.events import Event, LinkState, Telemetry
 from gateway.ingest import Ingest, LinkIntake
 from gateway.instruments import Instruments
+from gateway.testing import fuzz_examples
 from gateway.tlog import read_tlog
 
 CORPUS = Path(__file__).resolve().parents[2].parent / "shared" / "corpus"
@@ -159,7 +160,7 @@ class TestLinkHealth:
 class TestBadBytes:
     """Garbage, truncated frames and oversize datagrams are counted, never raised."""
 
-    @settings(max_examples=300, deadline=None)
+    @settings(max_examples=fuzz_examples(300), deadline=None)
     @given(st.lists(st.binary(max_size=600), max_size=8))
     def test_arbitrary_bytes_never_raise(self, chunks: list[bytes]) -> None:
         ingest, _, inst = make_ingest(1)

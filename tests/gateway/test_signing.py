@@ -12,6 +12,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mav
 
 from gateway.errors import AuthenticationFailed, FrameError, Replayed
 from gateway.signing import SigningVerifier, mavlink_timestamp_now, sign_frame
+from gateway.testing import fuzz_examples
 
 KEY = hashlib.sha256(b"fischer-test-passphrase").digest()
 
@@ -91,7 +92,7 @@ def test_our_signer_matches_pymavlink() -> None:
     assert sign_frame(unsigned, KEY, 3, 1000) == frame
 
 
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=fuzz_examples(300), deadline=None)
 @given(st.binary(max_size=300))
 def test_arbitrary_bytes_raise_only_frame_errors(blob: bytes) -> None:
     v = verifier()

@@ -9,6 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from gateway.errors import AuthenticationFailed, FrameError, Malformed, Replayed
+from gateway.testing import fuzz_examples
 from gateway.tunnel import DayKeys, Sealer, TunnelOpener, derive_day_key
 
 MASTER = bytes(range(32))
@@ -131,7 +132,7 @@ class TestFailClosed:
         with pytest.raises(Malformed):
             opener.open_frame(b"\xfd\x09not a tunnel frame at all")
 
-    @settings(max_examples=1000, deadline=None)
+    @settings(max_examples=fuzz_examples(1000), deadline=None)
     @given(st.binary(max_size=300))
     def test_arbitrary_bytes_raise_only_frame_errors(self, blob: bytes) -> None:
         _, opener, _ = pair()
