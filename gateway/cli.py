@@ -1,4 +1,5 @@
-"""The ``fischer-gateway`` command: run, demo, check-config, config-schema, replay, simulate, keys.
+"""The ``fischer-gateway`` command: run, demo, check-config, config-schema, replay, simulate,
+keys and selftest.
 
 This is the only module that configures logging. Exit codes: 0 success, 1 runtime failure
 (a link that cannot be opened, ...), 2 a config error (systemd does not restart on it).
@@ -53,6 +54,7 @@ def _parser() -> argparse.ArgumentParser:
     check = sub.add_parser("check-config", help="validate a config file; exit 2 on errors")
     check.add_argument("file", type=Path)
     sub.add_parser("config-schema", help="print the JSON Schema of the config")
+    sub.add_parser("selftest", help="compute every claim of the ledger; exit 1 on a mismatch")
     replay = sub.add_parser("replay", help="send a .tlog to a gateway as an airframe would")
     replay.add_argument("file", type=Path)
     replay.add_argument("--to", required=True, help="udp://HOST:PORT")
@@ -281,6 +283,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_OK
     if args.command == "check-config":
         return _check_config(args.file)
+    if args.command == "selftest":
+        from gateway.domain.selftest import run_selftest
+
+        return run_selftest(sys.stdout)
     if args.command == "keys":
         try:
             return _keys(args)
