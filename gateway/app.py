@@ -20,6 +20,7 @@ import structlog
 
 from gateway.bus import Bus
 from gateway.config import Config
+from gateway.domain.terrain import DemSource, TerrainModel
 from gateway.errors import LinkUnavailable
 from gateway.health import HealthServer
 from gateway.ingest import Ingest, LinkIntake
@@ -38,6 +39,12 @@ __all__ = ["Gateway", "utc_now"]
 log = structlog.get_logger(__name__)
 
 _LINK_CHECK_INTERVAL_S = 0.25
+
+
+def terrain_model(config: Config) -> TerrainModel | None:
+    """The DEM sources of the config, in order; None when there are none."""
+    sources = [DemSource(s.name, s.directory, s.kind, s.sigma_m) for s in config.terrain.sources]
+    return TerrainModel(sources) if sources else None
 
 
 def utc_now() -> datetime:
@@ -83,6 +90,8 @@ class Gateway:
             clock,
             opener=self.security.opener,
             verifiers=self.security.verifiers,
+            terrain=terrain_model(config),
+            baro_sigma_m=config.terrain.baro_sigma_m,
         )
         self.links: dict[str, Link] = {}
         self._links_by_label: dict[str, Link] = {}

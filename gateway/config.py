@@ -21,11 +21,13 @@ from pydantic import (
     WithJsonSchema,
 )
 
+from gateway.domain.energy import EnergyProfile, EwMode
 from gateway.events import EventKind
 
 __all__ = [
     "AirframeConfig",
     "Config",
+    "DemSourceConfig",
     "Endpoint",
     "GatewayConfig",
     "HealthConfig",
@@ -33,6 +35,7 @@ __all__ = [
     "RouteConfig",
     "SigningConfig",
     "SinkEntry",
+    "TerrainConfig",
     "TunnelConfig",
     "parse_endpoint",
 ]
@@ -198,11 +201,35 @@ class AirframeConfig(BaseModel):
         description="A frame seen again on another link within this window is delivered once.",
     )
     signing: SigningConfig | None = None
+    energy: EnergyProfile = EnergyProfile()
+    ew_mode: EwMode = Field(
+        default=EwMode.ACTIVE, description="EW mode assumed for predicted endurance."
+    )
     passthrough: EndpointField | None = Field(
         default=None,
         description="A plain local MAVLink endpoint (udp:// only) for QGroundControl, "
         "MAVProxy or MAVSDK; keep it on loopback.",
     )
+
+
+class DemSourceConfig(BaseModel):
+    """A directory of DEM tiles the operator supplies; nothing is downloaded."""
+
+    model_config = _FROZEN
+
+    name: str = Field(pattern=_ID, description="e.g. lantmateriet_2m, srtm_30m")
+    kind: Literal["hgt", "geotiff"]
+    directory: Path
+    sigma_m: float = Field(gt=0, description="The DEM's 1σ vertical error.")
+
+
+class TerrainConfig(BaseModel):
+    """Ground elevation sources, tried in order, for height above ground on telemetry."""
+
+    model_config = _FROZEN
+
+    sources: tuple[DemSourceConfig, ...] = ()
+    baro_sigma_m: float = Field(default=0.5, gt=0, description="Barometric altitude 1σ.")
 
 
 class SinkEntry(BaseModel):
@@ -264,6 +291,7 @@ class Config(BaseModel):
     gateway: GatewayConfig = GatewayConfig()
     health: HealthConfig = HealthConfig()
     tunnel: TunnelConfig = TunnelConfig()
+    terrain: TerrainConfig = TerrainConfig()
     airframes: tuple[AirframeConfig, ...] = ()
     sinks: tuple[SinkEntry, ...] = ()
     routes: tuple[RouteConfig, ...] = ()

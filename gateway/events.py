@@ -109,6 +109,8 @@ class Telemetry(BaseModel):
     airframe: str
     time: AwareDatetime
     position: Position | None = None
+    alt_agl_m: float | None = None
+    agl_sigma_m: float | None = None
     attitude: Attitude | None = None
     velocity: Velocity | None = None
     heading_deg: float | None = None
@@ -123,6 +125,8 @@ class Telemetry(BaseModel):
     battery_current_a: float | None = None
     battery_consumed_wh: float | None = None
     battery_time_remaining_s: float | None = None
+    endurance_remaining_min: float | None = Field(default=None, ge=0)
+    ew_mode: str | None = None
     mav_type: int | None = None
     autopilot: int | None = None
     is_armed: bool | None = None

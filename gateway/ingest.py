@@ -19,6 +19,7 @@ import structlog
 
 from gateway.config import AirframeConfig
 from gateway.deframe import StreamDeframer
+from gateway.domain.terrain import TerrainModel
 from gateway.errors import FrameError
 from gateway.events import Event
 from gateway.instruments import Instruments
@@ -26,7 +27,7 @@ from gateway.linkhealth import LinkHealth
 from gateway.logsetup import RateLimit
 from gateway.mavlink import MavlinkParser, MavMessage
 from gateway.metrics import CounterChild
-from gateway.normalise import NORMALISED_TYPES, AirframeState, Clock
+from gateway.normalise import NORMALISED_TYPES, AirframeState, Clock, Enrichment
 from gateway.signing import SigningVerifier
 from gateway.tunnel import TunnelOpener
 
@@ -74,6 +75,8 @@ class Ingest:
         *,
         opener: TunnelOpener | None = None,
         verifiers: Mapping[int, SigningVerifier] | None = None,
+        terrain: TerrainModel | None = None,
+        baro_sigma_m: float = 0.5,
     ) -> None:
         self._publish = publish
         self._inst = instruments
@@ -81,7 +84,8 @@ class Ingest:
         self._by_sysid: dict[int, _Airframe] = {}
         self._by_id: dict[str, _Airframe] = {}
         for cfg in airframes:
-            state = AirframeState(cfg.id, clock)
+            enrichment = Enrichment(cfg.energy, cfg.ew_mode, terrain, baro_sigma_m)
+            state = AirframeState(cfg.id, clock, enrichment)
             health = LinkHealth(cfg, publish, clock, instruments, on_active=state.set_active_link)
             airframe = _Airframe(cfg, state, health, (verifiers or {}).get(cfg.sysid))
             self._by_sysid[cfg.sysid] = airframe

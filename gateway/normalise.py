@@ -10,16 +10,30 @@ from __future__ import annotations
 import math
 import secrets
 from collections.abc import Callable
+from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
 
+from gateway.domain.energy import EnergyProfile, EwMode, endurance_remaining_min
+from gateway.domain.terrain import TerrainModel, agl_from_msl, agl_sigma
 from gateway.events import Attitude, Position, Telemetry, Velocity
 from gateway.mavlink import MavMessage
 
-__all__ = ["NORMALISED_TYPES", "AirframeState", "Clock"]
+__all__ = ["NORMALISED_TYPES", "AirframeState", "Clock", "Enrichment"]
 
 Clock = Callable[[], datetime]
 """Returns the current UTC-aware time; injected so tests control it."""
+
+
+@dataclass(frozen=True)
+class Enrichment:
+    """What the platform maths adds to an airframe's telemetry."""
+
+    energy: EnergyProfile
+    ew_mode: EwMode
+    terrain: TerrainModel | None = None
+    baro_sigma_m: float = 0.5
+
 
 _UINT16_MAX = 0xFFFF
 _MAV_AUTOPILOT_INVALID = 8
@@ -51,9 +65,12 @@ class AirframeState:
     Telemetry snapshot; the state is only ever read and written from the event loop.
     """
 
-    def __init__(self, airframe: str, clock: Clock) -> None:
+    def __init__(self, airframe: str, clock: Clock, enrichment: Enrichment | None = None) -> None:
         self.airframe = airframe
         self._clock = clock
+        self._enrichment = enrichment
+        self._agl_for: tuple[float, float, float | None] | None = None
+        self._agl: tuple[float | None, float | None] = (None, None)
         self._seq = 0
         self._fields: dict[str, Any] = {}
         self._geoid_sep_m: float | None = None
@@ -80,13 +97,52 @@ class AirframeState:
     def snapshot(self) -> Telemetry:
         """The merged state now, as a new Telemetry event."""
         self._seq += 1
+        derived: dict[str, Any] = {}
+        if self._enrichment is not None:
+            derived = self._derive(self._enrichment)
         return Telemetry(
             event_id=f"{self.airframe}-tel-{_BOOT_ID}-{self._seq}",
             airframe=self.airframe,
             time=self._clock(),
             active_link=self.active_link,
             **self._fields,
+            **derived,
         )
+
+    def _derive(self, enrichment: Enrichment) -> dict[str, Any]:
+        """Height above ground (where a DEM covers the point) and predicted endurance."""
+        out: dict[str, Any] = {"ew_mode": enrichment.ew_mode.value}
+        position: Position | None = self._fields.get("position")
+        terrain = enrichment.terrain
+        if position is not None and position.alt_msl_m is not None and terrain is not None:
+            key = (position.lat_deg, position.lon_deg, position.alt_msl_m)
+            if key != self._agl_for:
+                # Tile lookups are memory-mapped reads; only a moved airframe pays for one.
+                self._agl_for = key
+                found = terrain.lookup(position.lat_deg, position.lon_deg)
+                self._agl = (
+                    (None, None)
+                    if found is None
+                    else (
+                        agl_from_msl(position.alt_msl_m, found[0]),
+                        agl_sigma(enrichment.baro_sigma_m, found[1].sigma_m),
+                    )
+                )
+            out["alt_agl_m"], out["agl_sigma_m"] = self._agl
+        profile = enrichment.energy
+        pct = self._fields.get("battery_pct")
+        consumed = self._fields.get("battery_consumed_wh")
+        wh_left = None
+        if pct is not None:
+            wh_left = profile.battery_usable_wh * pct / 100.0
+        elif consumed is not None:
+            wh_left = profile.battery_usable_wh - consumed
+        if wh_left is not None:
+            # No solar measurement arrives over MAVLink: predict the worst case (night).
+            out["endurance_remaining_min"] = endurance_remaining_min(
+                wh_left, profile, enrichment.ew_mode
+            )
+        return out
 
     def apply(self, name: str, msg: MavMessage) -> Telemetry | None:
         """``update`` then ``snapshot``; None if the message changed nothing."""

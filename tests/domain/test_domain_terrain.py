@@ -94,3 +94,46 @@ def test_agl_sigma_and_safety_floor() -> None:
     assert sigma == pytest.approx(5.0249, abs=1e-4)
     assert safe_floor_agl_m(sigma, clearance_m=30.0) == pytest.approx(30 + 3 * sigma)
     assert agl_from_msl(250.0, 180.0) == 70.0
+
+
+def test_telemetry_gains_agl_and_endurance(tmp_path: Path) -> None:
+    """Through ingest: AGL where the DEM covers the airframe, endurance from the battery."""
+    from datetime import UTC, datetime
+
+    from pymavlink.dialects.v20 import ardupilotmega as mav
+
+    from gateway.config import AirframeConfig, LinkConfig
+    from gateway.events import Event, Telemetry
+    from gateway.ingest import Ingest, LinkIntake
+    from gateway.instruments import Instruments
+
+    write_hgt(tmp_path, "N65E021.hgt")
+    events: list[Event] = []
+    airframe = AirframeConfig(
+        id="A",
+        sysid=1,
+        links=(LinkConfig(uri="udp://127.0.0.1:1", name="l", security="unsecured"),),
+        ew_mode="heavy",
+    )
+    terrain = TerrainModel([DemSource("srtm_30m", tmp_path, "hgt", 5.0)])
+    ingest = Ingest(
+        [airframe],
+        events.append,
+        Instruments(),
+        lambda: datetime(2026, 11, 22, tzinfo=UTC),
+        terrain=terrain,
+        baro_sigma_m=0.5,
+    )
+    ingest.register_link(LinkIntake("l", "unsecured", is_stream=False))
+    m = mav.MAVLink(None, srcSystem=1, srcComponent=1)
+    # 66.0 N 21.0 E is the tile's north-west sample: ground 1000 m.
+    position = m.global_position_int_encode(0, 660000000, 210000000, 1250000, 0, 0, 0, 0, 0)
+    ingest.on_data("l", "p", bytes(position.pack(m)))
+    status = m.sys_status_encode(0, 0, 0, 0, 22000, 1000, 50, 0, 0, 0, 0, 0, 0)
+    ingest.on_data("l", "p", bytes(status.pack(m)))
+    telemetry = [e for e in events if isinstance(e, Telemetry)][-1]
+    assert telemetry.alt_agl_m == pytest.approx(250.0)
+    assert telemetry.agl_sigma_m == pytest.approx(agl_sigma(0.5, 5.0))
+    # Half of the 800 Wh pack at 355 W + 125 W (heavy EW), no sun: 50 minutes.
+    assert telemetry.endurance_remaining_min == pytest.approx(50.0)
+    assert telemetry.ew_mode == "heavy"

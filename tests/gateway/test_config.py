@@ -210,6 +210,7 @@ class TestCli:
             "gateway",
             "health",
             "tunnel",
+            "terrain",
             "airframes",
             "sinks",
             "routes",
