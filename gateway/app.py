@@ -20,6 +20,7 @@ import structlog
 
 from gateway.bus import Bus
 from gateway.config import Config
+from gateway.cot_listener import CotListener
 from gateway.domain.terrain import DemSource, TerrainModel
 from gateway.errors import LinkUnavailable
 from gateway.health import HealthServer
@@ -113,6 +114,7 @@ class Gateway:
                         max_chunk_bytes=link_cfg.max_frame_bytes,
                     )
                 )
+        self.sources = [CotListener(source, self.bus.publish) for source in config.sources]
         self.passthroughs: dict[str, Passthrough] = {}
         for airframe in config.airframes:
             if airframe.passthrough is not None:
@@ -168,6 +170,8 @@ class Gateway:
                     await ingest.start(link.run)
                 for passthrough in self.passthroughs.values():
                     await ingest.start(passthrough.run)
+                for source in self.sources:
+                    await ingest.start(source.run)
                 ingest.start_soon(self._watch_links)
                 self._links_up = True
                 outer.start_soon(self.notifier.run_watchdog)
@@ -224,7 +228,15 @@ class Gateway:
             "uptime_s": round(time.monotonic() - self._started_mono, 3),
             "ready": self.is_ready(),
             "airframes": self.ingest.status(),
-            "links": [{**link.status(), "security": "unsecured"} for link in self.links.values()],
+            "links": [
+                {**link.status(), "security": self._link_security[link.label]}
+                for link in self.links.values()
+            ],
+            "passthroughs": [p.status() for p in self.passthroughs.values()],
+            "sources": [
+                {"source": s.config.name, "uri": s.config.uri, "counts": dict(s.counts)}
+                for s in self.sources
+            ],
             "unknown_sysids": sorted(self.ingest.unknown_sysids),
             "sinks": [runner.status() for runner in self.runners.values()],
         }

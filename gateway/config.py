@@ -21,6 +21,7 @@ from pydantic import (
     WithJsonSchema,
 )
 
+from gateway.cot_listener import CotSourceConfig
 from gateway.domain.energy import EnergyProfile, EwMode
 from gateway.events import EventKind
 
@@ -292,6 +293,9 @@ class Config(BaseModel):
     health: HealthConfig = HealthConfig()
     tunnel: TunnelConfig = TunnelConfig()
     terrain: TerrainConfig = TerrainConfig()
+    sources: tuple[CotSourceConfig, ...] = Field(
+        default=(), description="Inputs beyond the airframes: CoT from ATAK/WinTAK (blue force)."
+    )
     airframes: tuple[AirframeConfig, ...] = ()
     sinks: tuple[SinkEntry, ...] = ()
     routes: tuple[RouteConfig, ...] = ()

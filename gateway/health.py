@@ -63,7 +63,7 @@ class HealthServer:
     ) -> None:
         """Bind, report the bound port as started, and serve until cancelled."""
         listener = await anyio.create_tcp_listener(local_host=self.host, local_port=self.port)
-        port = int(listener.extra(anyio.abc.SocketAttribute.local_port))  # noqa: S610 - anyio, not Django
+        port = int(listener.extra(anyio.abc.SocketAttribute.local_port))
         log.info("health_listening", host=self.host, port=port)
         task_status.started(port)
         async with listener:

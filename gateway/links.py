@@ -243,7 +243,7 @@ class TcpServerLink(_StreamLink):
             raise LinkUnavailable(
                 self.label, f"cannot listen on {ep}: {exc.strerror or exc}"
             ) from exc
-        self.local_port = int(listener.extra(anyio.abc.SocketAttribute.local_port))  # noqa: S610 - anyio, not Django
+        self.local_port = int(listener.extra(anyio.abc.SocketAttribute.local_port))
         self.is_bound, self.state = True, "listening"
         self.log.info("link_bound", uri=str(ep), port=self.local_port)
         task_status.started()
@@ -251,7 +251,7 @@ class TcpServerLink(_StreamLink):
             await listener.serve(self._serve)
 
     async def _serve(self, stream: anyio.abc.SocketStream) -> None:
-        peer = stream.extra(anyio.abc.SocketAttribute.remote_address)  # noqa: S610 - anyio, not Django
+        peer = stream.extra(anyio.abc.SocketAttribute.remote_address)
         self.connects += 1
         self._streams[peer] = stream
         self.log.info("link_peer_connected", peer=str(peer))

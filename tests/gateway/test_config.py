@@ -211,6 +211,7 @@ class TestCli:
             "health",
             "tunnel",
             "terrain",
+            "sources",
             "airframes",
             "sinks",
             "routes",

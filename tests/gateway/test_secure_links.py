@@ -167,6 +167,8 @@ class TestSigning:
                 await eventually(lambda: bool(positions(mem)))
                 gateway.shutdown()
         assert positions(mem) == [(60.0000003, 20.0)]
+        (link,) = gateway.status()["links"]
+        assert link["security"] == "signed"
         (airframe,) = gateway.status()["airframes"]
         assert airframe["signing"] == {
             "signed": 1,

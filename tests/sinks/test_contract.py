@@ -20,7 +20,11 @@ ROOT = Path(__file__).resolve().parents[2]
 SINK_TYPES = sorted(available())
 
 #: Options that let each built-in sink run inside a test's temporary directory.
-OPTIONS: dict[str, Any] = {"jsonl": lambda tmp: {"path": str(tmp / "contract.jsonl")}}
+OPTIONS: dict[str, Any] = {
+    "jsonl": lambda tmp: {"path": str(tmp / "contract.jsonl")},
+    # The discard port on loopback: nothing listens, and UDP does not care.
+    "cot": lambda tmp: {"destinations": [{"uri": "udp://127.0.0.1:9"}]},
+}
 
 
 def options_for(type_name: str, tmp_path: Path) -> dict[str, Any]:
