@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import time
 from datetime import UTC, date, datetime, timedelta
 from pathlib import Path
 
@@ -169,12 +168,16 @@ async def test_clock_jump_across_midnight_rotates_keys_with_grace(tmp_path: Path
     sim = SimulatedAirframe(1)
     label = next(iter(gateway.links.values())).label
 
+    sim_time = [0.0]
+
     async def send(count: int) -> None:
         async with await anyio.create_connected_udp_socket(
             remote_host="127.0.0.1", remote_port=port(gateway)
         ) as sock:
             for _ in range(count):
-                for frame in sim.frames_at(time.monotonic()):
+                # A second of sim time per step: every message group is due each time.
+                sim_time[0] += 1.0
+                for frame in sim.frames_at(sim_time[0]):
                     await sock.send(sealer.seal(frame))
 
     def accepted() -> float:
