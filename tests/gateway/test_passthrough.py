@@ -88,5 +88,5 @@ async def test_mavsdk_gets_position_and_battery_through_the_passthrough() -> Non
         for lat, lon in sent
     )
     assert 0 < battery.remaining_percent <= 100
-    assert battery.voltage_v == pytest.approx(22.2, abs=0.01)
+    assert 18.0 < battery.voltage_v < 26.0  # the simulated 6S pack
     assert gateway.passthroughs["F26E-001"].downlink_frames > 0
