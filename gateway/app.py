@@ -83,6 +83,7 @@ class Gateway:
         if given:
             raise ValueError(f"sinks given for names not in the config: {sorted(given)}")
         self.bus = Bus(config.routes, self.runners, self.instruments, source=source)
+        self.instruments.sink_queue.set_function(self._queue_depths)
         self.security = Security.from_config(config, clock)
         self.ingest = Ingest(
             config.airframes,
@@ -136,6 +137,13 @@ class Gateway:
         self._started_mono = time.monotonic()
         self._links_up = False
         self.log = log.bind(node=config.gateway.node_id)
+
+    def _queue_depths(self) -> list[tuple[tuple[str, ...], float]]:
+        depths: list[tuple[tuple[str, ...], float]] = []
+        for name, runner in self.runners.items():
+            latest, durable = runner.depth
+            depths += [((name, "latest"), float(latest)), ((name, "durable"), float(durable))]
+        return depths
 
     def is_ready(self) -> bool:
         """True once every link is bound and every sink is open."""

@@ -181,6 +181,7 @@ async def test_health_endpoints_report_links_sinks_and_metrics(tmp_path: Path) -
             assert 'fg_link_frames_total{link="udp://127.0.0.1:' in text
             assert 'fg_events_total{kind="telemetry"}' in text
             assert 'fg_sink_delivery_latency_seconds_bucket{sink="mem"' in text
+            assert 'fg_sink_queue_depth{sink="mem",class="durable"} 0' in text
             gateway.shutdown()
 
 
