@@ -8,9 +8,10 @@ message mix, optionally sealed in the tunnel) go through (1) a bare pymavlink
 run until every sink has its last event. The ratio is (2)/(1) in messages per second.
 
 Part B, the daemon over UDP loopback: ``fischer-gateway run`` in its own process with five
-null sinks, fed by a sender process at a fixed share of the rate part A measured. Reports
-loss (frames the gateway counted vs sent), the ingest→sink delivery latency p50/p99/p99.9
-from the gateway's own histogram (kernel socket time excluded), CPU and RSS of the daemon.
+null sinks, fed by a sender process (sealing each frame afresh). First its capacity: the
+highest offered rate with < 0.1 % loss; then 10 % and 80 % of that. Reports loss (frames the
+gateway counted vs sent), the ingest→sink delivery latency p50/p99/p99.9 from the gateway's
+own histogram (kernel socket time excluded), CPU and RSS of the daemon.
 With ``--mavproxy`` and MAVProxy installed, the same load through ``mavproxy.py`` forwarding.
 """
 
@@ -392,13 +393,27 @@ def main() -> None:
     )
     print(head)
     print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    sustained: dict[int, float] = {}
     for n in (int(x) for x in args.airframes.split(",")):
         ids: list[str] = []
         datagrams = make_datagrams(n, 2.0, False, ids)
-        for share in (0.1, 0.8):
-            rate = capacity[(n, True)] * share
+        # Capacity over sockets: the highest offered rate with < 0.1 % loss, searched down
+        # from the in-process rate in 15 % steps (the sender holds the other core).
+        rate = capacity[(n, True)]
+        for _ in range(8):
             r = daemon_run(datagrams, ids, n, True, rate, args.seconds, str(key))
-            print(f"| {n} | {share:.0%} | {r['sent'] / args.seconds:,.0f} | {r['loss_pct']:.3f} | "
+            if r["loss_pct"] < 0.1:
+                break
+            rate *= 0.85
+        sustained[n] = r["sent"] / args.seconds
+        rows = [("capacity", r)]
+        for share in (0.1, 0.8):
+            load = sustained[n] * share
+            rows.append(
+                (f"{share:.0%}", daemon_run(datagrams, ids, n, True, load, args.seconds, str(key)))
+            )
+        for label, r in rows:
+            print(f"| {n} | {label} | {r['sent'] / args.seconds:,.0f} | {r['loss_pct']:.3f} | "
                   f"{r['p50_ms']:.2f} | {r['p99_ms']:.2f} | {r['p999_ms']:.2f} | "
                   f"{r['cpu_pct']:.0f} | {r['rss_mb']:.0f} |")  # fmt: skip
     if args.mavproxy:
