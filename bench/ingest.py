@@ -423,11 +423,17 @@ def main() -> None:
         if share is None:
             print("\nMAVProxy: not installed (pip install MAVProxy)")
         else:
+            ours = sustained.get(100)
+            compare = (
+                f"; the gateway daemon sustained {ours:,.0f} msg/s over UDP with the tunnel, "
+                f"normalising and feeding 5 sinks ({ours / max(share * offered, 1):.1f}x)"
+                if ours
+                else ""
+            )
             print(
                 f"\nMAVProxy forwarding (udpin → udp out), 100 airframes, no tunnel, offered "
-                f"{offered:,.0f} msg/s: forwarded {share:.1%} = {share * offered:,.0f} msg/s; "
-                f"the gateway took {capacity[(100, False)] / max(share * offered, 1):.1f}x that "
-                "rate while also normalising and feeding 5 sinks"
+                f"{offered:,.0f} msg/s: forwarded {share:.1%} = {share * offered:,.0f} msg/s"
+                + compare
             )
 
 

@@ -88,6 +88,15 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _udp_target(text: str) -> tuple[str, int]:
+    from gateway.tlog import parse_udp_target
+
+    try:
+        return parse_udp_target(text)
+    except ValueError as exc:
+        raise ConfigError([ConfigIssue("(command line)", None, "--to", str(exc))]) from exc
+
+
 def _sealers(args: argparse.Namespace, count: int) -> list[Sealer | None]:
     if args.key_dir is None:
         return [None] * count
@@ -249,9 +258,9 @@ def _demo(args: argparse.Namespace) -> int:
 
 
 def _replay(args: argparse.Namespace) -> int:
-    from gateway.tlog import parse_udp_target, replay_udp
+    from gateway.tlog import replay_udp
 
-    host, port = parse_udp_target(args.to)
+    host, port = _udp_target(args.to)
     speed = None if args.fast else args.speed
     (sealer,) = _sealers(args, 1) if args.key_dir else (None,)
     seal = sealer.seal if sealer else None
@@ -262,9 +271,8 @@ def _replay(args: argparse.Namespace) -> int:
 
 def _simulate(args: argparse.Namespace) -> int:
     from gateway.sim.airframe import build_demo_fleet, run_fleet
-    from gateway.tlog import parse_udp_target
 
-    host, port = parse_udp_target(args.to)
+    host, port = _udp_target(args.to)
     fleet = build_demo_fleet(args.airframes)
     sealers = _sealers(args, len(fleet))
     _run_async(

@@ -1,31 +1,57 @@
 """A simulated Fischer 26E that flies a circle and speaks real MAVLink 2 (pymavlink-encoded).
 
-``frames_at`` is pure and deterministic (sim time in, frames out), so tests can compare
-what the gateway delivers with what was sent. ``run_udp`` paces it on the event loop's clock
-and sends one frame per datagram, sealed in the tunnel when given a ``Sealer``.
+``frames_at`` has no I/O and no clock of its own (sim time in, frames out), so tests can
+compare what the gateway delivers with what was sent. ``run_udp`` paces it on the event
+loop's clock and sends one frame per datagram, sealed in the tunnel when given a ``Sealer``.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
-from dataclasses import dataclass
+from collections import deque
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, fields
+from functools import partial
+from typing import TYPE_CHECKING, Any
 
 import anyio
 import anyio.abc
+import structlog
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
-from gateway.tunnel import Sealer
+if TYPE_CHECKING:
+    from gateway.tunnel import Sealer
 
 __all__ = ["SentPosition", "SimProfile", "SimulatedAirframe", "build_demo_fleet", "run_fleet"]
 
-_EARTH_R_M = 6_371_000.0
-_G = 9.80665
+log = structlog.get_logger(__name__)
+
+_WGS84_A_M = 6_378_137.0
+_WGS84_E2 = 6.694379990141317e-3
+_G_MPS2 = 9.80665
+_PITCH_RAD = 0.05  # angle of attack in level cruise
+_CELLS = 6  # 6S Li-ion: 4.2 V full, 3.3 V empty, linear in between
+_CELL_FULL_V, _CELL_EMPTY_V = 4.2, 3.3
+_UINT16_MAX = 0xFFFF
+# Callers' sim times (i × step) and schedule slots (n × period) differ by float rounding.
+_EPS_S = 1e-9
+# The sensors SYS_STATUS reports as present, enabled and healthy.
+_SENSORS = (
+    mav.MAV_SYS_STATUS_SENSOR_3D_GYRO | mav.MAV_SYS_STATUS_SENSOR_3D_ACCEL
+    | mav.MAV_SYS_STATUS_SENSOR_3D_MAG | mav.MAV_SYS_STATUS_SENSOR_ABSOLUTE_PRESSURE
+    | mav.MAV_SYS_STATUS_SENSOR_DIFFERENTIAL_PRESSURE | mav.MAV_SYS_STATUS_SENSOR_GPS
+    | mav.MAV_SYS_STATUS_SENSOR_BATTERY
+)  # fmt: skip
 
 
 @dataclass(frozen=True)
 class SimProfile:
-    """A deterministic flight: a circle around a centre, and the rates of each message."""
+    """A deterministic flight (a clockwise circle around a centre) and each message's rate.
+
+    A rate of 0 Hz turns that message group off. ``geoid_sep_m`` is added to the MSL
+    altitude for ``GPS_RAW_INT.alt_ellipsoid``; ``home_alt_msl_m`` gives ``relative_alt``.
+    Raises ``ValueError`` naming the field when a value is out of range.
+    """
 
     centre_lat_deg: float = 65.8252  # Boden, Sweden
     centre_lon_deg: float = 21.6886
@@ -39,9 +65,30 @@ class SimProfile:
     heartbeat_hz: float = 1.0
     battery_wh: float = 600.0
     power_w: float = 355.0
+    home_alt_msl_m: float = 150.0
+
+    def __post_init__(self) -> None:
+        positive = {"radius_m", "speed_mps", "battery_wh", "power_w"}
+        rates = {"position_hz", "status_hz", "gps_hz", "heartbeat_hz"}
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if not math.isfinite(value):
+                expected = "a finite number"
+            elif f.name in positive and value <= 0:
+                expected = "> 0"
+            elif f.name in rates and value < 0:
+                expected = ">= 0"
+            elif f.name == "centre_lat_deg" and abs(value) >= 89.0:
+                expected = "within ±89°"
+            else:
+                continue
+            raise ValueError(f"SimProfile.{f.name}: expected {expected}, got {value!r}")
 
 
-@dataclass(frozen=True)
+_DEFAULT_PROFILE = SimProfile()
+
+
+@dataclass(frozen=True, slots=True)
 class SentPosition:
     """A GLOBAL_POSITION_INT as sent, in wire units."""
 
@@ -51,113 +98,169 @@ class SentPosition:
     alt_mm: int
 
 
-@dataclass
+@dataclass(slots=True)
 class _Schedule:
-    period_s: float
-    next_s: float = 0.0
+    period_s: float  # inf when the group is off
+    emit: Callable[[float], list[Any]]
+    # Slots are origin + n × period: multiplying, not adding, keeps them on the grid.
+    origin_s: float = 0.0
+    slot: int = 0
+
+    @property
+    def next_s(self) -> float:
+        if math.isinf(self.period_s):
+            return math.inf
+        return self.origin_s + self.slot * self.period_s
 
 
 class SimulatedAirframe:
-    """One airframe: its MAVLink encoder, flight profile and message schedule."""
+    """One airframe: its MAVLink encoder, flight profile and message schedule.
+
+    ``sent_positions`` keeps the last ``position_history`` GLOBAL_POSITION_INTs produced.
+    """
 
     def __init__(
-        self, sysid: int, profile: SimProfile | None = None, *, phase_rad: float = 0.0
+        self,
+        sysid: int,
+        profile: SimProfile = _DEFAULT_PROFILE,
+        *,
+        phase_rad: float = 0.0,
+        position_history: int = 100_000,
     ) -> None:
+        if not 1 <= sysid <= 255:
+            raise ValueError(f"sysid: expected 1..255, got {sysid!r}")
         self.sysid = sysid
-        self.profile = profile or SimProfile()
+        self.profile = profile
         self.phase_rad = phase_rad
         self._mav = mav.MAVLink(None, srcSystem=sysid, srcComponent=1)
-        p = self.profile
-        self._schedules: dict[str, _Schedule] = {
-            "heartbeat": _Schedule(1.0 / p.heartbeat_hz),
-            "position": _Schedule(1.0 / p.position_hz),
-            "gps": _Schedule(1.0 / p.gps_hz),
-            "status": _Schedule(1.0 / p.status_hz),
-        }
-        self.sent_positions: list[SentPosition] = []
+        p = profile
+        # Local radii of curvature of WGS84 at the centre: metres to degrees on the circle.
+        s2 = math.sin(math.radians(p.centre_lat_deg)) ** 2
+        self._m_per_rad_lat = _WGS84_A_M * (1 - _WGS84_E2) / (1 - _WGS84_E2 * s2) ** 1.5
+        self._m_per_rad_lon = (
+            _WGS84_A_M / math.sqrt(1 - _WGS84_E2 * s2) * math.cos(math.radians(p.centre_lat_deg))
+        )
+        self._omega_rps = p.speed_mps / p.radius_m
+        self._bank_rad = math.atan(p.speed_mps**2 / (p.radius_m * _G_MPS2))
+        self._schedules = [
+            _Schedule(_period(p.heartbeat_hz), self._heartbeat),
+            _Schedule(_period(p.position_hz), self._position),
+            _Schedule(_period(p.gps_hz), self._gps),
+            _Schedule(_period(p.status_hz), self._status),
+        ]
+        self.sent_positions: deque[SentPosition] = deque(maxlen=position_history)
         self.frames_sent = 0
 
-    def _state(self, t_s: float) -> tuple[float, float, float, float]:
-        """(lat, lon, track angle rad, bank angle rad) at sim time ``t_s``."""
-        p = self.profile
-        omega = p.speed_mps / p.radius_m
-        theta = self.phase_rad + omega * t_s
-        north, east = p.radius_m * math.cos(theta), p.radius_m * math.sin(theta)
-        lat = p.centre_lat_deg + math.degrees(north / _EARTH_R_M)
-        lon = p.centre_lon_deg + math.degrees(
-            east / (_EARTH_R_M * math.cos(math.radians(p.centre_lat_deg)))
-        )
-        track = theta + math.pi / 2  # counter-clockwise seen from above is clockwise in NED
-        bank = math.atan(p.speed_mps**2 / (p.radius_m * _G))
-        return lat, lon, track % (2 * math.pi), bank
-
-    def _encode(self, msg: mav.MAVLink_message) -> bytes:
-        frame = bytes(msg.pack(self._mav))
-        # pack() does not advance the sequence number (send() would); receivers count gaps.
-        self._mav.seq = (self._mav.seq + 1) % 256
-        return frame
-
     def frames_at(self, t_s: float) -> list[bytes]:
-        """The frames due at sim time ``t_s`` (each schedule fires once its period passed)."""
+        """The frames due at sim time ``t_s`` (seconds since boot), in a fixed order.
+
+        Each message group is emitted when its period has elapsed since it was last due;
+        all are due at the first call. Calls must not go back in time. After a gap longer
+        than a period the missed slots are skipped, not sent in a burst. No I/O, no clock.
+        """
         frames: list[bytes] = []
-        for name, schedule in self._schedules.items():
-            if t_s + 1e-9 >= schedule.next_s:
-                schedule.next_s += schedule.period_s
-                frames.extend(getattr(self, f"_{name}")(t_s))
+        for schedule in self._schedules:
+            if t_s + _EPS_S < schedule.next_s:
+                continue
+            schedule.slot += 1
+            if schedule.next_s <= t_s + _EPS_S:
+                schedule.origin_s, schedule.slot = t_s, 1
+            for msg in schedule.emit(t_s):
+                frames.append(bytes(msg.pack(self._mav)))
+                # pack() does not advance the sequence number (send() would); receivers
+                # count gaps in it as loss.
+                self._mav.seq = (self._mav.seq + 1) % 256
         return frames
 
-    def _heartbeat(self, _t_s: float) -> list[bytes]:
-        base_mode = mav.MAV_MODE_FLAG_SAFETY_ARMED | mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
-        msg = self._mav.heartbeat_encode(
-            mav.MAV_TYPE_FIXED_WING, mav.MAV_AUTOPILOT_ARDUPILOTMEGA, base_mode, 15,
-            mav.MAV_STATE_ACTIVE,
-        )  # fmt: skip
-        return [self._encode(msg)]
+    def next_due_s(self) -> float:
+        """The sim time at which ``frames_at`` will next return frames (inf if never)."""
+        return min(schedule.next_s for schedule in self._schedules)
 
-    def _position(self, t_s: float) -> list[bytes]:
+    def _state(self, t_s: float) -> tuple[float, float, float]:
+        """Latitude and longitude (degrees), and track (radians from north, clockwise)."""
         p = self.profile
-        lat, lon, track, bank = self._state(t_s)
-        boot_ms = int(t_s * 1000)
-        lat_e7, lon_e7 = round(lat * 1e7), round(lon * 1e7)
-        alt_mm = round(p.alt_msl_m * 1000)
-        vx = round(p.speed_mps * math.cos(track) * 100)
-        vy = round(p.speed_mps * math.sin(track) * 100)
-        hdg = round(math.degrees(track) * 100) % 36000
-        self.sent_positions.append(SentPosition(boot_ms, lat_e7, lon_e7, alt_mm))
-        gpi = self._mav.global_position_int_encode(
-            boot_ms, lat_e7, lon_e7, alt_mm, alt_mm - 100_000, vx, vy, 0, hdg
+        theta = self.phase_rad + self._omega_rps * t_s  # bearing of the airframe from the centre
+        north_m, east_m = p.radius_m * math.cos(theta), p.radius_m * math.sin(theta)
+        return (
+            p.centre_lat_deg + math.degrees(north_m / self._m_per_rad_lat),
+            p.centre_lon_deg + math.degrees(east_m / self._m_per_rad_lon),
+            (theta + math.pi / 2) % math.tau,
         )
-        att = self._mav.attitude_encode(boot_ms, -bank, 0.05, _wrap_pi(track), 0.0, 0.0, 0.055)
-        return [self._encode(gpi), self._encode(att)]
 
-    def _gps(self, t_s: float) -> list[bytes]:
+    def _heartbeat(self, _t_s: float) -> list[Any]:
+        base_mode = mav.MAV_MODE_FLAG_SAFETY_ARMED | mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+        return [
+            self._mav.heartbeat_encode(
+                mav.MAV_TYPE_FIXED_WING, mav.MAV_AUTOPILOT_ARDUPILOTMEGA, base_mode,
+                15, mav.MAV_STATE_ACTIVE,  # custom_mode 15 is ArduPlane GUIDED
+            )
+        ]  # fmt: skip
+
+    def _position(self, t_s: float) -> list[Any]:
         p = self.profile
-        lat, lon, track, _ = self._state(t_s)
+        lat_deg, lon_deg, track_rad = self._state(t_s)
+        boot_ms = round(t_s * 1000) % 2**32
+        lat_e7, lon_e7 = round(lat_deg * 1e7), round(lon_deg * 1e7)
         alt_mm = round(p.alt_msl_m * 1000)
+        self.sent_positions.append(SentPosition(boot_ms, lat_e7, lon_e7, alt_mm))
+        vx = round(p.speed_mps * math.cos(track_rad) * 100)
+        vy = round(p.speed_mps * math.sin(track_rad) * 100)
+        hdg = round(math.degrees(track_rad) * 100) % 36000
+        rel_mm = round((p.alt_msl_m - p.home_alt_msl_m) * 1000)
+        yaw = (track_rad + math.pi) % math.tau - math.pi
+        # A coordinated level right turn: right wing down, body rates from the turn rate.
+        bank, omega = self._bank_rad, self._omega_rps
+        return [
+            self._mav.global_position_int_encode(
+                boot_ms, lat_e7, lon_e7, alt_mm, rel_mm, vx, vy, 0, hdg
+            ),
+            self._mav.attitude_encode(
+                boot_ms, bank, _PITCH_RAD, yaw, 0.0, omega * math.sin(bank), omega * math.cos(bank)
+            ),
+        ]
+
+    def _gps(self, t_s: float) -> list[Any]:
+        p = self.profile
+        lat_deg, lon_deg, track_rad = self._state(t_s)
+        alt_mm = round(p.alt_msl_m * 1000)
+        track_deg = math.degrees(track_rad)
         gps = self._mav.gps_raw_int_encode(
-            int(t_s * 1e6), 3, round(lat * 1e7), round(lon * 1e7), alt_mm, 80, 120,
-            round(p.speed_mps * 100), round(math.degrees(track) * 100) % 36000, 17,
+            round(t_s * 1e6), mav.GPS_FIX_TYPE_3D_FIX,
+            round(lat_deg * 1e7), round(lon_deg * 1e7), alt_mm,
+            80, 120, round(p.speed_mps * 100), round(track_deg * 100) % 36000, 17,
             alt_ellipsoid=alt_mm + round(p.geoid_sep_m * 1000), h_acc=1200, v_acc=2000,
+            vel_acc=300,
         )  # fmt: skip
         hud = self._mav.vfr_hud_encode(
-            p.speed_mps, p.speed_mps, round(math.degrees(track)) % 360, 55, p.alt_msl_m, 0.0
+            p.speed_mps, p.speed_mps, round(track_deg) % 360, 55, p.alt_msl_m, 0.0
         )
-        return [self._encode(gps), self._encode(hud)]
+        return [gps, hud]
 
-    def _status(self, t_s: float) -> list[bytes]:
+    def _status(self, t_s: float) -> list[Any]:
         p = self.profile
-        used_wh = p.power_w * t_s / 3600.0
-        remaining = max(0, round(100 * (1 - used_wh / p.battery_wh)))
-        voltage_mv, current_ca = 22_200, round(p.power_w / 22.2 * 100)
+        used_wh = min(p.power_w * t_s / 3600.0, p.battery_wh)
+        soc = 1.0 - used_wh / p.battery_wh
+        cell_v = _CELL_EMPTY_V + (_CELL_FULL_V - _CELL_EMPTY_V) * soc
+        current_ca = round(p.power_w / (_CELLS * cell_v) * 100) if soc > 0 else 0
+        # Charge drawn at constant power from a voltage linear in state of charge, in closed
+        # form: Q = ∫ E dsoc / V(soc) = E / ΔV · ln(V_full / V).
+        delta_v = _CELLS * (_CELL_FULL_V - _CELL_EMPTY_V)
+        used_mah = round(p.battery_wh / delta_v * math.log(_CELL_FULL_V / cell_v) * 1000)
+        remaining = round(100 * soc)
+        low = remaining <= 20
+        charge_state = mav.MAV_BATTERY_CHARGE_STATE_LOW if low else mav.MAV_BATTERY_CHARGE_STATE_OK
         status = self._mav.sys_status_encode(
-            0, 0, 0, 300, voltage_mv, current_ca, remaining, 0, 0, 0, 0, 0, 0
-        )
-        left_s = round(max(0.0, p.battery_wh - used_wh) / p.power_w * 3600)
-        battery = self._mav.battery_status_encode(
-            0, 0, 0, 2500, [3700] * 6 + [65535] * 4, current_ca, -1,
-            round(used_wh * 36), remaining, time_remaining=left_s,
+            _SENSORS, _SENSORS, _SENSORS, 300, round(_CELLS * cell_v * 1000), current_ca,
+            remaining, 0, 0, 0, 0, 0, 0,
         )  # fmt: skip
-        return [self._encode(status), self._encode(battery)]
+        battery = self._mav.battery_status_encode(
+            0, mav.MAV_BATTERY_FUNCTION_ALL, mav.MAV_BATTERY_TYPE_LION, 2500,
+            [round(cell_v * 1000)] * _CELLS + [_UINT16_MAX] * (10 - _CELLS),
+            current_ca, used_mah, round(used_wh * 36), remaining,
+            time_remaining=round((p.battery_wh - used_wh) / p.power_w * 3600),
+            charge_state=charge_state,
+        )  # fmt: skip
+        return [status, battery]
 
     async def run_udp(
         self,
@@ -169,29 +272,42 @@ class SimulatedAirframe:
         sealer: Sealer | None = None,
         task_status: anyio.abc.TaskStatus[None] = anyio.TASK_STATUS_IGNORED,
     ) -> None:
-        """Fly and send frames as UDP datagrams to host:port until ``duration_s`` of sim time."""
-        step_s = 1.0 / max(self.profile.position_hz, self.profile.gps_hz, 1.0) / 2
+        """Fly from sim time 0, sending each frame as one UDP datagram to ``host:port``.
+
+        Pacing follows ``anyio.current_time()``: sim time ``t`` is sent at ``start + t / speed``.
+        ``task_status.started()`` is called once the socket exists. Returns after
+        ``duration_s`` of sim time (never if None); cancellation-safe. Raises ``ValueError``
+        for a speed that is not positive and finite, ``OSError`` if the socket cannot open.
+        """
+        if not (math.isfinite(speed) and speed > 0):
+            raise ValueError(f"speed: expected a positive finite number, got {speed!r}")
         async with await anyio.create_connected_udp_socket(
             remote_host=host, remote_port=port
         ) as sock:
             task_status.started()
             start = anyio.current_time()
             t_s = 0.0
-            while duration_s is None or t_s <= duration_s:
+            while duration_s is None or t_s <= duration_s + _EPS_S:
                 for frame in self.frames_at(t_s):
                     await sock.send(sealer.seal(frame) if sealer else frame)
                     self.frames_sent += 1
-                t_s += step_s
-                delay = start + t_s / speed - anyio.current_time()
-                await anyio.sleep(max(delay, 0.0))
+                t_s = self.next_due_s()
+                if duration_s is not None:
+                    t_s = min(t_s, duration_s + 2 * _EPS_S)
+                if math.isinf(t_s):  # every rate is 0: nothing will ever be due
+                    await anyio.sleep_forever()
+                await anyio.sleep(max(start + t_s / speed - anyio.current_time(), 0.0))
+        log.debug("simulation_finished", sysid=self.sysid, frames_sent=self.frames_sent)
 
 
-def _wrap_pi(angle: float) -> float:
-    return (angle + math.pi) % (2 * math.pi) - math.pi
+def _period(rate_hz: float) -> float:
+    return 1.0 / rate_hz if rate_hz > 0 else math.inf
 
 
 def build_demo_fleet(n: int = 2) -> list[SimulatedAirframe]:
-    """``n`` airframes (sysids 1..n) on neighbouring circles around Boden."""
+    """``n`` airframes (sysids 1..n) on neighbouring circles around Boden, at different phases."""
+    if not 1 <= n <= 255:
+        raise ValueError(f"n: expected 1..255 airframes, got {n!r}")
     return [
         SimulatedAirframe(
             i + 1,
@@ -212,20 +328,21 @@ async def run_fleet(
     sealers: Sequence[Sealer | None] | None = None,
     task_status: anyio.abc.TaskStatus[None] = anyio.TASK_STATUS_IGNORED,
 ) -> None:
-    """Run several simulated airframes concurrently, airframe ``i`` sending to ``ports[i]``."""
-    seal = list(sealers) if sealers is not None else [None] * len(airframes)
+    """Run several airframes in one task group, airframe ``i`` sending to ``ports[i]``.
+
+    ``task_status.started()`` is called once every airframe's socket exists. Raises
+    ``ValueError`` if ``ports`` (or ``sealers``) does not match ``airframes`` in length.
+    """
+    seals = list(sealers) if sealers is not None else [None] * len(airframes)
+    if not len(airframes) == len(ports) == len(seals):
+        raise ValueError(
+            f"run_fleet: {len(airframes)} airframes but {len(ports)} ports and {len(seals)} sealers"
+        )
     async with anyio.create_task_group() as tg:
-        for airframe, port, sealer in zip(airframes, ports, seal, strict=True):
+        for airframe, port, sealer in zip(airframes, ports, seals, strict=True):
             await tg.start(
-                lambda a=airframe, p=port, s=sealer, task_status=anyio.TASK_STATUS_IGNORED: (
-                    a.run_udp(
-                        host,
-                        p,
-                        duration_s=duration_s,
-                        speed=speed,
-                        sealer=s,
-                        task_status=task_status,
-                    )
+                partial(
+                    airframe.run_udp, host, port, duration_s=duration_s, speed=speed, sealer=sealer
                 )
             )
         task_status.started()

@@ -236,3 +236,12 @@ def test_arbitrary_text_gives_a_config_or_a_config_error(text: str) -> None:
         return
     assert issues
     assert all(issue.source == "fuzz.yaml" for issue in issues)
+
+
+def test_replay_to_a_non_udp_target_is_a_usage_error(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Logging set up by the CLI would cache pytest's capture stream, closed after the test.
+    monkeypatch.setattr("gateway.cli.configure_logging", lambda *a, **k: None)
+    assert main(["replay", "/dev/null", "--to", "tcp://127.0.0.1:1"]) == 2
+    assert "--to: expected udp://HOST:PORT" in capsys.readouterr().err

@@ -17,13 +17,14 @@ from structlog.testing import capture_logs
 from gateway.app import Gateway
 from gateway.cli import main
 from gateway.config import Config
+from gateway.deframe import frame_for_stream
 from gateway.errors import ConfigError
 from gateway.events import LinkState, Telemetry
-from gateway.keys import load_day_keys, read_key_file
+from gateway.keys import load_day_keys, read_credential, read_key_file
 from gateway.signing import mavlink_timestamp_now
 from gateway.sim.airframe import SimulatedAirframe
 from gateway.testing import MemorySink, eventually
-from gateway.tunnel import DayKeys, Sealer
+from gateway.tunnel import DayKeys, Sealer, TunnelOpener, derive_day_key
 
 
 def free_udp_port() -> int:
@@ -239,3 +240,77 @@ class TestFailover:
         states = [(e.link, e.is_up, e.is_active) for e in mem.events if isinstance(e, LinkState)]
         assert ("starlink", False, False) in states
         assert ("sdr", True, True) in states
+
+
+class TestStreamsAndOutbound:
+    """The tunnel over a TCP stream link, and outbound frames sealed the same way."""
+
+    @pytest.mark.anyio
+    async def test_tunnel_over_tcp_resynchronises_after_garbage(self, tmp_path: Path) -> None:
+        master_file = write_key(tmp_path / "master.key", bytes(range(32)))
+        config = make_config(
+            [{"uri": "tcp://127.0.0.1:0?mode=listen", "security": "tunnel"}],
+            tunnel={"master_key_file": str(master_file)},
+        )
+        mem = MemorySink("mem")
+        gateway = Gateway(config, sinks={"mem": mem})
+        sim = SimulatedAirframe(1)
+        sealer = Sealer("F26E-001", DayKeys(master=bytes(range(32))), lambda: datetime.now(UTC))
+        with anyio.fail_after(20):
+            async with anyio.create_task_group() as tg:
+                await tg.start(gateway.run)
+                port = next(iter(gateway.links.values())).local_port  # type: ignore[attr-defined]
+                async with await anyio.connect_tcp("127.0.0.1", port) as stream:
+                    t = 0.0
+                    for _ in range(20):
+                        chunk = b"\x00\x30F6garbage" + b"".join(
+                            frame_for_stream(sealer.seal(f)) for f in sim.frames_at(t)
+                        )
+                        await stream.send(chunk)
+                        t += 0.1
+                    final = sim.sent_positions[-1]
+                    await eventually(
+                        lambda: (final.lat_e7 / 1e7, final.lon_e7 / 1e7) in positions(mem)
+                    )
+                gateway.shutdown()
+
+    @pytest.mark.anyio
+    async def test_outbound_frames_are_sealed_for_the_airframe(self, tmp_path: Path) -> None:
+        master = bytes(range(32))
+        config = make_config(
+            [{"uri": "udp://127.0.0.1:0", "security": "tunnel"}],
+            tunnel={"master_key_file": str(write_key(tmp_path / "m.key", master))},
+        )
+        gateway = Gateway(config, sinks={"mem": MemorySink("mem")})
+        airframe_keys = DayKeys(
+            keys={
+                ("F26E-001", d): derive_day_key(master, "F26E-001", d)
+                for d in (datetime.now(UTC).date(),)
+            }
+        )
+        sealer = Sealer("F26E-001", airframe_keys, lambda: datetime.now(UTC))
+        opener = TunnelOpener(airframe_keys, frozenset({"F26E-001"}), lambda: datetime.now(UTC))
+        gcs = mav.MAVLink(None, srcSystem=255, srcComponent=190)
+        command = bytes(gcs.command_long_encode(1, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0).pack(gcs))
+        with anyio.fail_after(20):
+            async with anyio.create_task_group() as tg:
+                await tg.start(gateway.run)
+                async with await anyio.create_connected_udp_socket(
+                    remote_host="127.0.0.1", remote_port=port_of(gateway)
+                ) as sock:
+                    await sock.send(sealer.seal(SimulatedAirframe(1).frames_at(0.0)[0]))
+                    await eventually(lambda: gateway.ingest.active_link("F26E-001") is not None)
+                    await gateway.send_to_airframe("F26E-001", command)
+                    sealed = await sock.receive()
+                gateway.shutdown()
+        assert command not in sealed
+        assert opener.open_frame(sealed, "uplink").payload == command
+
+
+def test_master_key_from_a_systemd_credential(tmp_path: Path) -> None:
+    (tmp_path / "tunnel-master").write_text(bytes(range(32)).hex())
+    assert read_credential("tunnel-master", {"CREDENTIALS_DIRECTORY": str(tmp_path)}) == bytes(
+        range(32)
+    )
+    with pytest.raises(ConfigError, match="CREDENTIALS_DIRECTORY"):
+        read_credential("tunnel-master", {})

@@ -379,6 +379,46 @@ class TestStreams:
         assert uids == [e.uid for e in cot_events()]
 
     @pytest.mark.anyio
+    async def test_pkcs12_client_certificate_with_password_file(self, tmp_path: Path) -> None:
+        from cryptography import x509
+        from cryptography.hazmat.primitives import serialization
+        from cryptography.hazmat.primitives.serialization import pkcs12
+
+        ca, server_ctx, _ = self.certificates(tmp_path)
+        leaf = ca.issue_cert("fischer-gateway")
+        key = serialization.load_pem_private_key(leaf.private_key_pem.bytes(), None)
+        cert = x509.load_pem_x509_certificate(leaf.cert_chain_pems[0].bytes())
+        bundle = pkcs12.serialize_key_and_certificates(
+            b"gw",
+            key,
+            cert,
+            None,
+            serialization.BestAvailableEncryption(b"s3cret"),  # type: ignore[arg-type]
+        )
+        (tmp_path / "client.p12").write_bytes(bundle)
+        (tmp_path / "p12.pass").write_text("s3cret\n")
+        server = TakServer(offer=False, tls=server_ctx)
+        with anyio.fail_after(15):
+            async with anyio.create_task_group() as tg:
+                await tg.start(server.run)
+                cot = sink(
+                    {
+                        "uri": f"tls://127.0.0.1:{server.port}",
+                        "tls": {
+                            "ca_file": str(tmp_path / "ca.pem"),
+                            "pkcs12_file": str(tmp_path / "client.p12"),
+                            "password_file": str(tmp_path / "p12.pass"),
+                        },
+                    }
+                )
+                await cot.open()
+                await cot.send([TELEMETRY])
+                await server.got_data.wait()
+                await cot.aclose()
+                tg.cancel_scope.cancel()
+        assert parse_cot(server.received).uid == "fischer-F26E-007"
+
+    @pytest.mark.anyio
     async def test_wrong_ca_is_refused_with_a_clear_error(self, tmp_path: Path) -> None:
         _, server_ctx, tls = self.certificates(tmp_path)
         trustme.CA().cert_pem.write_to_path(str(tmp_path / "other-ca.pem"))
