@@ -389,7 +389,7 @@ def main() -> None:
             )
     print("\n## B. daemon over UDP loopback, tunnel on, 5 null sinks\n")
     head = (
-        "| airframes | load | offered msg/s | loss % | p50 ms | p99 ms | p99.9 ms | CPU % | RSS |"
+        "| airframes | load | offered msg/s | loss % | p50 ms | p99 ms | p99.9 ms | CPU % | RSS MB |"
     )
     print(head)
     print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
