@@ -27,7 +27,13 @@ from gateway.linkhealth import LinkHealth
 from gateway.logsetup import RateLimit
 from gateway.mavlink import MavlinkParser, MavMessage
 from gateway.metrics import CounterChild
-from gateway.normalise import NORMALISED_TYPES, AirframeState, Clock, Enrichment
+from gateway.normalise import (
+    NORMALISED_TYPES,
+    AirframeState,
+    Clock,
+    Enrichment,
+    detection_from,
+)
 from gateway.signing import SigningVerifier
 from gateway.tunnel import TunnelOpener
 
@@ -81,6 +87,7 @@ class Ingest:
         self._publish = publish
         self._inst = instruments
         self._opener = opener
+        self._clock = clock
         self._by_sysid: dict[int, _Airframe] = {}
         self._by_id: dict[str, _Airframe] = {}
         for cfg in airframes:
@@ -199,10 +206,21 @@ class Ingest:
         if airframe.passthrough is not None:
             airframe.passthrough(bytes(buf))
         name = msg.get_type()
+        if name == "FISCHER_DETECTION":
+            self._detection(label, airframe, msg)
+            return
         if name in NORMALISED_TYPES and airframe.state.update(name, msg):
             self._dirty[airframe.config.id] = airframe
             if not self._flush_pending:
                 self._schedule_flush()
+
+    def _detection(self, label: str, airframe: _Airframe, msg: MavMessage) -> None:
+        # Detections are durable: published at once, never coalesced like telemetry.
+        detection = detection_from(airframe.config.id, msg, self._clock())
+        if detection is None:
+            self._rejected(label, "malformed", "FISCHER_DETECTION with impossible values")
+            return
+        self._publish(detection)
 
     def _schedule_flush(self) -> None:
         # Telemetry is latest-wins, so the frames read in one pass of the event loop make one

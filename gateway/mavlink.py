@@ -12,6 +12,7 @@ from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as dialect
 
+import gateway.dialect  # noqa: F401 - registers FISCHER_DETECTION with the parser
 from gateway.errors import Malformed, Oversize
 
 __all__ = ["MAX_FRAME_BYTES", "MavMessage", "MavlinkParser", "dialect"]

@@ -11,15 +11,16 @@ import math
 import secrets
 from collections.abc import Callable
 from dataclasses import dataclass
-from datetime import datetime
+from datetime import datetime, timedelta
 from typing import Any
 
+from gateway.dialect import CLASS_NAMES, SENSOR_NAMES
 from gateway.domain.energy import EnergyProfile, EwMode, endurance_remaining_min
 from gateway.domain.terrain import TerrainModel, agl_from_msl, agl_sigma
-from gateway.events import Attitude, Position, Telemetry, Velocity
+from gateway.events import Attitude, Detection, Position, Sensor, Telemetry, Velocity
 from gateway.mavlink import MavMessage
 
-__all__ = ["NORMALISED_TYPES", "AirframeState", "Clock", "Enrichment"]
+__all__ = ["NORMALISED_TYPES", "AirframeState", "Clock", "Enrichment", "detection_from"]
 
 Clock = Callable[[], datetime]
 """Returns the current UTC-aware time; injected so tests control it."""
@@ -230,3 +231,46 @@ class AirframeState:
         time_remaining = getattr(msg, "time_remaining", 0)
         f["battery_time_remaining_s"] = float(time_remaining) if time_remaining else None
         return True
+
+
+_DAY_US = 86_400_000_000
+
+
+def detection_from(airframe: str, msg: MavMessage, now: datetime) -> Detection | None:
+    """A Detection from a FISCHER_DETECTION message; None if its values are not physical.
+
+    The observation time is the airframe's ``time_usec`` when it is within a day of ours
+    (airframes have GPS time), else our receive time.
+    """
+    lat, lon = msg.lat / 1e7, msg.lon / 1e7
+    sigma = msg.sigma_h
+    sensor = SENSOR_NAMES.get(msg.sensor)
+    if (
+        not (-90 <= lat <= 90 and -180 <= lon <= 180)
+        or (msg.lat == 0 and msg.lon == 0)
+        or not math.isfinite(sigma)
+        or sigma < 0
+        or sensor is None
+        or msg.confidence > 100
+    ):
+        return None
+    observed = now
+    now_us = int(now.timestamp() * 1_000_000)
+    if abs(msg.time_usec - now_us) <= _DAY_US:
+        observed = now + timedelta(microseconds=msg.time_usec - now_us)
+    subtype = msg.subtype.decode("ascii", "replace") if isinstance(msg.subtype, bytes) else ""
+    return Detection(
+        event_id=f"{airframe}-det-{msg.detection_id}-{msg.time_usec}",
+        airframe=airframe,
+        time=observed,
+        sensor=Sensor(sensor),
+        object_class=CLASS_NAMES.get(msg.class_id, f"class_{msg.class_id}"),
+        subtype=subtype,
+        confidence=msg.confidence / 100.0,
+        position=Position(
+            lat_deg=lat,
+            lon_deg=lon,
+            alt_msl_m=msg.alt_msl if math.isfinite(msg.alt_msl) else None,
+        ),
+        sigma_h_m=sigma,
+    )

@@ -8,6 +8,7 @@ loop's clock and sends one frame per datagram, sealed in the tunnel when given a
 from __future__ import annotations
 
 import math
+import time
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, fields
@@ -18,6 +19,8 @@ import anyio
 import anyio.abc
 import structlog
 from pymavlink.dialects.v20 import ardupilotmega as mav
+
+from gateway.dialect import fischer_detection
 
 if TYPE_CHECKING:
     from gateway.tunnel import Sealer
@@ -48,7 +51,8 @@ _SENSORS = (
 class SimProfile:
     """A deterministic flight (a clockwise circle around a centre) and each message's rate.
 
-    A rate of 0 Hz turns that message group off. ``geoid_sep_m`` is added to the MSL
+    A rate of 0 Hz turns that message group off; detections (FISCHER_DETECTION, the project
+    dialect) are off unless ``detection_hz`` is set. ``geoid_sep_m`` is added to the MSL
     altitude for ``GPS_RAW_INT.alt_ellipsoid``; ``home_alt_msl_m`` gives ``relative_alt``.
     Raises ``ValueError`` naming the field when a value is out of range.
     """
@@ -63,13 +67,14 @@ class SimProfile:
     status_hz: float = 2.0
     gps_hz: float = 5.0
     heartbeat_hz: float = 1.0
+    detection_hz: float = 0.0
     battery_wh: float = 600.0
     power_w: float = 355.0
     home_alt_msl_m: float = 150.0
 
     def __post_init__(self) -> None:
         positive = {"radius_m", "speed_mps", "battery_wh", "power_w"}
-        rates = {"position_hz", "status_hz", "gps_hz", "heartbeat_hz"}
+        rates = {"position_hz", "status_hz", "gps_hz", "heartbeat_hz", "detection_hz"}
         for f in fields(self):
             value = getattr(self, f.name)
             if not math.isfinite(value):
@@ -147,7 +152,11 @@ class SimulatedAirframe:
             _Schedule(_period(p.position_hz), self._position),
             _Schedule(_period(p.gps_hz), self._gps),
             _Schedule(_period(p.status_hz), self._status),
+            _Schedule(_period(p.detection_hz), self._detection),
         ]
+        #: UNIX time of sim time 0, for FISCHER_DETECTION.time_usec (``run_udp`` sets it).
+        self.boot_unix_s = 0.0
+        self._detections = 0
         self.sent_positions: deque[SentPosition] = deque(maxlen=position_history)
         self.frames_sent = 0
 
@@ -236,6 +245,27 @@ class SimulatedAirframe:
         )
         return [gps, hud]
 
+    def _detection(self, t_s: float) -> list[Any]:
+        # A target 1 km north of the orbit's centre, alternating a tank and a hostile UAV.
+        p = self.profile
+        self._detections += 1
+        is_tank = self._detections % 2 == 1
+        lat = p.centre_lat_deg + math.degrees(1000.0 / self._m_per_rad_lat)
+        return [
+            fischer_detection(
+                time_usec=round((self.boot_unix_s + t_s) * 1e6),
+                detection_id=self._detections,
+                lat_e7=round(lat * 1e7),
+                lon_e7=round(p.centre_lon_deg * 1e7),
+                alt_msl_m=p.home_alt_msl_m if is_tank else p.alt_msl_m,
+                sigma_h_m=8.0 if is_tank else 25.0,
+                class_id=1 if is_tank else 4,
+                sensor=1 if is_tank else 2,  # IR for the tank, RF for the UAV
+                confidence_pct=91 if is_tank else 78,
+                subtype="T-72" if is_tank else "",
+            )
+        ]
+
     def _status(self, t_s: float) -> list[Any]:
         p = self.profile
         used_wh = min(p.power_w * t_s / 3600.0, p.battery_wh)
@@ -286,6 +316,7 @@ class SimulatedAirframe:
         ) as sock:
             task_status.started()
             start = anyio.current_time()
+            self.boot_unix_s = time.time()
             t_s = 0.0
             while duration_s is None or t_s <= duration_s + _EPS_S:
                 for frame in self.frames_at(t_s):
@@ -311,7 +342,11 @@ def build_demo_fleet(n: int = 2) -> list[SimulatedAirframe]:
     return [
         SimulatedAirframe(
             i + 1,
-            SimProfile(centre_lat_deg=65.8252 + 0.01 * i, centre_lon_deg=21.6886 + 0.02 * i),
+            SimProfile(
+                centre_lat_deg=65.8252 + 0.01 * i,
+                centre_lon_deg=21.6886 + 0.02 * i,
+                detection_hz=0.2,  # a FISCHER_DETECTION every 5 s
+            ),
             phase_rad=i * 2.0,
         )
         for i in range(n)

@@ -1,0 +1,125 @@
+"""FISCHER_DETECTION: our message class against mavgen's, and detections through the gateway."""
+
+from __future__ import annotations
+
+import contextlib
+import importlib.util
+import io
+import shutil
+from datetime import UTC, datetime
+from pathlib import Path
+from types import ModuleType
+
+import anyio
+import pymavlink
+import pytest
+from pymavlink.dialects.v20 import ardupilotmega as apm
+from pymavlink.generator import mavgen
+from pymavlink.generator.mavparse import PROTOCOL_2_0
+from test_ingest import make_ingest
+
+from gateway.app import Gateway
+from gateway.config import Config
+from gateway.dialect import FISCHER_DETECTION_CRC_EXTRA, fischer_detection
+from gateway.events import Detection, Event
+from gateway.sim.airframe import SimProfile, SimulatedAirframe
+from gateway.testing import MemorySink, eventually
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture(scope="module")
+def generated(tmp_path_factory: pytest.TempPathFactory) -> ModuleType:
+    """The dialect module mavgen makes from gateway/fischer_dialect.xml: the oracle."""
+    out = tmp_path_factory.mktemp("mavgen")
+    source = Path(pymavlink.__file__).parent / "dialects" / "v20"
+    for name in ("common.xml", "standard.xml", "minimal.xml"):
+        shutil.copy(source / name, out / name)
+    shutil.copy(ROOT / "gateway" / "fischer_dialect.xml", out / "fischer.xml")
+    with contextlib.redirect_stdout(io.StringIO()):
+        opts = mavgen.Opts(
+            output=str(out / "fischer.py"),
+            wire_protocol=PROTOCOL_2_0,
+            language="Python3",
+            validate=False,
+        )
+        assert mavgen.mavgen(opts, [str(out / "fischer.xml")])
+    spec = importlib.util.spec_from_file_location("fischer_generated", out / "fischer.py")
+    assert spec is not None
+    assert spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+ARGS = (1_763_800_000_000_000, 7, 658_352_000, 216_886_000, 150.5, 8.0, 1, 1, 91)
+
+
+def test_crc_extra_and_bytes_match_mavgen(generated: ModuleType) -> None:
+    assert generated.MAVLink_fischer_detection_message.crc_extra == FISCHER_DETECTION_CRC_EXTRA
+    theirs = generated.MAVLink(None, srcSystem=1, srcComponent=1)
+    ours = apm.MAVLink(None, srcSystem=1, srcComponent=1)
+    expected = bytes(theirs.fischer_detection_encode(*ARGS, b"T-72").pack(theirs))
+    assert fischer_detection(*ARGS, subtype="T-72").pack(ours) == expected
+    assert len(expected) == 48
+
+
+def test_mavgen_parser_decodes_our_frame(generated: ModuleType) -> None:
+    frame = fischer_detection(*ARGS, subtype="T-72").pack(apm.MAVLink(None, 1, 1))
+    (msg,) = generated.MAVLink(None).parse_buffer(frame)
+    assert (msg.detection_id, msg.lat, msg.class_id, msg.subtype) == (7, 658_352_000, 1, "T-72")
+
+
+def test_detection_becomes_a_durable_event() -> None:
+    ingest, events, _ = make_ingest(1)
+    now_us = int(datetime(2026, 11, 22, 12, 0, tzinfo=UTC).timestamp() * 1e6)
+    args = (now_us - 2_000_000, *ARGS[1:])
+    ingest.on_data("l", "p", fischer_detection(*args, subtype="T-72").pack(apm.MAVLink(None, 1, 1)))
+    (detection,) = [e for e in events if isinstance(e, Detection)]
+    assert (detection.object_class, detection.subtype, detection.sensor.value) == (
+        "tank",
+        "T-72",
+        "ir",
+    )
+    assert detection.confidence == pytest.approx(0.91)
+    assert detection.position.lat_deg == pytest.approx(65.8352)
+    assert detection.time == datetime(2026, 11, 22, 11, 59, 58, tzinfo=UTC)
+
+
+def test_impossible_detection_is_rejected_and_counted() -> None:
+    ingest, events, inst = make_ingest(1)
+    bad = (ARGS[0], 8, 0, 0, *ARGS[4:])  # 0,0: no position
+    ingest.on_data("l", "p", fischer_detection(*bad).pack(apm.MAVLink(None, 1, 1)))
+    assert not [e for e in events if isinstance(e, Detection)]
+    assert inst.link_rejected.labels("l", "malformed").value == 1
+
+
+@pytest.mark.anyio
+async def test_simulated_detections_reach_a_sink_every_one() -> None:
+    config = Config.model_validate(
+        {
+            "health": {"enabled": False},
+            "airframes": [
+                {
+                    "id": "F26E-001",
+                    "sysid": 1,
+                    "links": [{"uri": "udp://127.0.0.1:0", "security": "unsecured"}],
+                }
+            ],
+            "sinks": [{"name": "mem", "type": "memory"}],
+            "routes": [{"sinks": ["mem"], "kinds": ["detection"]}],
+        }
+    )
+    mem = MemorySink("mem")
+    gateway = Gateway(config, sinks={"mem": mem})
+    sim = SimulatedAirframe(1, SimProfile(detection_hz=5.0))
+    with anyio.fail_after(15):
+        async with anyio.create_task_group() as tg:
+            await tg.start(gateway.run)
+            port = next(iter(gateway.links.values())).local_port  # type: ignore[attr-defined]
+            await sim.run_udp("127.0.0.1", port, duration_s=1.0, speed=5.0)
+            await eventually(lambda: len(mem.events) >= 5)
+            gateway.shutdown()
+    events: list[Event] = mem.events
+    assert [e.event_id.split("-")[3] for e in events] == [str(n) for n in range(1, len(events) + 1)]
+    assert {e.object_class for e in events if isinstance(e, Detection)} == {"tank", "uav"}
