@@ -153,10 +153,15 @@ class Ingest:
             except FrameError as exc:
                 self._rejected(label, exc.reason, str(exc))
                 return
+        now = self._clock() if opened else None
         for frame in opened:
             airframe = self._by_id.get(frame.airframe)
             if airframe is None:  # the opener only knows configured airframes
                 continue
+            if now is not None:
+                latency_s = (now - frame.sent).total_seconds()
+                self._inst.link_latency.labels(frame.airframe, label).observe(max(latency_s, 0.0))
+                airframe.health.latency(label, latency_s)
             for msg in self._parse(intake, (peer, frame.airframe), frame.payload):
                 self._frame(intake, msg, airframe)
 

@@ -82,3 +82,8 @@ class Instruments:
             ("sink",),
         )
         self.sink_open = r.gauge("fg_sink_open", "1 while a sink is open and healthy.", ("sink",))
+        self.link_latency = r.histogram(
+            "fg_link_latency_seconds",
+            "Airframe to gateway, from the tunnel's send time (needs both clocks on GPS/NTP).",
+            ("airframe", "link"),
+        )

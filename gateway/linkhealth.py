@@ -38,6 +38,7 @@ class AirframeLink:
     up_since_mono: float | None = None
     is_up: bool = False
     is_active: bool = False
+    latency_s: float | None = None
     published: tuple[bool, bool] | None = None
     last_seq: dict[int, int] = field(default_factory=dict)
 
@@ -90,6 +91,12 @@ class LinkHealth:
             link.is_up = True
             link.up_since_mono = now_mono
             self._elect(now_mono, f"heard on {label}")
+
+    def latency(self, label: str, latency_s: float) -> None:
+        """Record the latest one-way latency measured on link ``label`` (tunnel send time)."""
+        link = self.links.get(label)
+        if link is not None:
+            link.latency_s = latency_s
 
     def check(self, now_mono: float) -> None:
         """Time out silent links, re-elect (failback waits out its hold), update metrics."""
@@ -175,6 +182,7 @@ class LinkHealth:
                 "active": link.is_active,
                 "loss_pct": round(link.loss_pct, 3),
                 "frames": link.received,
+                "latency_s": None if link.latency_s is None else round(link.latency_s, 4),
                 "last_heard_age_s": None
                 if link.last_heard_mono is None
                 else round(now_mono - link.last_heard_mono, 3),

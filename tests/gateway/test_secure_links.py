@@ -108,6 +108,11 @@ class TestTunnel:
                 gateway.shutdown()
         rejected = gateway.instruments.link_rejected
         label = next(iter(gateway.links.values())).label
+        latency = gateway.instruments.link_latency.labels("F26E-001", label)
+        assert latency.count > 0
+        assert 0 <= latency.sum / latency.count < 1.0  # loopback, one clock
+        (link,) = gateway.status()["airframes"][0]["links"]
+        assert link["latency_s"] is not None
         assert rejected.labels(label, "malformed").value == 1
         assert rejected.labels(label, "replay").value == 1
         assert rejected.labels(label, "auth").value == 1
