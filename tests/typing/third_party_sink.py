@@ -1,0 +1,52 @@
+"""A minimal third-party sink, as a package outside this repo would write it.
+
+mypy checks this file in CI (``[tool.mypy] files``): if the public Sink contract changes in a
+way that would break such a sink, the type check fails here first.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+from gateway import Event, EventKind, Sink, SinkConfig, TransientSinkError
+
+
+class CountingSinkConfig(SinkConfig):
+    """Options: which kinds, and when to pretend the peer is down."""
+
+    kinds: frozenset[EventKind] = frozenset({EventKind.TELEMETRY})
+    fail_after: int | None = None
+
+
+class CountingSink:
+    """Counts what it is sent."""
+
+    config_model = CountingSinkConfig
+
+    def __init__(self, name: str, config: CountingSinkConfig) -> None:
+        self.name = name
+        self.config = config
+        self.count = 0
+
+    @property
+    def kinds(self) -> frozenset[EventKind]:
+        """What this sink accepts."""
+        return self.config.kinds
+
+    async def open(self) -> None:
+        """Nothing to open."""
+
+    async def send(self, batch: Sequence[Event]) -> None:
+        """Count, or fail transiently past the configured limit."""
+        limit = self.config.fail_after
+        if limit is not None and self.count >= limit:
+            raise TransientSinkError("peer down", sink=self.name)
+        self.count += len(batch)
+
+    async def aclose(self) -> None:
+        """Nothing to close."""
+
+
+def as_sink(sink: CountingSink) -> Sink:
+    """Structural typing: a CountingSink is a Sink without inheriting from anything."""
+    return sink
