@@ -322,7 +322,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return _simulate(args)
     except Exception as exc:
         config_errors = [e for e in _leaves(exc) if isinstance(e, ConfigError)]
-        failures = [e for e in _leaves(exc) if isinstance(e, GatewayError)]
+        # OSError: a port already in use, a file that cannot be opened: said plainly, exit 1.
+        failures = [e for e in _leaves(exc) if isinstance(e, GatewayError | OSError)]
         for config_error in config_errors:
             _print_config_error(config_error, sys.stderr)
         if config_errors:

@@ -15,6 +15,7 @@ import anyio
 import anyio.abc
 import structlog
 
+from gateway.errors import LinkUnavailable
 from gateway.metrics import Registry
 
 __all__ = ["HealthServer"]
@@ -62,7 +63,11 @@ class HealthServer:
         self, *, task_status: anyio.abc.TaskStatus[int] = anyio.TASK_STATUS_IGNORED
     ) -> None:
         """Bind, report the bound port as started, and serve until cancelled."""
-        listener = await anyio.create_tcp_listener(local_host=self.host, local_port=self.port)
+        try:
+            listener = await anyio.create_tcp_listener(local_host=self.host, local_port=self.port)
+        except OSError as exc:
+            where = f"health endpoint {self.host}:{self.port}"
+            raise LinkUnavailable(where, f"cannot listen: {exc.strerror or exc}") from exc
         port = int(listener.extra(anyio.abc.SocketAttribute.local_port))
         log.info("health_listening", host=self.host, port=port)
         task_status.started(port)

@@ -274,3 +274,27 @@ def test_demo_runs_for_its_duration_and_archives_events(tmp_path: Path) -> None:
     assert "F26E-002" in result.stdout
     kinds = {json.loads(line)["kind"] for line in archive.read_text().splitlines()}
     assert {"telemetry", "link_state"} <= kinds
+
+
+def test_port_in_use_is_a_clear_error_and_exit_1(tmp_path: Path) -> None:
+    import socket
+
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        path = tmp_path / "c.yaml"
+        path.write_text(
+            f"health: {{port: {port}}}\n"
+            "airframes:\n  - {id: A, sysid: 1, links: "
+            "[{uri: 'udp://127.0.0.1:0', security: unsecured}]}\n"
+        )
+        result = subprocess.run(
+            [sys.executable, "-m", "gateway", "run", "--config", str(path)],
+            capture_output=True,
+            text=True,
+            timeout=30,
+            check=False,
+        )
+    assert result.returncode == 1
+    assert f"health endpoint 127.0.0.1:{port}: cannot listen" in result.stdout
