@@ -483,3 +483,25 @@ def test_unchanged_tracks_are_not_resent() -> None:
     moved_event = build(moved, cot.options)
     assert moved_event is not None
     assert cot._changed(moved, moved_event)
+
+
+EGM96 = Path("/usr/share/proj/egm96_15.gtx")
+
+
+@pytest.mark.parametrize(
+    ("lat", "lon", "undulation_m"),
+    [
+        (55.605, 13.0038, 35.5),
+        (58.4108, 15.6214, 29.4),
+        (59.3293, 18.0686, 23.4),
+        (67.8558, 20.2253, 30.0),
+    ],
+)
+def test_egm96_grid_from_proj_data_gives_the_known_undulations(
+    lat: float, lon: float, undulation_m: float
+) -> None:
+    """Debian's proj-data EGM96 grid (installed by .ci/run) against the spec digest's values."""
+    if not EGM96.exists():
+        pytest.skip("proj-data is not installed")
+    value = GeoidGrid(EGM96).undulation(lat, lon)
+    assert value == pytest.approx(undulation_m, abs=0.5)
