@@ -1,17 +1,23 @@
-"""A CoT source: friendly positions from ATAK/WinTAK (a-f-*) become BlueForce events.
+"""A CoT source: friendly positions from ATAK/WinTAK/iTAK (``a-f-*``) become BlueForce events.
 
-Listens on UDP (joining a multicast group such as the ATAK SA mesh 239.2.3.1:6969, or
-unicast) or TCP (a stream of XML events, split after each ``</event>``). Every event is
-validated (``gateway.cot_validate``); friendly positions within 0.01° of 0,0 are an ATAK
-without a GPS fix and are rejected, not plotted. Nothing here raises on bad input: it is counted by
-outcome and logged, rate-limited.
+Listens on UDP (``udp://`` unicast or a multicast group such as ATAK's SA mesh
+``udp+multicast://239.2.3.1:6969``; one event per datagram, XML or TAK protocol v1 mesh
+protobuf, which ATAK switches to when all the peers it knows speak it) or on TCP (a listening
+``tcp://`` socket; XML events back to back, split after each ``</event>``). Every event goes
+through our validator (``sinks._cot_validate``: defusedxml, no DTDs, entities or network).
+
+A friendly position within 0.01° of 0,0 is an ATAK device without a GPS fix (real ATAK-CIV
+captures sit at -0.0043,-0.0077): it is rejected as ``no_fix``, never published. Nothing here
+raises on bad input; every event is counted by outcome in ``counts`` (``accepted``,
+``no_fix``, ``not_friendly``, ``invalid``, ``oversize``), invalid ones also by ``problems``,
+and logged rate-limited without the payload.
 """
 
 from __future__ import annotations
 
-import asyncio
 import socket
 import struct
+from collections import Counter
 from collections.abc import Callable
 from ipaddress import ip_address
 from typing import Literal
@@ -22,117 +28,153 @@ import anyio.abc
 import structlog
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from gateway.cot_validate import CotError, is_unknown, parse_cot
 from gateway.events import BlueForce, Event, Position
 from gateway.logsetup import RateLimit
+from sinks._cot_validate import CotError, ParsedCot, is_unknown, parse_cot
 
-__all__ = ["CotListener", "CotSourceConfig"]
+__all__ = ["NO_FIX_DEG", "CotListener", "CotSourceConfig"]
 
 log = structlog.get_logger(__name__)
+
+#: Friendly positions closer than this to 0,0 (in both latitude and longitude) have no fix.
+NO_FIX_DEG = 0.01
 _END = b"</event>"
-# ATAK without a GPS fix reports points a few hundred metres from 0,0 (seen in real ATAK-CIV
-# captures: -0.004288,-0.007681 with unknown ce); nobody we serve operates at Null Island.
-_NULL_ISLAND_DEG = 0.01
+_SCHEMES = ("udp", "udp+multicast", "tcp")
 
 
 class CotSourceConfig(BaseModel):
-    """A CoT input: ``udp://GROUP_OR_HOST:PORT`` or ``tcp://HOST:PORT`` (listening)."""
+    """A CoT input: ``udp://HOST:PORT``, ``udp+multicast://GROUP:PORT`` or ``tcp://HOST:PORT``.
+
+    For UDP, HOST is the address to bind (or a multicast group to join on ``interface``); for
+    TCP, the address to listen on. Port 0 picks a free port (see ``CotListener.local_port``).
+    """
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
     type: Literal["cot"] = "cot"
     name: str = Field(default="cot", pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
     uri: str
-    interface: str = Field(default="0.0.0.0", description="Interface address for multicast.")  # noqa: S104
+    interface: str = Field(
+        default="0.0.0.0",  # noqa: S104 - the multicast join's interface, not a bind address
+        description="IPv4 address of the interface that joins the multicast group.",
+    )
     max_event_bytes: int = Field(default=16384, ge=512, le=65536)
+    max_clients: int = Field(default=32, ge=1, description="TCP connections served at once.")
 
     @field_validator("uri")
     @classmethod
     def _check_uri(cls, value: str) -> str:
         parts = urlsplit(value)
-        if parts.scheme not in ("udp", "tcp") or not parts.hostname or parts.port is None:
-            raise ValueError(f"expected udp://HOST:PORT or tcp://HOST:PORT, found {value!r}")
+        try:
+            port = parts.port
+        except ValueError:
+            port = None
+        if parts.scheme not in _SCHEMES or not parts.hostname or port is None:
+            raise ValueError(f"expected udp://, udp+multicast:// or tcp://HOST:PORT, got {value!r}")
+        if parts.scheme == "udp+multicast" and not _is_multicast(parts.hostname):
+            raise ValueError(f"{value!r}: {parts.hostname} is not a multicast group")
         return value
 
 
+def _is_multicast(host: str) -> bool:
+    try:
+        return ip_address(host).is_multicast
+    except ValueError:
+        return False
+
+
 class CotListener:
-    """Receives CoT and publishes BlueForce for friendly positions."""
+    """Receives CoT and publishes a ``BlueForce`` for each friendly position with a fix."""
 
     def __init__(self, config: CotSourceConfig, publish: Callable[[Event], None]) -> None:
         self.config = config
         self._publish = publish
         parts = urlsplit(config.uri)
         self.host, self.port = str(parts.hostname), int(parts.port or 0)
-        self.counts: dict[str, int] = {}
+        self.is_udp = parts.scheme.startswith("udp")
+        #: Events by outcome: accepted, no_fix, not_friendly, invalid, oversize.
+        self.counts: Counter[str] = Counter()
+        #: Invalid events by the validator's problem code (xml, time, position, ...).
+        self.problems: Counter[str] = Counter()
+        #: TCP connections closed at once because ``max_clients`` were being served.
+        self.refused_clients = 0
         self.local_port = 0
         self._log_limit = RateLimit(interval_s=10.0)
+        self._clients = anyio.CapacityLimiter(config.max_clients)
+        self.log = log.bind(source=config.name)
 
-    def _count(self, outcome: str) -> None:
-        self.counts[outcome] = self.counts.get(outcome, 0) + 1
+    @property
+    def parsed(self) -> int:
+        """Events that passed validation, published or not."""
+        return self.counts["accepted"] + self.counts["no_fix"] + self.counts["not_friendly"]
+
+    def _reject(self, outcome: str, **fields: object) -> None:
+        self.counts[outcome] += 1
+        if self._log_limit.allow(outcome):
+            self.log.warning("cot_event_rejected", outcome=outcome, **fields)
 
     def handle(self, data: bytes) -> None:
-        """Take one CoT event's bytes; never raises."""
+        """Take one event's bytes (XML or TAK protobuf); publish, or count why not. Never raises."""
         if len(data) > self.config.max_event_bytes:
-            self._count("oversize")
+            self._reject("oversize", size=len(data))
             return
         try:
             cot = parse_cot(data)
         except CotError as exc:
-            self._count("invalid")
-            if self._log_limit.allow("invalid"):
-                log.warning("cot_rejected", source=self.config.name, reason=str(exc))
+            self.problems[exc.problem] += 1
+            self._reject("invalid", problem=exc.problem)
             return
         if not cot.type.startswith("a-f-"):
-            self._count("not_friendly")
+            self.counts["not_friendly"] += 1
             return
-        if abs(cot.lat) < _NULL_ISLAND_DEG and abs(cot.lon) < _NULL_ISLAND_DEG:
-            self._count("no_fix")
+        if abs(cot.lat) < NO_FIX_DEG and abs(cot.lon) < NO_FIX_DEG:
+            self._reject("no_fix", uid=cot.uid)
             return
-        self._count("accepted")
-        self._publish(
-            BlueForce(
-                event_id=f"cot-{cot.uid}-{int(cot.time.timestamp() * 1000)}",
-                uid=cot.uid,
-                time=cot.time,
-                callsign=cot.callsign,
-                position=Position(
-                    lat_deg=cot.lat,
-                    lon_deg=cot.lon,
-                    alt_hae_m=None if is_unknown(cot.hae) else cot.hae,
-                ),
-                source=f"cot:{self.config.name}",
-            )
-        )
+        self.counts["accepted"] += 1
+        self._publish(_blue_force(cot))
 
     async def run(
         self, *, task_status: anyio.abc.TaskStatus[None] = anyio.TASK_STATUS_IGNORED
     ) -> None:
-        """Bind, report started, and receive until cancelled."""
-        if self.config.uri.startswith("udp://"):
+        """Bind, report started, and receive until cancelled. Bind errors raise ``OSError``."""
+        if self.is_udp:
             await self._run_udp(task_status)
         else:
             await self._run_tcp(task_status)
 
-    async def _run_udp(self, task_status: anyio.abc.TaskStatus[None]) -> None:
+    def _udp_socket(self) -> socket.socket:
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        multicast = ip_address(self.host).is_multicast
-        sock.bind(("0.0.0.0" if multicast else self.host, self.port))  # noqa: S104 - group join
-        if multicast:
-            membership = struct.pack(
-                "4s4s", socket.inet_aton(self.host), socket.inet_aton(self.config.interface)
-            )
-            sock.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP, membership)
-        sock.setblocking(False)
-        self.local_port = sock.getsockname()[1]
-        loop = asyncio.get_running_loop()
-        task_status.started()
         try:
-            while True:
-                data = await loop.sock_recv(sock, 65536)
-                self.handle(data)
-        finally:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            multicast = _is_multicast(self.host)
+            # Bound to the group itself, the socket gets that group's datagrams and no others.
+            sock.bind((self.host, self.port))
+            if multicast:
+                membership = struct.pack(
+                    "4s4s", socket.inet_aton(self.host), socket.inet_aton(self.config.interface)
+                )
+                sock.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP, membership)
+            sock.setblocking(False)
+        except BaseException:
             sock.close()
+            raise
+        return sock
+
+    async def _run_udp(self, task_status: anyio.abc.TaskStatus[None]) -> None:
+        sock = self._udp_socket()
+        with sock:
+            self.local_port = int(sock.getsockname()[1])
+            task_status.started()
+            while True:
+                await anyio.wait_readable(sock)
+                try:
+                    data = sock.recv(65_536)
+                except (BlockingIOError, InterruptedError):
+                    continue
+                except OSError as exc:  # e.g. ICMP errors surfacing on the socket
+                    self.log.warning("cot_receive_failed", error=str(exc))
+                    continue
+                self.handle(data)
 
     async def _run_tcp(self, task_status: anyio.abc.TaskStatus[None]) -> None:
         listener = await anyio.create_tcp_listener(local_host=self.host, local_port=self.port)
@@ -142,17 +184,42 @@ class CotListener:
             await listener.serve(self._serve)
 
     async def _serve(self, stream: anyio.abc.SocketStream) -> None:
-        buffer = b""
-        limit = self.config.max_event_bytes
         async with stream:
-            try:
-                while True:
-                    buffer += await stream.receive(65536)
-                    while (end := buffer.find(_END)) >= 0:
-                        self.handle(buffer[: end + len(_END)].strip())
-                        buffer = buffer[end + len(_END) :]
-                    if len(buffer) > limit:
-                        self._count("oversize")
-                        buffer = b""
-            except (anyio.EndOfStream, anyio.BrokenResourceError, OSError):
+            if self._clients.available_tokens < 1:
+                self.refused_clients += 1
+                if self._log_limit.allow("refused"):
+                    self.log.warning("cot_client_refused", max_clients=self.config.max_clients)
                 return
+            async with self._clients:
+                await self._read_stream(stream)
+
+    async def _read_stream(self, stream: anyio.abc.SocketStream) -> None:
+        buffer = bytearray()
+        limit = self.config.max_event_bytes
+        try:
+            async for chunk in stream:
+                buffer += chunk
+                while (end := buffer.find(_END)) >= 0:
+                    self.handle(bytes(buffer[: end + len(_END)]).strip())
+                    del buffer[: end + len(_END)]
+                if len(buffer) > limit:
+                    # No </event> within the limit: a stream we cannot follow; hang up.
+                    self._reject("oversize", size=len(buffer))
+                    return
+        except (anyio.BrokenResourceError, OSError):
+            return
+
+
+def _blue_force(cot: ParsedCot) -> BlueForce:
+    return BlueForce(
+        event_id=f"cot-{cot.uid}-{int(cot.time.timestamp() * 1000)}",
+        uid=cot.uid,
+        time=cot.time,
+        callsign=cot.callsign,
+        position=Position(
+            lat_deg=cot.lat,
+            lon_deg=cot.lon,
+            alt_hae_m=None if is_unknown(cot.hae) else cot.hae,
+        ),
+        source="cot",
+    )

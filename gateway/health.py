@@ -1,13 +1,16 @@
-"""The HTTP health endpoint: /healthz, /readyz, /metrics, /status, on anyio sockets.
+"""The HTTP health endpoint: /healthz, /readyz, /metrics and /status, on anyio sockets.
 
-A deliberately small HTTP/1.1 server: GET and HEAD only, one request per connection,
-request head bounded (8 KiB, 64 headers) and every connection under a deadline, so a slow
-or hostile client cannot tie it up. It binds to 127.0.0.1 unless configured otherwise.
+A deliberately small, strict HTTP/1.1 server: GET and HEAD only, one request per connection,
+the request head bounded (8 KiB, 64 header lines), at most 32 connections served at once and
+each under a 5 s deadline, so a slow or hostile client cannot tie it up. Anything it does not
+understand is refused with 400 rather than guessed at. It binds to 127.0.0.1 unless the
+config says otherwise.
 """
 
 from __future__ import annotations
 
 import json
+import re
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -24,7 +27,18 @@ log = structlog.get_logger(__name__)
 
 MAX_HEAD_BYTES = 8192
 MAX_HEADERS = 64
+MAX_CONNECTIONS = 32
 CONNECTION_DEADLINE_S = 5.0
+# After answering, read and discard what the client still sends (up to this much, for up to
+# this long) before closing: closing with unread input makes the kernel send a reset, which
+# can destroy the response (a 431 above all) before the client reads it.
+LINGER_MAX_BYTES = 65536
+LINGER_DEADLINE_S = 1.0
+
+_TOKEN = re.compile(rb"[!#$%&'*+\-.^_`|~0-9A-Za-z]+")
+_TARGET = re.compile(rb"/[\x21-\x7e]*")
+_FIELD_VALUE = re.compile(rb"[\t\x20-\x7e\x80-\xff]*")
+_VERSIONS = (b"HTTP/1.0", b"HTTP/1.1")
 _REASONS = {
     200: "OK",
     400: "Bad Request",
@@ -33,16 +47,28 @@ _REASONS = {
     431: "Request Header Fields Too Large",
     503: "Service Unavailable",
 }
-_INDEX = b"fischer-gateway\n/healthz\n/readyz\n/metrics\n/status\n"
+_TEXT = "text/plain; charset=utf-8"
+_METRICS = "text/plain; version=0.0.4; charset=utf-8"
+_INDEX = (
+    b"fischer-gateway health endpoint\n"
+    b"/healthz  200 while the event loop answers\n"
+    b"/readyz   200 once every component has started, else 503\n"
+    b"/metrics  Prometheus text format 0.0.4\n"
+    b"/status   JSON status of links and sinks\n"
+)
 
 
-class _BadRequest(Exception):
-    def __init__(self, code: int) -> None:
+class _Rejected(Exception):
+    """Raised while reading a request that gets an error response instead of a route."""
+
+    def __init__(self, code: int, reason: str) -> None:
+        super().__init__(reason)
         self.code = code
+        self.reason = reason
 
 
 class HealthServer:
-    """Serves the gateway's liveness, readiness, metrics and status."""
+    """Serves the gateway's liveness, readiness, metrics and status over HTTP/1.1."""
 
     def __init__(
         self,
@@ -58,85 +84,156 @@ class HealthServer:
         self._registry = registry
         self._status = status
         self._is_ready = is_ready
+        self._limiter = anyio.CapacityLimiter(MAX_CONNECTIONS)
+        self.rejected = 0
+        """Requests refused with 400, 405 or 431, or that timed out."""
 
     async def run(
         self, *, task_status: anyio.abc.TaskStatus[int] = anyio.TASK_STATUS_IGNORED
     ) -> None:
-        """Bind, report the bound port as started, and serve until cancelled."""
+        """Bind, report the bound port through ``task_status``, and serve until cancelled.
+
+        Port 0 binds an ephemeral port. Raises ``LinkUnavailable`` if the address cannot be
+        bound (in use, not local, no permission).
+        """
         try:
             listener = await anyio.create_tcp_listener(local_host=self.host, local_port=self.port)
         except OSError as exc:
             where = f"health endpoint {self.host}:{self.port}"
             raise LinkUnavailable(where, f"cannot listen: {exc.strerror or exc}") from exc
-        port = int(listener.extra(anyio.abc.SocketAttribute.local_port))
-        log.info("health_listening", host=self.host, port=port)
-        task_status.started(port)
         async with listener:
+            port = int(listener.extra(anyio.abc.SocketAttribute.local_port))
+            log.info("health_listening", host=self.host, port=port)
+            task_status.started(port)
             await listener.serve(self._handle)
 
     async def _handle(self, stream: anyio.abc.SocketStream) -> None:
+        peer = _peer(stream)
         async with stream:
-            with anyio.move_on_after(CONNECTION_DEADLINE_S):
-                try:
-                    method, path = await self._read_head(stream)
-                except _BadRequest as exc:
-                    log.info("health_request_rejected", code=exc.code)
-                    await self._respond(stream, exc.code, b"", "text/plain", head_only=False)
-                    return
-                except (anyio.EndOfStream, anyio.BrokenResourceError, OSError):
-                    return
-                code, body, ctype = self._route(path)
-                if method not in ("GET", "HEAD"):
-                    code, body, ctype = 405, b"only GET and HEAD\n", "text/plain"
-                try:
-                    await self._respond(stream, code, body, ctype, head_only=method == "HEAD")
-                except (anyio.BrokenResourceError, OSError):
-                    return
+            try:
+                with anyio.fail_after(CONNECTION_DEADLINE_S):
+                    async with self._limiter:
+                        await self._serve_one(stream, peer)
+            except TimeoutError:
+                self.rejected += 1
+                log.warning("health_request_rejected", reason="timeout", peer=peer)
+            except (anyio.BrokenResourceError, anyio.ClosedResourceError, OSError):
+                # The client went away mid-exchange; there is nobody left to answer.
+                log.debug("health_connection_lost", peer=peer)
 
-    async def _read_head(self, stream: anyio.abc.SocketStream) -> tuple[str, str]:
-        data = b""
-        while b"\r\n\r\n" not in data:
-            if len(data) > MAX_HEAD_BYTES:
-                raise _BadRequest(431)
-            data += await stream.receive(4096)
-        head = data.split(b"\r\n\r\n", 1)[0]
-        if len(head) > MAX_HEAD_BYTES:
-            raise _BadRequest(431)
-        lines = head.split(b"\r\n")
-        if len(lines) - 1 > MAX_HEADERS:
-            raise _BadRequest(431)
-        parts = lines[0].split(b" ")
-        if len(parts) != 3 or not parts[2].startswith(b"HTTP/1."):
-            raise _BadRequest(400)
+    async def _serve_one(self, stream: anyio.abc.SocketStream, peer: str) -> None:
         try:
-            return parts[0].decode("ascii"), parts[1].decode("ascii").split("?", 1)[0]
-        except UnicodeDecodeError as exc:
-            raise _BadRequest(400) from exc
+            method, path = _parse_head(await _read_head(stream))
+        except anyio.EndOfStream:
+            return  # a bare connect-and-close, as TCP health checks do
+        except _Rejected as exc:
+            self.rejected += 1
+            log.warning("health_request_rejected", reason=exc.reason, code=exc.code, peer=peer)
+            await _respond(stream, exc.code, f"{exc.reason}\n".encode(), _TEXT, head_only=False)
+            return
+        if method not in (b"GET", b"HEAD"):
+            self.rejected += 1
+            log.warning("health_request_rejected", reason="method", code=405, peer=peer)
+            body = b"only GET and HEAD\n"
+            await _respond(stream, 405, body, _TEXT, head_only=False, allow=True)
+            return
+        code, body, content_type = self._route(path)
+        log.debug("health_request_served", path=path, code=code, peer=peer)
+        await _respond(stream, code, body, content_type, head_only=method == b"HEAD")
 
     def _route(self, path: str) -> tuple[int, bytes, str]:
         if path == "/healthz":
-            return 200, b"ok\n", "text/plain; charset=utf-8"
+            return 200, b"ok\n", _TEXT
         if path == "/readyz":
             if self._is_ready():
-                return 200, b"ready\n", "text/plain; charset=utf-8"
-            return 503, b"not ready\n", "text/plain; charset=utf-8"
+                return 200, b"ready\n", _TEXT
+            return 503, b"not ready\n", _TEXT
         if path == "/metrics":
-            body = self._registry.render().encode()
-            return 200, body, "text/plain; version=0.0.4; charset=utf-8"
+            return 200, self._registry.render().encode(), _METRICS
         if path == "/status":
-            body = json.dumps(self._status(), default=str, indent=1).encode()
-            return 200, body, "application/json"
+            body = json.dumps(self._status(), default=str, indent=1) + "\n"
+            return 200, body.encode(), "application/json"
         if path == "/":
-            return 200, _INDEX, "text/plain; charset=utf-8"
-        return 404, b"not found\n", "text/plain; charset=utf-8"
+            return 200, _INDEX, _TEXT
+        return 404, b"not found\n", _TEXT
 
-    @staticmethod
-    async def _respond(
-        stream: anyio.abc.SocketStream, code: int, body: bytes, ctype: str, *, head_only: bool
-    ) -> None:
-        head = (
-            f"HTTP/1.1 {code} {_REASONS.get(code, 'Error')}\r\n"
-            f"Content-Type: {ctype}\r\nContent-Length: {len(body)}\r\n"
-            "Connection: close\r\nCache-Control: no-store\r\n\r\n"
-        ).encode("ascii")
-        await stream.send(head if head_only else head + body)
+
+def _peer(stream: anyio.abc.SocketStream) -> str:
+    address = stream.extra(anyio.abc.SocketAttribute.remote_address, None)
+    if isinstance(address, tuple):
+        return f"{address[0]}:{address[1]}"
+    return str(address)
+
+
+async def _read_head(stream: anyio.abc.SocketStream) -> bytes:
+    """The request line and header lines, without the blank line that ends them."""
+    data = bytearray()
+    while len(data) < MAX_HEAD_BYTES:
+        # The terminator may straddle two reads, so search from just before the new bytes.
+        start = max(len(data) - 3, 0)
+        try:
+            data += await stream.receive(4096)
+        except anyio.EndOfStream:
+            if data:
+                raise _Rejected(400, "incomplete request") from None
+            raise
+        end = data.find(b"\r\n\r\n", start)
+        if end >= 0:
+            if end + 4 > MAX_HEAD_BYTES:
+                break
+            return bytes(data[:end])
+    raise _Rejected(431, "request head too large")
+
+
+def _parse_head(head: bytes) -> tuple[bytes, str]:
+    """The method and the path (query string dropped) of a well-formed request head."""
+    request_line, *fields = head.split(b"\r\n")
+    if len(fields) > MAX_HEADERS:
+        raise _Rejected(431, "too many header fields")
+    parts = request_line.split(b" ")
+    if len(parts) != 3:
+        raise _Rejected(400, "malformed request line")
+    method, target, version = parts
+    if not _TOKEN.fullmatch(method) or not _TARGET.fullmatch(target):
+        raise _Rejected(400, "malformed request line")
+    if version not in _VERSIONS:
+        raise _Rejected(400, "unsupported HTTP version")
+    hosts = 0
+    for field in fields:
+        name, colon, value = field.partition(b":")
+        # No whitespace before the colon and no line folding (RFC 9112 §5.1, §5.2).
+        if not colon or not _TOKEN.fullmatch(name) or not _FIELD_VALUE.fullmatch(value):
+            raise _Rejected(400, "malformed header field")
+        hosts += name.lower() == b"host"
+    # HTTP/1.1 requires exactly one Host (RFC 9112 §3.2); more would be ambiguous in 1.0 too.
+    if hosts > 1 or (version == b"HTTP/1.1" and hosts == 0):
+        raise _Rejected(400, "missing or repeated Host")
+    return method, target.split(b"?", 1)[0].decode("ascii")
+
+
+async def _respond(
+    stream: anyio.abc.SocketStream,
+    code: int,
+    body: bytes,
+    content_type: str,
+    *,
+    head_only: bool,
+    allow: bool = False,
+) -> None:
+    """Send one response, then half-close and drain so the client reads all of it."""
+    head = (
+        f"HTTP/1.1 {code} {_REASONS[code]}\r\n"
+        f"Content-Type: {content_type}\r\n"
+        f"Content-Length: {len(body)}\r\n"
+        + ("Allow: GET, HEAD\r\n" if allow else "")
+        + "Cache-Control: no-store\r\nConnection: close\r\n\r\n"
+    ).encode("ascii")
+    await stream.send(head if head_only else head + body)
+    await stream.send_eof()
+    drained = 0
+    with anyio.move_on_after(LINGER_DEADLINE_S):
+        while drained < LINGER_MAX_BYTES:
+            try:
+                drained += len(await stream.receive(4096))
+            except anyio.EndOfStream:
+                return

@@ -1,16 +1,19 @@
 """A small, fast Prometheus metrics registry and its text exposition (format 0.0.4).
 
 prometheus_client is not used at run time: its per-increment locking is measurable on the
-per-frame hot path, and the gateway's metrics are only touched from the event loop. A
-labelled child is looked up once and kept by the caller, so an increment is one attribute
-add. The tests check the output with prometheus_client's own parser.
+per-frame hot path, and the gateway's metrics are only touched from the event loop thread
+(never from ``anyio.to_thread`` workers), so no lock is needed. A labelled child is looked up
+once and kept by the caller, so an increment is one attribute add. The tests check the output
+with prometheus_client's own parser.
 """
 
 from __future__ import annotations
 
 import math
 import re
-from collections.abc import Callable, Iterable
+from bisect import bisect_left
+from collections.abc import Callable, Iterable, Iterator
+from itertools import pairwise
 from typing import Generic, TypeVar
 
 __all__ = [
@@ -24,36 +27,49 @@ __all__ = [
     "Registry",
 ]
 
+# Finer than the usual 0.5 ms floor: loopback delivery latencies sit well under a
+# millisecond, and bench/ingest.py interpolates p50/p99 from these buckets.
 DEFAULT_LATENCY_BUCKETS_S: tuple[float, ...] = (
     0.0001, 0.00025, 0.0005, 0.001, 0.002, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0,
     2.5, 5.0, 10.0,
 )  # fmt: skip
 
-_NAME = re.compile(r"^[a-zA-Z_:][a-zA-Z0-9_:]*$")
-_LABEL = re.compile(r"^[a-zA-Z_][a-zA-Z0-9_]*$")
+_METRIC_NAME = re.compile(r"[a-zA-Z_:][a-zA-Z0-9_:]*")
+_LABEL_NAME = re.compile(r"[a-zA-Z_][a-zA-Z0-9_]*")
+# Integral values below this print without a fraction; larger ones keep float notation so a
+# huge value never becomes a few hundred digits.
+_INT_LIMIT = 2.0**53
 
 
-def _escape(value: str) -> str:
+def _escape_label(value: str) -> str:
     return value.replace("\\", "\\\\").replace("\n", "\\n").replace('"', '\\"')
 
 
+def _escape_help(text: str) -> str:
+    # HELP lines escape only backslash and newline; an escaped quote would be read back literally.
+    return text.replace("\\", "\\\\").replace("\n", "\\n")
+
+
 def _number(value: float) -> str:
-    if math.isinf(value):
-        return "+Inf" if value > 0 else "-Inf"
+    value = float(value)  # callers may hand in an int (``gauge.set(3)``)
     if math.isnan(value):
         return "NaN"
-    return repr(float(value)) if not float(value).is_integer() else str(int(value))
+    if math.isinf(value):
+        return "+Inf" if value > 0 else "-Inf"
+    if value.is_integer() and abs(value) < _INT_LIMIT:
+        return str(int(value))
+    return repr(value)
 
 
 def _labels(names: tuple[str, ...], values: tuple[str, ...], extra: str = "") -> str:
-    parts = [f'{n}="{_escape(v)}"' for n, v in zip(names, values, strict=True)]
+    parts = [f'{n}="{_escape_label(v)}"' for n, v in zip(names, values, strict=True)]
     if extra:
         parts.append(extra)
     return "{" + ",".join(parts) + "}" if parts else ""
 
 
 class CounterChild:
-    """One labelled counter series."""
+    """One counter series. ``inc`` is a bare add, so the caller must never pass a negative."""
 
     __slots__ = ("value",)
 
@@ -61,12 +77,12 @@ class CounterChild:
         self.value = 0.0
 
     def inc(self, amount: float = 1.0) -> None:
-        """Add ``amount`` (never negative)."""
+        """Add ``amount`` (>= 0; not checked, this runs per frame)."""
         self.value += amount
 
 
 class GaugeChild:
-    """One labelled gauge series."""
+    """One gauge series."""
 
     __slots__ = ("value",)
 
@@ -87,163 +103,217 @@ class GaugeChild:
 
 
 class HistogramChild:
-    """One labelled histogram series: cumulative buckets, sum and count."""
+    """One histogram series: per-bucket counts (the last is +Inf), sum and count."""
 
-    __slots__ = ("buckets", "count", "counts", "sum")
+    __slots__ = ("bounds", "count", "counts", "sum")
 
-    def __init__(self, buckets: tuple[float, ...]) -> None:
-        self.buckets = buckets
-        self.counts = [0] * (len(buckets) + 1)
+    def __init__(self, bounds: tuple[float, ...]) -> None:
+        self.bounds = bounds
+        self.counts = [0] * (len(bounds) + 1)
         self.sum = 0.0
         self.count = 0
 
     def observe(self, value: float) -> None:
-        """Record one observation."""
+        """Record one observation (not NaN; not checked, this runs per event)."""
+        # bisect_left finds the first bound >= value, which is Prometheus' ``le`` bucket.
+        self.counts[bisect_left(self.bounds, value)] += 1
         self.sum += value
         self.count += 1
-        for index, bound in enumerate(self.buckets):
-            if value <= bound:
-                self.counts[index] += 1
-                return
-        self.counts[-1] += 1
 
 
 C = TypeVar("C", CounterChild, GaugeChild, HistogramChild)
 
 
-class _Metric(Generic[C]):
+class _Family(Generic[C]):
     kind = ""
+    reserved_labels: frozenset[str] = frozenset()
+    suffixes: tuple[str, ...] = ("",)  # the sample names written are name + suffix
 
     def __init__(self, name: str, help_text: str, labelnames: tuple[str, ...]) -> None:
-        if not _NAME.match(name):
-            raise ValueError(f"invalid metric name {name!r}")
+        if not _METRIC_NAME.fullmatch(name):
+            raise ValueError(f"invalid metric name {name!r}: expected {_METRIC_NAME.pattern}")
         for label in labelnames:
-            if not _LABEL.match(label) or label.startswith("__"):
-                raise ValueError(f"invalid label name {label!r} for {name}")
+            if not _LABEL_NAME.fullmatch(label):
+                raise ValueError(
+                    f"{name}: invalid label name {label!r}: expected {_LABEL_NAME.pattern}"
+                )
+            if label.startswith("__") or label in self.reserved_labels:
+                raise ValueError(f"{name}: label name {label!r} is reserved")
+        if len(set(labelnames)) != len(labelnames):
+            raise ValueError(f"{name}: duplicate label names in {labelnames}")
         self.name = name
         self.help = help_text
         self.labelnames = labelnames
-        self.children: dict[tuple[str, ...], C] = {}
+        self._children: dict[tuple[str, ...], C] = {}
+        # An unlabelled family is its own single series, shown as 0 before first use.
+        self._unlabelled: C | None = None if labelnames else self.labels()
 
     def _new_child(self) -> C:
         raise NotImplementedError
 
+    def _only(self) -> C:
+        if self._unlabelled is None:
+            raise ValueError(f"{self.name} has labels {self.labelnames}: use .labels(...)")
+        return self._unlabelled
+
     def labels(self, *values: str) -> C:
-        """The child for these label values, created on first use; keep it on hot paths."""
-        child = self.children.get(values)
+        """The child for these label values, created on first use; keep it on hot paths.
+
+        Raises ``ValueError`` for the wrong number of values, ``TypeError`` for a non-str.
+        """
+        child = self._children.get(values)
         if child is None:
             if len(values) != len(self.labelnames):
-                raise ValueError(f"{self.name} takes labels {self.labelnames}, got {values}")
-            child = self.children[values] = self._new_child()
+                raise ValueError(f"{self.name} takes labels {self.labelnames}, got {values!r}")
+            if not all(isinstance(v, str) for v in values):
+                raise TypeError(f"{self.name}: label values must be str, got {values!r}")
+            child = self._children[values] = self._new_child()
         return child
 
-    def _samples(self) -> Iterable[str]:
+    def _samples(self) -> Iterator[str]:
         raise NotImplementedError
 
     def render(self) -> str:
-        head = f"# HELP {self.name} {_escape(self.help)}\n# TYPE {self.name} {self.kind}\n"
+        """This family's HELP, TYPE and sample lines."""
+        head = f"# HELP {self.name} {_escape_help(self.help)}\n# TYPE {self.name} {self.kind}\n"
         return head + "".join(line + "\n" for line in self._samples())
 
 
-class Counter(_Metric[CounterChild]):
-    """A monotonically increasing count (name ends in ``_total``)."""
+V = TypeVar("V", CounterChild, GaugeChild)
+
+
+class _ValueFamily(_Family[V]):
+    """A family whose series are one number each: counters and gauges."""
+
+    def inc(self, amount: float = 1.0) -> None:
+        """Add to an unlabelled metric; ``ValueError`` if it has labels."""
+        self._only().value += amount
+
+    @property
+    def value(self) -> float:
+        """The value of an unlabelled metric; ``ValueError`` if it has labels."""
+        return self._only().value
+
+    def _series(self) -> Iterable[tuple[tuple[str, ...], float]]:
+        return ((values, child.value) for values, child in self._children.items())
+
+    def _samples(self) -> Iterator[str]:
+        for values, value in self._series():
+            yield f"{self.name}{_labels(self.labelnames, values)} {_number(value)}"
+
+
+class Counter(_ValueFamily[CounterChild]):
+    """A monotonically increasing count; by convention the name ends in ``_total``."""
 
     kind = "counter"
 
     def _new_child(self) -> CounterChild:
         return CounterChild()
 
-    def inc(self, amount: float = 1.0) -> None:
-        """Increment the unlabelled series."""
-        self.labels().inc(amount)
 
-    def _samples(self) -> Iterable[str]:
-        for values, child in self.children.items():
-            yield f"{self.name}{_labels(self.labelnames, values)} {_number(child.value)}"
+GaugeFunction = Callable[[], Iterable[tuple[tuple[str, ...], float]]]
 
 
-class Gauge(_Metric[GaugeChild]):
-    """A value that goes up and down, set directly or computed at scrape time."""
+class Gauge(_ValueFamily[GaugeChild]):
+    """A value that goes up and down, stored or computed at scrape time."""
 
     kind = "gauge"
 
     def __init__(self, name: str, help_text: str, labelnames: tuple[str, ...]) -> None:
         super().__init__(name, help_text, labelnames)
-        self._function: Callable[[], Iterable[tuple[tuple[str, ...], float]]] | None = None
+        self._function: GaugeFunction | None = None
 
     def _new_child(self) -> GaugeChild:
         return GaugeChild()
 
     def set(self, value: float) -> None:
-        """Set the unlabelled series."""
-        self.labels().set(value)
+        """Set an unlabelled gauge; ``ValueError`` if it has labels."""
+        self._only().value = value
 
-    def set_function(self, fn: Callable[[], Iterable[tuple[tuple[str, ...], float]]]) -> None:
-        """Compute the series at scrape time: ``fn`` yields (label values, value) pairs."""
+    def dec(self, amount: float = 1.0) -> None:
+        """Subtract from an unlabelled gauge."""
+        self._only().value -= amount
+
+    def set_function(self, fn: GaugeFunction) -> None:
+        """Compute the series at scrape time instead of storing them.
+
+        ``fn`` runs on the event loop during ``render`` and yields (label values, value)
+        pairs, one per series; label values must match ``labelnames`` in number. Series
+        set through ``labels`` are no longer rendered.
+        """
         self._function = fn
 
-    def _samples(self) -> Iterable[str]:
-        series = (
-            ((v, c.value) for v, c in self.children.items())
-            if self._function is None
-            else self._function()
-        )
-        for values, value in series:
-            yield f"{self.name}{_labels(self.labelnames, values)} {_number(value)}"
+    def _series(self) -> Iterable[tuple[tuple[str, ...], float]]:
+        return super()._series() if self._function is None else self._function()
 
 
-class Histogram(_Metric[HistogramChild]):
-    """Observations counted into cumulative buckets."""
+class Histogram(_Family[HistogramChild]):
+    """Observations counted into cumulative buckets, with their sum and count."""
 
     kind = "histogram"
+    reserved_labels = frozenset({"le"})
+    suffixes = ("", "_bucket", "_sum", "_count")
 
     def __init__(
         self, name: str, help_text: str, labelnames: tuple[str, ...], buckets: tuple[float, ...]
     ) -> None:
+        finite = all(math.isfinite(b) for b in buckets)
+        increasing = all(a < b for a, b in pairwise(buckets))
+        if not buckets or not finite or not increasing:
+            raise ValueError(
+                f"{name}: buckets must be finite and strictly increasing (+Inf is added), "
+                f"got {buckets!r}"
+            )
+        self.buckets = tuple(float(b) for b in buckets)
         super().__init__(name, help_text, labelnames)
-        if list(buckets) != sorted(buckets) or not buckets:
-            raise ValueError(f"{name}: buckets must be a sorted, non-empty tuple")
-        self.buckets = buckets
 
     def _new_child(self) -> HistogramChild:
         return HistogramChild(self.buckets)
 
     def observe(self, value: float) -> None:
-        """Observe into the unlabelled series."""
-        self.labels().observe(value)
+        """Observe into an unlabelled histogram; ``ValueError`` if it has labels."""
+        self._only().observe(value)
 
-    def _samples(self) -> Iterable[str]:
-        for values, child in self.children.items():
+    def _samples(self) -> Iterator[str]:
+        # Bounds keep float notation (le="1.0"), as prometheus_client writes them, so series
+        # from either exporter match in PromQL.
+        bounds = [f'le="{b!r}"' for b in self.buckets] + ['le="+Inf"']
+        for values, child in self._children.items():
             cumulative = 0
-            for bound, count in zip((*self.buckets, math.inf), child.counts, strict=True):
+            for le, count in zip(bounds, child.counts, strict=True):
                 cumulative += count
-                le = f'le="{_number(bound)}"'
                 yield f"{self.name}_bucket{_labels(self.labelnames, values, le)} {cumulative}"
             labels = _labels(self.labelnames, values)
             yield f"{self.name}_sum{labels} {_number(child.sum)}"
             yield f"{self.name}_count{labels} {child.count}"
 
 
+F = TypeVar("F", Counter, Gauge, Histogram)
+
+
 class Registry:
     """The metric families of one gateway, rendered together for /metrics."""
 
     def __init__(self) -> None:
-        self._metrics: dict[
-            str, _Metric[CounterChild] | _Metric[GaugeChild] | _Metric[HistogramChild]
-        ] = {}
+        self._families: list[Counter | Gauge | Histogram] = []
+        self._names: set[str] = set()
 
-    def _add(self, metric: C_M) -> C_M:
-        if metric.name in self._metrics:
-            raise ValueError(f"metric {metric.name} is already registered")
-        self._metrics[metric.name] = metric
-        return metric
+    def _add(self, family: F) -> F:
+        # Also refuse a family whose samples would collide, e.g. a counter "h_count" next to a
+        # histogram "h".
+        names = {family.name + suffix for suffix in family.suffixes}
+        if clash := names & self._names:
+            raise ValueError(f"metric {family.name}: {', '.join(sorted(clash))} already registered")
+        self._names |= names
+        self._families.append(family)
+        return family
 
     def counter(self, name: str, help: str, labelnames: tuple[str, ...] = ()) -> Counter:
-        """Register a counter."""
+        """Register a counter; ``ValueError`` for a bad or already registered name."""
         return self._add(Counter(name, help, labelnames))
 
     def gauge(self, name: str, help: str, labelnames: tuple[str, ...] = ()) -> Gauge:
-        """Register a gauge."""
+        """Register a gauge; ``ValueError`` for a bad or already registered name."""
         return self._add(Gauge(name, help, labelnames))
 
     def histogram(
@@ -253,12 +323,9 @@ class Registry:
         labelnames: tuple[str, ...] = (),
         buckets: tuple[float, ...] = DEFAULT_LATENCY_BUCKETS_S,
     ) -> Histogram:
-        """Register a histogram."""
+        """Register a histogram; ``ValueError`` for a bad name, label or bucket list."""
         return self._add(Histogram(name, help, labelnames, buckets))
 
     def render(self) -> str:
-        """Every metric in the Prometheus text format."""
-        return "".join(metric.render() for metric in self._metrics.values())
-
-
-C_M = TypeVar("C_M", Counter, Gauge, Histogram)
+        """Every family in registration order, in the Prometheus text format 0.0.4."""
+        return "".join(family.render() for family in self._families)

@@ -1,175 +1,148 @@
-"""CoT encodings: XML, and TAK protocol v1 protobuf with mesh and stream framing.
+"""CoT encodings: XML, and TAK protocol v1 protobuf in mesh (UDP) and stream (TCP/TLS) framing.
 
-The protobuf ``TakMessage`` is written by hand (a handful of fields, proto3 wire format), so
-the tests' decoder (takproto) is independent of the encoder. Received CoT is validated by
-``gateway.cot_validate``.
+``Encoded`` holds one event's encodings, each made at most once however many destinations
+want it. XML is written as the TAK servers expect on a stream and ATAK on the mesh: the XML
+declaration, a newline, the event, and nothing after ``</event>``. Numbers are plain decimals
+(the schema's ``xs:decimal`` has no exponent); times are UTC with milliseconds and ``Z``.
 """
 
 from __future__ import annotations
 
-import struct
-import xml.etree.ElementTree as ET
-from datetime import UTC, datetime
+from datetime import UTC, datetime, timedelta
+from typing import Literal
+from xml.sax.saxutils import quoteattr
 
-from sinks._cot_event import CotEvent
+from sinks._cot_event import CotEvent, xml_safe
+from sinks._cot_proto import double, mesh_frame, message, stream_frame, string, uint
 
-__all__ = ["mesh_frame", "stream_frame", "to_proto", "to_xml"]
+__all__ = ["Encoded", "Encoding", "cot_time", "decimal", "to_proto", "to_xml"]
 
-_DECL = b'<?xml version="1.0" encoding="UTF-8" standalone="yes"?>\n'
+Encoding = Literal["xml", "mesh", "stream"]
+
+_DECLARATION = b'<?xml version="1.0" encoding="UTF-8" standalone="yes"?>\n'
 
 
-def _time(value: datetime) -> str:
+def cot_time(value: datetime) -> str:
+    """A CoT timestamp: UTC, milliseconds (truncated), ``Z``."""
     utc = value.astimezone(UTC)
     return utc.strftime("%Y-%m-%dT%H:%M:%S.") + f"{utc.microsecond // 1000:03d}Z"
 
 
+_EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
+_MS = timedelta(milliseconds=1)
+
+
 def _ms(value: datetime) -> int:
-    return int(value.timestamp() * 1000)
+    # Integer arithmetic: timestamp() * 1000 in floats can land a millisecond low.
+    return (value - _EPOCH) // _MS
 
 
-def _float(value: float) -> str:
-    return repr(float(value))
+def decimal(value: float, places: int) -> str:
+    """``value`` as an ``xs:decimal`` with at most ``places`` fraction digits, at least one."""
+    text = f"{value:.{places}f}".rstrip("0")
+    return text + "0" if text.endswith(".") else text
+
+
+def _attrs(**values: str) -> str:
+    return "".join(f" {k}={quoteattr(xml_safe(v))}" for k, v in values.items())
 
 
 def to_xml(event: CotEvent) -> bytes:
-    """The event as a CoT 2.0 XML document (declaration, newline, event; nothing after)."""
-    root = ET.Element(
-        "event",
-        {
-            "version": "2.0",
-            "uid": event.uid,
-            "type": event.type,
-            "how": event.how,
-            "time": _time(event.time),
-            "start": _time(event.start),
-            "stale": _time(event.stale),
-        },
+    """The event as one CoT 2.0 XML document: declaration, newline, event; nothing after."""
+    head = _attrs(
+        version="2.0",
+        uid=event.uid,
+        type=event.type,
+        how=event.how,
+        time=cot_time(event.time),
+        start=cot_time(event.start),
+        stale=cot_time(event.stale),
     )
-    ET.SubElement(
-        root,
-        "point",
-        {
-            "lat": _float(event.lat),
-            "lon": _float(event.lon),
-            "hae": _float(event.hae),
-            "ce": _float(event.ce),
-            "le": _float(event.le),
-        },
+    point = _attrs(
+        lat=decimal(event.lat, 9),
+        lon=decimal(event.lon, 9),
+        hae=decimal(event.hae, 2),
+        ce=decimal(event.ce, 2),
+        le=decimal(event.le, 2),
     )
-    detail = ET.SubElement(root, "detail")
+    detail = []
     if event.callsign is not None:
-        contact = {"callsign": event.callsign}
-        if event.endpoint:
-            contact["endpoint"] = event.endpoint
-        ET.SubElement(detail, "contact", contact)
+        endpoint = {"endpoint": event.endpoint} if event.endpoint else {}
+        detail.append(f"<contact{_attrs(callsign=event.callsign, **endpoint)}/>")
+    if event.group is not None:
+        detail.append(f"<__group{_attrs(name=event.group[0], role=event.group[1])}/>")
     if event.course_deg is not None and event.speed_mps is not None:
-        ET.SubElement(
-            detail,
-            "track",
-            {"course": f"{event.course_deg:.2f}", "speed": f"{event.speed_mps:.2f}"},
-        )
+        track = _attrs(course=decimal(event.course_deg, 2), speed=decimal(event.speed_mps, 2))
+        detail.append(f"<track{track}/>")
     if event.battery_pct is not None:
-        ET.SubElement(detail, "status", {"battery": str(event.battery_pct)})
+        detail.append(f"<status{_attrs(battery=str(event.battery_pct))}/>")
     if event.geopointsrc is not None:
-        ET.SubElement(
-            detail,
-            "precisionlocation",
-            {"geopointsrc": event.geopointsrc, "altsrc": event.altsrc or "???"},
-        )
+        source = _attrs(geopointsrc=event.geopointsrc, altsrc=event.altsrc or "???")
+        detail.append(f"<precisionlocation{source}/>")
     if event.takv is not None:
         device, platform, os_name, version = event.takv
-        ET.SubElement(
-            detail,
-            "takv",
-            {"device": device, "platform": platform, "os": os_name, "version": version},
-        )
-    body = ET.tostring(root, encoding="unicode")
-    if event.xml_detail:
-        body = body.replace("</detail>", event.xml_detail + "</detail>", 1).replace(
-            "<detail />", "<detail>" + event.xml_detail + "</detail>", 1
-        )
-    return _DECL + body.encode("utf-8")
-
-
-# -- protobuf ------------------------------------------------------------------------------
-
-
-def _varint(value: int) -> bytes:
-    out = bytearray()
-    while True:
-        byte = value & 0x7F
-        value >>= 7
-        if value:
-            out.append(byte | 0x80)
-        else:
-            out.append(byte)
-            return bytes(out)
-
-
-def _key(field: int, wire: int) -> bytes:
-    return _varint(field << 3 | wire)
-
-
-def _str(field: int, value: str | None) -> bytes:
-    if not value:
-        return b""
-    data = value.encode("utf-8")
-    return _key(field, 2) + _varint(len(data)) + data
-
-
-def _msg(field: int, payload: bytes) -> bytes:
-    return _key(field, 2) + _varint(len(payload)) + payload
-
-
-def _u64(field: int, value: int) -> bytes:
-    return _key(field, 0) + _varint(value) if value else b""
-
-
-def _double(field: int, value: float) -> bytes:
-    return _key(field, 1) + struct.pack("<d", value) if value != 0.0 else b""
+        takv = _attrs(device=device, platform=platform, os=os_name, version=version)
+        detail.append(f"<takv{takv}/>")
+    body = (
+        f"<event{head}><point{point}/><detail>{''.join(detail)}{event.xml_detail}</detail></event>"
+    )
+    return _DECLARATION + body.encode("utf-8")
 
 
 def to_proto(event: CotEvent) -> bytes:
-    """The event as a serialized TAK protocol v1 ``TakMessage`` (without framing)."""
-    detail = _str(1, _xml_detail_for_proto(event))
+    """The event as a serialized TAK protocol v1 ``TakMessage``, without framing."""
+    detail = string(1, event.xml_detail)
     if event.callsign is not None:
-        detail += _msg(2, _str(1, event.endpoint) + _str(2, event.callsign))
+        detail += message(2, string(1, event.endpoint) + string(2, event.callsign))
+    if event.group is not None:
+        detail += message(3, string(1, event.group[0]) + string(2, event.group[1]))
     if event.geopointsrc is not None:
-        detail += _msg(4, _str(1, event.geopointsrc) + _str(2, event.altsrc or "???"))
+        detail += message(4, string(1, event.geopointsrc) + string(2, event.altsrc or "???"))
     if event.battery_pct is not None:
-        detail += _msg(5, _u64(1, event.battery_pct))
+        detail += message(5, uint(1, event.battery_pct))
     if event.takv is not None:
         device, platform, os_name, version = event.takv
-        detail += _msg(6, _str(1, device) + _str(2, platform) + _str(3, os_name) + _str(4, version))
+        detail += message(
+            6, string(1, device) + string(2, platform) + string(3, os_name) + string(4, version)
+        )
     if event.course_deg is not None and event.speed_mps is not None:
-        detail += _msg(7, _double(1, event.speed_mps) + _double(2, event.course_deg))
+        detail += message(7, double(1, event.speed_mps) + double(2, event.course_deg))
     cot = (
-        _str(1, event.type)
-        + _str(5, event.uid)
-        + _u64(6, _ms(event.time))
-        + _u64(7, _ms(event.start))
-        + _u64(8, _ms(event.stale))
-        + _str(9, event.how)
-        + _double(10, event.lat)
-        + _double(11, event.lon)
-        + _double(12, event.hae)
-        + _double(13, event.ce)
-        + _double(14, event.le)
-        + _msg(15, detail)
+        string(1, event.type)
+        + string(5, event.uid)
+        + uint(6, _ms(event.time))
+        + uint(7, _ms(event.start))
+        + uint(8, _ms(event.stale))
+        + string(9, event.how)
+        + double(10, event.lat)
+        + double(11, event.lon)
+        + double(12, event.hae)
+        + double(13, event.ce)
+        + double(14, event.le)
+        + message(15, detail)
     )
-    return _msg(2, cot)
+    return message(2, cot)
 
 
-def _xml_detail_for_proto(event: CotEvent) -> str:
-    # Everything not carried by a dedicated protobuf field travels as XML (uid, __group, ...).
-    return event.xml_detail
+class Encoded:
+    """One event and its encodings, each made on first request and then reused."""
 
+    __slots__ = ("_cache", "_proto", "event")
 
-def mesh_frame(message: bytes) -> bytes:
-    """TAK protocol v1 mesh (UDP) framing: 0xBF, version 1, 0xBF, message."""
-    return b"\xbf\x01\xbf" + message
+    def __init__(self, event: CotEvent) -> None:
+        self.event = event
+        self._cache: dict[Encoding, bytes] = {}
+        self._proto: bytes | None = None
 
-
-def stream_frame(message: bytes) -> bytes:
-    """TAK protocol v1 stream (TCP/TLS) framing: 0xBF, varint length, message."""
-    return b"\xbf" + _varint(len(message)) + message
+    def get(self, encoding: Encoding) -> bytes:
+        """The event as XML, as a mesh datagram or as a stream frame."""
+        data = self._cache.get(encoding)
+        if data is None:
+            if encoding == "xml":
+                data = to_xml(self.event)
+            else:
+                if self._proto is None:
+                    self._proto = to_proto(self.event)
+                data = mesh_frame(self._proto) if encoding == "mesh" else stream_frame(self._proto)
+            self._cache[encoding] = data
+        return data

@@ -1,49 +1,69 @@
 """Gateway events to Cursor-on-Target events: uids, types, times, point and detail.
 
-One ``CotEvent`` is built once per gateway event and encoded per destination (XML, or TAK
-protocol protobuf) by ``sinks._cot_codec``. No position, no event: telemetry without a fix is
-skipped, never sent at 0,0. ``hae`` is height above the ellipsoid: from GPS_RAW_INT's
-``alt_ellipsoid`` when the airframe sent it, else MSL plus the geoid undulation when a geoid
-grid is configured, else CoT's "unknown" (9999999.0), never MSL.
+One ``CotEvent`` is built per gateway event and then encoded per destination (XML, or TAK
+protocol protobuf) by ``sinks._cot_codec``. No position, no event: telemetry without one is
+skipped, and so is any position exactly at 0,0; nothing is ever sent at Null Island.
+
+``hae`` is height above the WGS 84 ellipsoid, never MSL: the position's ``alt_hae_m`` (from
+GPS_RAW_INT ``alt_ellipsoid``) when present, else ``alt_msl_m`` plus the EGM96 geoid
+undulation, else CoT's "unknown" 9999999.0. ``ce`` is 1σ horizontal error in metres: the
+airframe's ``h_acc_m``, a detection's ``sigma_h_m``, a track's CEP50 / 1.1774.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+import re
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from datetime import datetime, timedelta
-from typing import Literal
 from xml.sax.saxutils import escape, quoteattr
 
-from gateway.cot_validate import UNKNOWN
-from gateway.domain.sidc import Hostility, symbol_codes
+from gateway.domain.sidc import Hostility
 from gateway.domain.targeting import CEP50_FACTOR
-from gateway.events import Detection, Event, Telemetry, Track
+from gateway.events import Detection, Event, Position, Telemetry, Track
+from sinks._cot_symbols import LoiteringMunition, Symbol, object_symbol, own_symbol
+from sinks._cot_validate import UNKNOWN
 
-__all__ = ["UNKNOWN", "CotEvent", "CotOptions", "build"]
+__all__ = ["CotEvent", "CotOptions", "Geoid", "build", "xml_safe"]
 
-# MAV_TYPE values of rotary-wing vehicles: drawn as rotary-wing UAVs (2525C A-M-H-Q).
-_ROTARY = frozenset({2, 3, 4, 13, 14, 15, 29, 35})
+Geoid = Callable[[float, float], float | None]
+"""Geoid undulation N in metres at (lat, lon), or None where unknown."""
+
+_NOT_IN_UID = re.compile(r"[\s\x00-\x1f\x7f]")
+# Characters XML 1.0 cannot carry at all, escaped or not.
+_NOT_IN_XML = re.compile("[^\t\n\r\x20-\ud7ff\ue000-\ufffd\U00010000-\U0010ffff]")
+
+
+def xml_safe(text: str) -> str:
+    """``text`` without the characters XML 1.0 forbids (controls, U+FFFE/FFFF, surrogates)."""
+    return _NOT_IN_XML.sub("\ufffd", text)
 
 
 @dataclass(frozen=True)
 class CotOptions:
-    """How events become CoT: uids, stale times, symbology choices."""
+    """How gateway events become CoT: uids, callsigns, stale times, symbology."""
 
     uid_prefix: str = "fischer-"
     callsign_prefix: str = "FISCHER "
-    stale_s: dict[str, float] = field(
+    stale_s: Mapping[str, float] = field(
         default_factory=lambda: {"telemetry": 15.0, "detection": 120.0, "track": 300.0}
     )
-    loitering_munition: Literal["uav_attack", "missile"] = "uav_attack"
-    geoid: Callable[[float, float], float | None] | None = None
-    version: str = "0.1.0"
+    loitering_munition: LoiteringMunition = "uav_attack"
+    detection_hostility: Hostility = "hostile"
+    geoid: Geoid | None = None
+    group: tuple[str, str] | None = None  # __group name and role for own airframes
+    version: str = "0"
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class CotEvent:
-    """A CoT 2.0 event, transport-neutral. ``xml_detail`` holds detail children as XML."""
+    """A CoT 2.0 event, transport-neutral.
+
+    The detail children that TAK protobuf carries in fields of their own are kept as fields
+    (contact, __group, track, status, precisionlocation, takv); every other child is already
+    serialized, escaped XML in ``xml_detail``.
+    """
 
     uid: str
     type: str
@@ -58,6 +78,7 @@ class CotEvent:
     le: float = UNKNOWN
     callsign: str | None = None
     endpoint: str | None = None
+    group: tuple[str, str] | None = None
     course_deg: float | None = None
     speed_mps: float | None = None
     battery_pct: int | None = None
@@ -66,29 +87,71 @@ class CotEvent:
     takv: tuple[str, str, str, str] | None = None  # device, platform, os, version
     xml_detail: str = ""
 
+    def content(self) -> tuple[object, ...]:
+        """Everything but the times: equal content means nothing new to show."""
+        return (
+            self.type, self.how, self.lat, self.lon, self.hae, self.ce, self.le, self.callsign,
+            self.course_deg, self.speed_mps, self.battery_pct, self.xml_detail,
+        )  # fmt: skip
+
+
+def _uid(*parts: str) -> str:
+    return xml_safe(_NOT_IN_UID.sub("_", "".join(parts)))
+
 
 def _num(value: float | None) -> float:
     return UNKNOWN if value is None or not math.isfinite(value) else value
 
 
 def _attrs(**values: object) -> str:
-    return "".join(f" {k}={quoteattr(str(v))}" for k, v in values.items() if v is not None)
+    return "".join(
+        f" {k}={quoteattr(xml_safe(str(v)))}" for k, v in values.items() if v is not None
+    )
 
 
-def _own_type(mav_type: int | None) -> str:
-    return "a-f-A-M-H-Q" if mav_type in _ROTARY else "a-f-A-M-F-Q"
+def _element(tag: str, text: str | None = None, **values: object) -> str:
+    if text is None:
+        return f"<{tag}{_attrs(**values)}/>"
+    return f"<{tag}{_attrs(**values)}>{escape(xml_safe(text))}</{tag}>"
 
 
-def _telemetry(event: Telemetry, opts: CotOptions) -> CotEvent | None:
+def _has_fix(position: Position) -> bool:
+    return not (position.lat_deg == 0.0 and position.lon_deg == 0.0)
+
+
+def _hae(position: Position, geoid: Geoid | None) -> tuple[float, str]:
+    """hae and its precisionlocation ``altsrc``."""
+    if position.alt_hae_m is not None and math.isfinite(position.alt_hae_m):
+        return position.alt_hae_m, "GPS"
+    if position.alt_msl_m is not None and geoid is not None:
+        undulation = geoid(position.lat_deg, position.lon_deg)
+        if undulation is not None and math.isfinite(position.alt_msl_m):
+            return position.alt_msl_m + undulation, "CALC"
+    return UNKNOWN, "???"
+
+
+def _course(north: float, east: float) -> float:
+    # Rounded before the modulo so 359.999 does not print as "360.00" (course must be < 360).
+    return round(math.degrees(math.atan2(east, north)), 2) % 360.0
+
+
+def _symbol_detail(symbol: Symbol) -> str:
+    # Our own element: CoT's type cannot carry echelon or the 2525D code (cot.md §3).
+    return _element("__symbol", sidc2525c=symbol.sidc_2525c, sidc2525d=symbol.sidc_2525d)
+
+
+def _telemetry(event: Telemetry, opts: CotOptions, own: Symbol) -> CotEvent | None:
     pos = event.position
-    if pos is None:
+    if pos is None or not _has_fix(pos):
         return None
-    hae, altsrc = pos.alt_hae_m, "GPS"
-    if hae is None and pos.alt_msl_m is not None and opts.geoid is not None:
-        undulation = opts.geoid(pos.lat_deg, pos.lon_deg)
-        if undulation is not None:
-            hae, altsrc = pos.alt_msl_m + undulation, "CALC"
-    callsign = opts.callsign_prefix + event.airframe
+    hae, altsrc = _hae(pos, opts.geoid)
+    callsign = xml_safe(opts.callsign_prefix + event.airframe)
+    course = speed = None
+    if event.velocity is not None:
+        north, east = event.velocity.north_mps, event.velocity.east_mps
+        course, speed = _course(north, east), math.hypot(north, east)
+    elif event.heading_deg is not None and event.groundspeed_mps is not None:
+        course, speed = round(event.heading_deg, 2) % 360.0, event.groundspeed_mps
     remarks = [f"link {event.active_link or '-'}"]
     if event.ew_mode:
         remarks.append(f"EW {event.ew_mode}")
@@ -96,14 +159,9 @@ def _telemetry(event: Telemetry, opts: CotOptions) -> CotEvent | None:
         remarks.append(f"AGL {event.alt_agl_m:.0f} m")
     if event.endurance_remaining_min is not None:
         remarks.append(f"endurance {event.endurance_remaining_min:.0f} min")
-    detail = (
-        f"<uid{_attrs(Droid=callsign)}/>"
-        f'<__group name="Cyan" role="Team Member"/>'
-        f"<remarks>{escape(', '.join(remarks))}</remarks>"
-    )
     return CotEvent(
-        uid=opts.uid_prefix + event.airframe,
-        type=_own_type(event.mav_type),
+        uid=_uid(opts.uid_prefix, event.airframe),
+        type=own.cot_type,
         how="m-g",
         time=event.time,
         start=event.time,
@@ -113,98 +171,96 @@ def _telemetry(event: Telemetry, opts: CotOptions) -> CotEvent | None:
         hae=_num(hae),
         ce=_num(event.h_acc_m),
         callsign=callsign,
-        endpoint="*:-1:stcp",
-        course_deg=None if event.heading_deg is None else event.heading_deg % 360.0,
-        speed_mps=event.groundspeed_mps,
+        group=opts.group,
+        course_deg=course,
+        speed_mps=speed,
         battery_pct=None if event.battery_pct is None else round(event.battery_pct),
         geopointsrc="GPS",
-        altsrc=altsrc if hae is not None else "???",
+        altsrc=altsrc,
         takv=("Fischer 26E", "fischer-gateway", "linux", opts.version),
-        xml_detail=detail,
+        xml_detail=_element("uid", Droid=callsign)
+        + _symbol_detail(own)
+        + _element("remarks", ", ".join(remarks)),
     )
 
 
-def _symbol(object_class: str, hostility: Hostility, opts: CotOptions) -> tuple[str, str, str]:
-    try:
-        codes = symbol_codes(object_class, hostility, loitering_munition=opts.loitering_munition)
-    except KeyError:
-        letter = {"hostile": "h", "suspect": "s", "friend": "f", "neutral": "n"}.get(hostility, "u")
-        return f"a-{letter}-G", "", ""
-    return codes.cot_type, codes.sidc_2525c, codes.sidc_2525d
+def _link(opts: CotOptions, airframe: str, own_types: Mapping[str, str]) -> str:
+    own_type = own_types.get(airframe, own_symbol(None).cot_type)
+    return _element("link", uid=_uid(opts.uid_prefix, airframe), type=own_type, relation="p-p")
 
 
-def _link(uid: str, type_: str) -> str:
-    return f"<link{_attrs(uid=uid, type=type_, relation='p-p')}/>"
-
-
-def _detection(event: Detection, opts: CotOptions) -> CotEvent:
-    type_, c, d = _symbol(event.object_class, "hostile", opts)
-    remarks = (
-        f"{event.sensor.value.upper()} detection: {event.object_class}"
-        f"{' ' + event.subtype if event.subtype else ''}, conf {event.confidence:.2f}"
-    )
-    detail = (
-        f"<remarks>{escape(remarks)}</remarks>"
-        + _link(opts.uid_prefix + event.airframe, "a-f-A-M-F-Q")
-        + (f"<__symbol{_attrs(sidc2525c=c, sidc2525d=d)}/>" if c else "")
-    )
+def _detection(event: Detection, opts: CotOptions, own_types: Mapping[str, str]) -> CotEvent:
+    hostility = opts.detection_hostility
+    symbol = object_symbol(event.object_class, hostility, opts.loitering_munition)
+    hae, _ = _hae(event.position, opts.geoid)
+    what = event.object_class + (f" {event.subtype}" if event.subtype else "")
+    remarks = f"{event.sensor.value.upper()} detection: {what}, confidence {event.confidence:.2f}"
     return CotEvent(
-        uid=f"{opts.uid_prefix}det-{event.event_id}",
-        type=type_,
+        uid=_uid(opts.uid_prefix, "det-", event.event_id),
+        type=symbol.cot_type,
         how="m-i",
         time=event.time,
         start=event.time,
         stale=event.time + timedelta(seconds=opts.stale_s["detection"]),
         lat=event.position.lat_deg,
         lon=event.position.lon_deg,
-        hae=_num(event.position.alt_hae_m),
+        hae=_num(hae),
         ce=event.sigma_h_m,
-        callsign=f"D-{event.object_class.upper()}",
-        xml_detail=detail,
+        callsign=xml_safe(f"D-{event.object_class.upper()}"),
+        xml_detail=_element("remarks", remarks)
+        + _link(opts, event.airframe, own_types)
+        + _symbol_detail(symbol),
     )
 
 
-def _track(event: Track, opts: CotOptions) -> CotEvent:
-    type_, c, d = _symbol(event.object_class, event.hostility, opts)
-    if event.sidc:
-        c = event.sidc
+def _track(event: Track, opts: CotOptions, own_types: Mapping[str, str]) -> CotEvent:
+    symbol = object_symbol(event.object_class, event.hostility, opts.loitering_munition, event.sidc)
+    hae, _ = _hae(event.position, opts.geoid)
+    what = event.object_class + (f" {event.subtype}" if event.subtype else "")
     remarks = (
-        f"Fused track: {event.object_class}{' ' + event.subtype if event.subtype else ''}, "
-        f"conf {event.confidence:.2f}, {len(event.detection_ids)} detections, "
+        f"Fused track: {what}, {event.hostility}, confidence {event.confidence:.2f}, "
+        f"{len(event.detection_ids)} detections, "
         f"CEP50 {event.cep50_m:.0f} m, CEP90 {event.cep90_m:.0f} m"
     )
-    links = "".join(_link(opts.uid_prefix + a, "a-f-A-M-F-Q") for a in event.airframes)
     course = speed = None
     if event.velocity is not None:
         north, east = event.velocity.north_mps, event.velocity.east_mps
-        speed = math.hypot(north, east)
-        course = math.degrees(math.atan2(east, north)) % 360.0
+        course, speed = _course(north, east), math.hypot(north, east)
     return CotEvent(
-        uid=f"{opts.uid_prefix}trk-{event.track_id}",
-        type=type_,
+        uid=_uid(opts.uid_prefix, "trk-", event.track_id),
+        type=symbol.cot_type,
         how="m-f",
         time=event.time,
         start=event.time,
         stale=event.time + timedelta(seconds=opts.stale_s["track"]),
         lat=event.position.lat_deg,
         lon=event.position.lon_deg,
-        hae=_num(event.position.alt_hae_m),
-        ce=event.cep50_m / CEP50_FACTOR,  # CoT's ce is 1σ
-        callsign=f"T-{event.track_id} {event.object_class.upper()}",
+        hae=_num(hae),
+        ce=event.cep50_m / CEP50_FACTOR,  # CoT's ce is 1σ; CEP50 = 1.1774σ
+        callsign=xml_safe(f"T-{event.track_id} {event.object_class.upper()}"),
         course_deg=course,
         speed_mps=speed,
-        xml_detail=f"<remarks>{escape(remarks)}</remarks>"
-        + links
-        + (f"<__symbol{_attrs(sidc2525c=c, sidc2525d=d)}/>" if c else ""),
+        xml_detail=_element("remarks", remarks)
+        + "".join(_link(opts, a, own_types) for a in event.airframes)
+        + _symbol_detail(symbol),
     )
 
 
-def build(event: Event, opts: CotOptions) -> CotEvent | None:
-    """The CoT event for a gateway event, or None if it has none (no position, other kind)."""
+def build(
+    event: Event, opts: CotOptions, own_types: dict[str, str] | None = None
+) -> CotEvent | None:
+    """The CoT event for a gateway event; None when it has none (no position, other kind).
+
+    ``own_types`` maps airframe → CoT type; telemetry updates it, and detections and tracks
+    use it for their ``link`` to the reporting airframe.
+    """
+    types = own_types if own_types is not None else {}
     if isinstance(event, Telemetry):
-        return _telemetry(event, opts)
+        own = own_symbol(event.mav_type)
+        types[event.airframe] = own.cot_type
+        return _telemetry(event, opts, own)
     if isinstance(event, Detection):
-        return _detection(event, opts)
+        return None if not _has_fix(event.position) else _detection(event, opts, types)
     if isinstance(event, Track):
-        return _track(event, opts)
+        return None if not _has_fix(event.position) else _track(event, opts, types)
     return None

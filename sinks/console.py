@@ -1,21 +1,46 @@
-"""The console sink: one human-readable line per event, for the demo and for operators."""
+"""The console sink: one line per event on stdout, for the demo and for operators.
+
+``format: text`` gives a line a person can scan (``describe``); ``format: json`` gives
+``event.model_dump_json()``, which ``gateway.events.event_adapter`` reads back. An unknown value
+is shown as ``-``, never as 0, and telemetry without a position says ``no fix``.
+"""
 
 from __future__ import annotations
 
 import sys
 from collections.abc import Sequence
-from typing import Literal, TextIO
+from datetime import UTC
+from typing import Literal, TextIO, assert_never
 
-from gateway.events import Detection, Event, EventKind, LinkState, Telemetry, Track
+import anyio
+import structlog
+from pydantic import Field
+
+from gateway.errors import TransientSinkError
+from gateway.events import (
+    BlueForce,
+    Detection,
+    Event,
+    EventKind,
+    LinkState,
+    Position,
+    Telemetry,
+    Track,
+)
 from gateway.sink import SinkConfig
 
 __all__ = ["ConsoleSink", "ConsoleSinkConfig", "describe"]
+
+log = structlog.get_logger(__name__)
+
+#: The kind column is padded to the longest kind so the columns after it line up.
+_KIND_WIDTH = max(len(kind.value) for kind in EventKind)
 
 
 class ConsoleSinkConfig(SinkConfig):
     """Options of the console sink."""
 
-    kinds: frozenset[EventKind] = frozenset(EventKind)
+    kinds: frozenset[EventKind] = Field(default=frozenset(EventKind), min_length=1)
     format: Literal["text", "json"] = "text"
 
 
@@ -23,17 +48,20 @@ def _num(value: float | None, fmt: str, unit: str = "") -> str:
     return "-" if value is None else f"{value:{fmt}}{unit}"
 
 
+def _where(position: Position) -> str:
+    alt = _num(position.alt_msl_m, ".1f", " m")
+    return f"{position.lat_deg:.5f},{position.lon_deg:.5f} alt {alt} MSL"
+
+
 def describe(event: Event) -> str:
-    """One line for ``event``; unknown values show as '-', never as 0."""
-    stamp = event.time.strftime("%H:%M:%S.%f")[:-3] + "Z"
-    head = f"{stamp} {event.kind.value:<10}"
+    """One line for ``event``: UTC time, kind, then the fields an operator looks at first.
+
+    Unknown values show as ``-``, never as 0; telemetry without a position says ``no fix``.
+    """
+    stamp = event.time.astimezone(UTC).strftime("%H:%M:%S.%f")[:-3] + "Z"
+    head = f"{stamp} {event.kind.value:<{_KIND_WIDTH}}"
     if isinstance(event, Telemetry):
-        pos = event.position
-        where = (
-            "no fix"
-            if pos is None
-            else f"{pos.lat_deg:.5f},{pos.lon_deg:.5f} alt {_num(pos.alt_msl_m, '.1f', ' m')} MSL"
-        )
+        where = "no fix" if event.position is None else _where(event.position)
         return (
             f"{head} {event.airframe} {where} hdg {_num(event.heading_deg, '.0f', '°')}"
             f" gs {_num(event.groundspeed_mps, '.1f', ' m/s')}"
@@ -44,21 +72,36 @@ def describe(event: Event) -> str:
         active = " active" if event.is_active else ""
         return (
             f"{head} {event.airframe} {event.link} {state}{active}"
-            f" loss {event.loss_pct:.1f}% ({event.reason})"
+            f" loss {event.loss_pct:.1f}% ({event.reason or '-'})"
         )
-    if isinstance(event, Detection | Track):
-        who = event.airframe if isinstance(event, Detection) else event.track_id
-        pos = event.position
+    if isinstance(event, Detection):
         return (
-            f"{head} {who} {event.object_class} {event.subtype or ''} conf {event.confidence:.2f}"
-            f" at {pos.lat_deg:.5f},{pos.lon_deg:.5f}"
+            f"{head} {event.airframe} {event.sensor.value} {event.object_class}"
+            f" {event.subtype or '-'} conf {event.confidence:.2f}"
+            f" at {_where(event.position)} ±{event.sigma_h_m:.0f} m"
         )
-    pos = event.position
-    return f"{head} {event.uid} {event.callsign} at {pos.lat_deg:.5f},{pos.lon_deg:.5f}"
+    if isinstance(event, Track):
+        return (
+            f"{head} {event.track_id} {event.object_class} {event.subtype or '-'}"
+            f" {event.hostility} conf {event.confidence:.2f} at {_where(event.position)}"
+            f" cep50 {event.cep50_m:.0f} m"
+        )
+    if isinstance(event, BlueForce):
+        return (
+            f"{head} {event.uid} {event.callsign or '-'} at {_where(event.position)}"
+            f" via {event.source}"
+        )
+    assert_never(event)
 
 
 class ConsoleSink:
-    """Writes each event as a line to stdout (or the stream it is given)."""
+    """Writes each event as a line to ``stream`` (``sys.stdout`` when not given).
+
+    The write runs in a worker thread, so a stalled terminal or an unread pipe holds up this
+    sink only, never the event loop. Such a write is abandoned when the send is cancelled
+    (its deadline, shutdown); while it is still stuck, further sends fail fast with
+    ``TransientSinkError`` instead of stacking up threads.
+    """
 
     config_model = ConsoleSinkConfig
 
@@ -66,6 +109,9 @@ class ConsoleSink:
         self.name = name
         self.config = config
         self._stream = stream
+        self._writes_in_flight = 0
+        # Its own limiter: a stuck write must not hold a token of the shared thread pool.
+        self._limiter = anyio.CapacityLimiter(1)
 
     @property
     def kinds(self) -> frozenset[EventKind]:
@@ -73,17 +119,45 @@ class ConsoleSink:
         return self.config.kinds
 
     async def open(self) -> None:
-        """Nothing to open."""
+        """Nothing to open: the stream belongs to the process."""
 
     async def send(self, batch: Sequence[Event]) -> None:
-        """Print one line per event."""
-        stream = self._stream or sys.stdout
+        """Write one line per event, then flush.
+
+        Raises ``TransientSinkError`` if the stream is still stuck in an earlier write or
+        raises ``OSError`` (a closed pipe, for instance).
+        """
+        if not batch:
+            return
+        if self._writes_in_flight:
+            raise TransientSinkError(
+                f"sink {self.name}: the console is still blocked on an earlier write",
+                sink=self.name,
+            )
         if self.config.format == "json":
-            lines = [event.model_dump_json() for event in batch]
+            text = "".join(event.model_dump_json() + "\n" for event in batch)
         else:
-            lines = [describe(event) for event in batch]
-        stream.write("\n".join(lines) + "\n")
-        stream.flush()
+            text = "".join(describe(event) + "\n" for event in batch)
+        try:
+            await anyio.to_thread.run_sync(
+                self._write, text, abandon_on_cancel=True, limiter=self._limiter
+            )
+        except OSError as exc:
+            log.warning("console_write_failed", sink=self.name, error=type(exc).__name__)
+            raise TransientSinkError(
+                f"sink {self.name}: cannot write to the console: {exc.strerror or exc}",
+                sink=self.name,
+            ) from exc
 
     async def aclose(self) -> None:
-        """Nothing to close."""
+        """Nothing to close: the stream belongs to the process."""
+
+    def _write(self, text: str) -> None:
+        # Counted from inside the thread: a write cancelled before it started never runs.
+        self._writes_in_flight += 1
+        try:
+            stream = self._stream or sys.stdout
+            stream.write(text)
+            stream.flush()
+        finally:
+            self._writes_in_flight -= 1

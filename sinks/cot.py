@@ -1,238 +1,214 @@
 """The CoT sink: own airframes, detections and tracks to ATAK/WinTAK/iTAK and TAK servers.
 
-Destinations: UDP multicast (the ATAK SA mesh, 239.2.3.1:6969) or unicast, XML or TAK
-protocol protobuf (mesh framing); TCP (8087) and TLS with a client certificate (8089) to a
-TAK server, as an XML stream or, after the server's protocol offer, protobuf stream framing.
-Each event is built once and encoded per destination. TLS always verifies the server against
-the configured CA and hostname; there is no switch to turn that off.
+Destinations are URIs: ``udp://`` (unicast, or multicast when the address is a group) and
+``udp+multicast://`` (ATAK's SA mesh is ``udp+multicast://239.2.3.1:6969``; ``?ttl=`` and
+``?iface=`` set TTL and interface), ``tcp://HOST:8087`` and ``tls://HOST:8089`` (a TAK server
+stream; TLS with a client certificate, the CA pinned and the hostname always verified). The
+encoding is ``xml``, ``protobuf`` (TAK protocol v1: mesh framing on UDP, stream framing on TCP)
+or ``negotiate`` (streams: XML until the server offers v1 and accepts our request; UDP: XML).
+Each event is built once and encoded at most once per encoding, whatever the destinations.
 
-Tracks are sent on change: an unchanged track is not re-sent until half its stale time has
-passed, which keeps thin links free for news. The sink keeps no queue and does no retrying:
-a failure raises ``TransientSinkError`` and the SinkRunner retries the batch.
+Tracks are sent on change: a track whose CoT content is unchanged since it was last delivered
+is not re-sent until ``track_refresh_s`` (default half its stale time) has passed. Beyond that
+the sink keeps no delivery state: a failure raises ``TransientSinkError`` naming the sink and
+the destination, and the SinkRunner retries the batch with its jittered backoff (CoT receivers
+replace by uid, so a destination that already had the batch shrugs off the repeat). One sink
+backs off as a whole; give a flaky TAK server its own sink so the mesh does not wait for it.
 """
 
 from __future__ import annotations
 
-import socket
-import ssl
-import tempfile
 from collections.abc import Sequence
 from datetime import datetime, timedelta
+from importlib.metadata import PackageNotFoundError, version
 from ipaddress import ip_address
 from pathlib import Path
-from typing import Literal
-from urllib.parse import urlsplit
+from typing import Any, Literal
+from urllib.parse import parse_qs, urlsplit
 
-import anyio
-import anyio.abc
 import structlog
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from gateway.errors import TransientSinkError
 from gateway.events import Event, EventKind, Track
 from gateway.sink import SinkConfig
-from sinks._cot_codec import mesh_frame, stream_frame, to_proto, to_xml
-from sinks._cot_event import CotEvent, CotOptions, build
-from sinks._cot_geoid import GeoidGrid
+from sinks._cot_codec import Encoded
+from sinks._cot_event import CotOptions, build
+from sinks._cot_geoid import GeoidGrid, bundled_geoid
+from sinks._cot_tls import TlsFiles
+from sinks._cot_transport import Endpoint, StreamConnection, UdpSender
 
-__all__ = ["CotDestination", "CotSink", "CotSinkConfig", "CotTls"]
+__all__ = ["CotDestination", "CotSink", "CotSinkConfig", "CotStale", "CotTls"]
 
 log = structlog.get_logger(__name__)
-_OFFER = b"t-x-takp-v"
-_RESPONSE = b"t-x-takp-r"
+
+CotProtocol = Literal["xml", "protobuf", "negotiate"]
+_FROZEN = ConfigDict(frozen=True, extra="forbid")
+_SCHEMES = ("udp", "udp+multicast", "tcp", "tls")
+_ACCEPTED_KINDS = frozenset(
+    {EventKind.TELEMETRY, EventKind.DETECTION, EventKind.TRACK, EventKind.LINK_STATE}
+)
 
 
 class CotTls(BaseModel):
-    """Client certificate (PEM pair or PKCS#12) and the pinned CA of a TAK server."""
+    """The client certificate (PEM pair or PKCS#12) and the pinned CA of a TAK server."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = _FROZEN
 
-    ca_file: Path = Field(description="The CA that must have signed the server's certificate.")
-    cert_file: Path | None = None
-    key_file: Path | None = None
-    pkcs12_file: Path | None = None
-    password_file: Path | None = Field(default=None, description="For the key or PKCS#12.")
-    server_hostname: str | None = Field(default=None, description="Defaults to the URI host.")
+    ca_file: Path = Field(description="The only CA trusted for the server's certificate.")
+    cert_file: Path | None = Field(default=None, description="PEM client certificate (chain).")
+    key_file: Path | None = Field(default=None, description="PEM key, if not in cert_file.")
+    pkcs12_file: Path | None = Field(default=None, description="Client key and certificate.")
+    password_file: Path | None = Field(
+        default=None, description="File holding the key's or PKCS#12 password (never inline)."
+    )
+    server_hostname: str | None = Field(
+        default=None, description="Name the certificate must carry; defaults to the URI host."
+    )
+
+    @model_validator(mode="after")
+    def _one_client_certificate(self) -> CotTls:
+        if (self.cert_file is None) == (self.pkcs12_file is None):
+            raise ValueError("give exactly one of cert_file (PEM) or pkcs12_file")
+        if self.key_file is not None and self.cert_file is None:
+            raise ValueError("key_file goes with cert_file")
+        return self
 
 
 class CotDestination(BaseModel):
-    """One place CoT goes: ``udp://``, ``tcp://`` or ``tls://`` HOST:PORT."""
+    """One place CoT goes. A plain string in the config is taken as the ``uri``."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = _FROZEN
 
     uri: str
-    protocol: Literal["xml", "protobuf", "negotiate"] = "xml"
-    ttl: int = Field(default=1, ge=1, le=255, description="Multicast TTL.")
-    interface: str | None = Field(default=None, description="Multicast interface address.")
+    protocol: CotProtocol | None = Field(default=None, description="Overrides the sink's.")
+    ttl: int | None = Field(default=None, ge=1, le=255, description="Multicast TTL (1).")
+    interface: str | None = Field(default=None, description="Multicast interface: IP or name.")
     tls: CotTls | None = None
+
+    @model_validator(mode="before")
+    @classmethod
+    def _from_string(cls, value: Any) -> Any:
+        return {"uri": value} if isinstance(value, str) else value
+
+    @model_validator(mode="after")
+    def _check(self) -> CotDestination:
+        parts = urlsplit(self.uri)
+        try:
+            port = parts.port
+        except ValueError:
+            port = None
+        if parts.scheme not in _SCHEMES or not parts.hostname or not port:
+            raise ValueError(
+                f"expected udp://, udp+multicast://, tcp:// or tls://HOST:PORT, got {self.uri!r}"
+            )
+        query = parse_qs(parts.query, strict_parsing=False)
+        udp = parts.scheme.startswith("udp")
+        if set(query) - {"ttl", "iface"} or (query and not udp):
+            raise ValueError(f"{self.uri!r}: only udp URIs take query options, ttl and iface")
+        if parts.scheme == "udp+multicast" and not _is_multicast(parts.hostname):
+            raise ValueError(f"{self.uri!r}: {parts.hostname} is not a multicast group")
+        if (parts.scheme == "tls") != (self.tls is not None):
+            raise ValueError(f"{self.uri!r}: a 'tls' section goes with tls:// and only with it")
+        if udp and self.protocol == "negotiate":
+            raise ValueError(f"{self.uri!r}: negotiate is for tcp:// and tls://")
+        return self
+
+    def endpoint(self, default_protocol: CotProtocol) -> Endpoint:
+        """The transport's view of this destination."""
+        parts = urlsplit(self.uri)
+        query = parse_qs(parts.query)
+        protocol = self.protocol or default_protocol
+        scheme: Literal["udp", "udp+multicast", "tcp", "tls"] = parts.scheme  # type: ignore[assignment]
+        if scheme.startswith("udp") and protocol == "negotiate":
+            protocol = "xml"  # mesh peers negotiate by advertising; we stay on what all read
+        ttl = self.ttl or int(query.get("ttl", ["1"])[-1])
+        tls = self.tls
+        return Endpoint(
+            uri=self.uri,
+            scheme=scheme,
+            host=str(parts.hostname),
+            port=int(parts.port or 0),
+            protocol=protocol,
+            ttl=ttl,
+            interface=self.interface or query.get("iface", [None])[-1],
+            tls=None
+            if tls is None
+            else TlsFiles(
+                tls.ca_file, tls.cert_file, tls.key_file, tls.pkcs12_file, tls.password_file
+            ),
+            server_hostname=None if tls is None else tls.server_hostname,
+        )
 
     @field_validator("uri")
     @classmethod
-    def _check_uri(cls, value: str) -> str:
-        parts = urlsplit(value)
-        if parts.scheme not in ("udp", "tcp", "tls") or not parts.hostname or not parts.port:
-            raise ValueError(f"expected udp://, tcp:// or tls://HOST:PORT, found {value!r}")
+    def _no_credentials(cls, value: str) -> str:
+        if urlsplit(value).password is not None:
+            raise ValueError("no passwords in URIs; use tls.password_file")
         return value
+
+
+def _is_multicast(host: str) -> bool:
+    try:
+        return ip_address(host).is_multicast
+    except ValueError:
+        return False
+
+
+class CotStale(BaseModel):
+    """How long each kind stays valid on the receivers' maps, in seconds."""
+
+    model_config = _FROZEN
+
+    telemetry_s: float = Field(default=15.0, ge=1.0)
+    detection_s: float = Field(default=120.0, ge=1.0)
+    track_s: float = Field(default=300.0, ge=1.0)
 
 
 class CotSinkConfig(SinkConfig):
     """Options of the CoT sink."""
 
     destinations: tuple[CotDestination, ...] = Field(min_length=1)
+    protocol: CotProtocol = "xml"
     kinds: frozenset[EventKind] = frozenset(
         {EventKind.TELEMETRY, EventKind.DETECTION, EventKind.TRACK}
     )
-    stale_s: dict[str, float] = Field(
-        default_factory=lambda: {"telemetry": 15.0, "detection": 120.0, "track": 300.0}
+    stale: CotStale = CotStale()
+    track_refresh_s: float | None = Field(
+        default=None, gt=0, description="Re-send an unchanged track after this (stale / 2)."
     )
-    uid_prefix: str = "fischer-"
+    uid_prefix: str = Field(default="fischer-", pattern=r"^\S*$")
     callsign_prefix: str = "FISCHER "
     loitering_munition: Literal["uav_attack", "missile"] = "uav_attack"
+    detection_hostility: Literal["hostile", "suspect", "unknown"] = "hostile"
+    group_name: str | None = Field(
+        default=None, description="ATAK team colour for own airframes (e.g. Cyan); none if unset."
+    )
+    group_role: str = "Team Member"
     geoid_file: Path | None = Field(
-        default=None, description="EGM96 .gtx grid (Debian proj-data: egm96_15.gtx) for hae."
+        default=None, description="EGM96 .gtx grid for hae (default: the shipped 30' grid)."
     )
     connect_timeout_s: float = Field(default=5.0, gt=0)
-    negotiate_wait_s: float = Field(
-        default=3.0, gt=0, description="How long to wait for a TAK server's protocol offer."
+    offer_wait_s: float = Field(
+        default=2.0, ge=0, description="After connecting, wait this long for a v1 offer."
+    )
+    response_wait_s: float = Field(
+        default=60.0, gt=0, description="Wait this long for the TakResponse (spec: ≥ 60 s)."
     )
 
-
-def _tls_context(tls: CotTls) -> ssl.SSLContext:
-    context = ssl.create_default_context(ssl.Purpose.SERVER_AUTH, cafile=str(tls.ca_file))
-    context.check_hostname = True
-    context.verify_mode = ssl.CERT_REQUIRED
-    password = tls.password_file.read_bytes().strip() if tls.password_file else None
-    if tls.pkcs12_file is not None:
-        from cryptography.hazmat.primitives import serialization
-        from cryptography.hazmat.primitives.serialization import pkcs12
-
-        key, cert, extra = pkcs12.load_key_and_certificates(tls.pkcs12_file.read_bytes(), password)
-        if key is None or cert is None:
-            raise ValueError(f"{tls.pkcs12_file} holds no key and certificate")
-        with tempfile.TemporaryDirectory() as tmp:
-            # ssl loads chains from files only; the directory is private and gone at once.
-            pem = Path(tmp) / "client.pem"
-            pem.touch(mode=0o600)
-            chain = [cert, *(extra or [])]
-            pem.write_bytes(
-                key.private_bytes(
-                    serialization.Encoding.PEM,
-                    serialization.PrivateFormat.PKCS8,
-                    serialization.NoEncryption(),
-                )
-                + b"".join(c.public_bytes(serialization.Encoding.PEM) for c in chain)
-            )
-            context.load_cert_chain(str(pem))
-    elif tls.cert_file is not None:
-        context.load_cert_chain(str(tls.cert_file), tls.key_file and str(tls.key_file), password)
-    return context
+    @field_validator("kinds")
+    @classmethod
+    def _known_kinds(cls, value: frozenset[EventKind]) -> frozenset[EventKind]:
+        if extra := value - _ACCEPTED_KINDS:
+            raise ValueError(f"the cot sink takes telemetry, detection and track, not {extra}")
+        return value
 
 
-class _Udp:
-    def __init__(self, dest: CotDestination) -> None:
-        parts = urlsplit(dest.uri)
-        self.address = (str(parts.hostname), int(parts.port or 0))
-        self.protobuf = dest.protocol == "protobuf"
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.setblocking(False)
-        if ip_address(self.address[0]).is_multicast:
-            self.sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, dest.ttl)
-            if dest.interface:
-                self.sock.setsockopt(
-                    socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton(dest.interface)
-                )
-
-    async def send(self, events: list[CotEvent]) -> None:
-        for event in events:
-            data = mesh_frame(to_proto(event)) if self.protobuf else to_xml(event)
-            await anyio.wait_writable(self.sock)
-            self.sock.sendto(data, self.address)
-
-    async def aclose(self) -> None:
-        self.sock.close()
-
-
-class _Stream:
-    """A TAK server stream; negotiates protobuf when asked, and drains what the server sends."""
-
-    def __init__(self, dest: CotDestination, config: CotSinkConfig) -> None:
-        parts = urlsplit(dest.uri)
-        self.dest = dest
-        self.host, self.port = str(parts.hostname), int(parts.port or 0)
-        self.config = config
-        self.context = _tls_context(dest.tls) if dest.tls else None
-        if parts.scheme == "tls" and self.context is None:
-            raise ValueError(f"{dest.uri}: a tls:// destination needs its 'tls' section")
-        self.stream: anyio.abc.ByteStream | None = None
-        self.protobuf = dest.protocol == "protobuf"
-        self._buffer = b""
-
-    async def connect(self, tg: anyio.abc.TaskGroup) -> None:
-        with anyio.fail_after(self.config.connect_timeout_s):
-            if self.context is not None:
-                hostname = (self.dest.tls and self.dest.tls.server_hostname) or self.host
-                self.stream = await anyio.connect_tcp(
-                    self.host, self.port, ssl_context=self.context, tls_hostname=hostname,
-                    tls_standard_compatible=False,
-                )  # fmt: skip
-            else:
-                self.stream = await anyio.connect_tcp(self.host, self.port)
-        if self.dest.protocol == "negotiate":
-            self.protobuf = await self._negotiate()
-        tg.start_soon(self._drain, self.stream)
-
-    async def _read_until(self, marker: bytes) -> bool:
-        assert self.stream is not None  # noqa: S101 - connected
-        while marker not in self._buffer:
-            chunk = await self.stream.receive(65536)
-            self._buffer = (self._buffer + chunk)[-262144:]
-        return True
-
-    async def _negotiate(self) -> bool:
-        """Wait for the server's offer, ask for version 1, switch if it agrees."""
-        assert self.stream is not None  # noqa: S101 - connected
-        with anyio.move_on_after(self.config.negotiate_wait_s):
-            await self._read_until(_OFFER)
-        if _OFFER not in self._buffer or b'version="1"' not in self._buffer:
-            log.info("tak_protocol_stays_xml", destination=self.dest.uri, reason="no offer")
-            return False
-        now = datetime.now().astimezone()
-        stale = now + timedelta(minutes=1)
-        request = CotEvent(
-            uid=f"{self.config.uid_prefix}takp-request", type="t-x-takp-q", how="m-g",
-            time=now, start=now, stale=stale, lat=0.0, lon=0.0,
-            xml_detail='<TakControl><TakRequest version="1"/></TakControl>',
-        )  # fmt: skip
-        await self.stream.send(to_xml(request))
-        with anyio.move_on_after(self.config.negotiate_wait_s):
-            await self._read_until(_RESPONSE)
-        agreed = _RESPONSE in self._buffer and b'status="true"' in self._buffer
-        log.info("tak_protocol_negotiated", destination=self.dest.uri, protobuf=agreed)
-        self._buffer = b""
-        return agreed
-
-    async def _drain(self, stream: anyio.abc.ByteStream) -> None:
-        # A TAK server relays other clients' events to us; read and discard them so its
-        # send buffer never fills. Never raises: a broken stream shows up on the next send.
-        try:
-            while True:
-                await stream.receive(65536)
-        except (anyio.EndOfStream, anyio.BrokenResourceError, anyio.ClosedResourceError, OSError):
-            return
-
-    async def send(self, events: list[CotEvent]) -> None:
-        assert self.stream is not None  # noqa: S101 - connected before send
-        if self.protobuf:
-            data = b"".join(stream_frame(to_proto(e)) for e in events)
-        else:
-            data = b"".join(to_xml(e) for e in events)
-        await self.stream.send(data)
-
-    async def aclose(self) -> None:
-        if self.stream is not None:
-            with anyio.move_on_after(1, shield=True):
-                await self.stream.aclose()
-            self.stream = None
+def _package_version() -> str:
+    try:
+        return version("fischer-gateway")
+    except PackageNotFoundError:
+        return "0"
 
 
 class CotSink:
@@ -243,17 +219,41 @@ class CotSink:
     def __init__(self, name: str, config: CotSinkConfig) -> None:
         self.name = name
         self.config = config
-        geoid = GeoidGrid(config.geoid_file) if config.geoid_file else None
+        geoid = GeoidGrid.from_gtx(config.geoid_file) if config.geoid_file else bundled_geoid()
+        stale = config.stale
         self.options = CotOptions(
             uid_prefix=config.uid_prefix,
             callsign_prefix=config.callsign_prefix,
-            stale_s=dict(config.stale_s),
+            stale_s={
+                "telemetry": stale.telemetry_s,
+                "detection": stale.detection_s,
+                "track": stale.track_s,
+            },
             loitering_munition=config.loitering_munition,
-            geoid=geoid.undulation if geoid else None,
+            detection_hostility=config.detection_hostility,
+            geoid=geoid.undulation,
+            group=(config.group_name, config.group_role) if config.group_name else None,
+            version=_package_version(),
         )
-        self._transports: list[_Udp | _Stream] = []
-        self._tg: anyio.abc.TaskGroup | None = None
-        self._last_track: dict[str, tuple[tuple[object, ...], datetime]] = {}
+        self._refresh = timedelta(seconds=config.track_refresh_s or stale.track_s / 2)
+        self._transports: list[UdpSender | StreamConnection] = []
+        for dest in config.destinations:
+            endpoint = dest.endpoint(config.protocol)
+            if endpoint.scheme.startswith("udp"):
+                self._transports.append(UdpSender(endpoint, name))
+            else:
+                self._transports.append(
+                    StreamConnection(
+                        endpoint,
+                        name,
+                        connect_timeout_s=config.connect_timeout_s,
+                        offer_wait_s=config.offer_wait_s,
+                        response_wait_s=config.response_wait_s,
+                    )
+                )
+        self._own_types: dict[str, str] = {}
+        # Per track uid: its CoT content when last delivered, and that event's time.
+        self._delivered: dict[str, tuple[tuple[object, ...], datetime]] = {}
 
     @property
     def kinds(self) -> frozenset[EventKind]:
@@ -261,87 +261,56 @@ class CotSink:
         return self.config.kinds
 
     async def open(self) -> None:
-        """Open every destination; a failure to connect is transient (retried)."""
-        # The task group holding the stream drain tasks is entered here and left in aclose();
-        # the SinkRunner calls both from its own task, so the scopes nest correctly.
-        self._tg = anyio.create_task_group()
-        await self._tg.__aenter__()
-        try:
-            await self._connect()
-        except BaseException:
-            # Leave the task group now: the caller's scopes must unwind in order.
-            await self.aclose()
-            raise
+        """Open every destination; ``TransientSinkError`` (retried) if one cannot be reached."""
+        for transport in self._transports:
+            await self._call(transport, None)
 
-    async def _connect(self) -> None:
-        assert self._tg is not None  # noqa: S101 - open() came first
-        dest = None
+    async def _call(
+        self, transport: UdpSender | StreamConnection, events: list[Encoded] | None
+    ) -> None:
+        if isinstance(transport, StreamConnection):
+            await (transport.open() if events is None else transport.send(events))
+            return
         try:
-            for dest in self.config.destinations:
-                if dest.uri.startswith("udp://"):
-                    self._transports.append(_Udp(dest))
-                else:
-                    stream = _Stream(dest, self.config)
-                    self._transports.append(stream)
-                    await stream.connect(self._tg)
-        except (OSError, TimeoutError, ssl.SSLError, anyio.BrokenResourceError) as exc:
-            await self._disconnect()
-            where = dest.uri if dest is not None else "?"
+            await (transport.open() if events is None else transport.send(events))
+        except OSError as exc:
+            await transport.aclose()
             raise TransientSinkError(
-                f"sink {self.name}: cannot reach {where}: {exc}", sink=self.name
+                f"sink {self.name}: {transport.endpoint.uri}: {exc}", sink=self.name
             ) from exc
 
-    async def _disconnect(self) -> None:
-        transports, self._transports = self._transports, []
-        for transport in transports:
-            await transport.aclose()
-
-    def _changed(self, event: Track, cot: CotEvent) -> bool:
-        content = (
-            cot.type,
-            cot.lat,
-            cot.lon,
-            cot.ce,
-            cot.course_deg,
-            cot.speed_mps,
-            cot.xml_detail,
-        )
-        last = self._last_track.get(cot.uid)
-        refresh = timedelta(seconds=self.options.stale_s["track"] / 2)
-        if last is not None and last[0] == content and event.time - last[1] < refresh:
-            return False
-        self._last_track[cot.uid] = (content, event.time)
-        return True
+    def _is_news(self, cot_uid: str, content: tuple[object, ...], time: datetime) -> bool:
+        last = self._delivered.get(cot_uid)
+        return last is None or last[0] != content or not time - last[1] < self._refresh
 
     async def send(self, batch: Sequence[Event]) -> None:
-        """Build each event once and send it to every destination."""
-        events: list[CotEvent] = []
+        """Build each event once and deliver it to every destination, or raise."""
+        events: list[Encoded] = []
+        tracks: dict[str, tuple[tuple[object, ...], datetime]] = {}
         for event in batch:
-            cot = build(event, self.options)
+            cot = build(event, self.options, self._own_types)
             if cot is None:
                 continue
-            if isinstance(event, Track) and not self._changed(event, cot):
-                continue
-            events.append(cot)
+            if isinstance(event, Track):
+                content = cot.content()
+                if not self._is_news(cot.uid, content, event.time):
+                    continue
+                tracks[cot.uid] = (content, event.time)
+            events.append(Encoded(cot))
         if not events:
             return
-        if not self._transports:
-            await self._connect()  # after a failure: reconnect, or raise to be retried
         for transport in self._transports:
-            try:
-                await transport.send(events)
-            except (OSError, anyio.BrokenResourceError, anyio.ClosedResourceError) as exc:
-                await self._disconnect()
-                where = getattr(transport, "dest", None)
-                raise TransientSinkError(
-                    f"sink {self.name}: send to {where.uri if where else 'udp'} failed: {exc}",
-                    sink=self.name,
-                ) from exc
+            await self._call(transport, events)
+        # Only now: a failed batch is retried whole, its tracks included.
+        self._delivered.update(tracks)
+        self._forget_old_tracks(max(e.event.time for e in events))
+
+    def _forget_old_tracks(self, now: datetime) -> None:
+        horizon = now - timedelta(seconds=self.config.stale.track_s)
+        for uid in [u for u, (_, sent) in self._delivered.items() if sent < horizon]:
+            del self._delivered[uid]
 
     async def aclose(self) -> None:
-        """Close every destination and stop the drain tasks."""
-        await self._disconnect()
-        tg, self._tg = self._tg, None
-        if tg is not None:
-            tg.cancel_scope.cancel()
-            await tg.__aexit__(None, None, None)
+        """Close every destination. Safe after a failed ``open``."""
+        for transport in self._transports:
+            await transport.aclose()

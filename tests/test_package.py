@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib
 import subprocess
 import sys
 from pathlib import Path
@@ -20,10 +21,14 @@ MODULES = sorted(
 
 
 def test_all_is_sorted_and_exactly_the_public_names() -> None:
-    public = {name for name in vars(gateway) if not name.startswith("_")}
+    public = {name for name in dir(gateway) if not name.startswith("_")}
+    helpers = {"annotations", "importlib", "TYPE_CHECKING", "Any"}
     submodules = {name for name in public if type(getattr(gateway, name)).__name__ == "module"}
     assert gateway.__all__ == sorted(gateway.__all__)
-    assert set(gateway.__all__) == public - submodules
+    assert set(gateway.__all__) == public - submodules - helpers
+    for name in gateway.__all__:
+        home = importlib.import_module(gateway._HOME[name])
+        assert getattr(gateway, name) is getattr(home, name)
 
 
 def test_every_module_imports_on_its_own() -> None:

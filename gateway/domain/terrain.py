@@ -1,174 +1,89 @@
-"""Ground elevation from DEM tiles the operator supplies; AGL, its uncertainty, safety floors.
+"""Ground elevation from the operator's DEM tiles; height above ground and its uncertainty.
 
-Sources are tried in the configured order (e.g. Lantmäteriet's 2 m grid, then SRTM 30 m); the
-first that covers a point with data answers. Nothing is downloaded. SRTM ``.hgt`` tiles
-(big-endian int16, 1201 or 3601 samples square, −32768 = void, named like ``N65E021.hgt`` for
-the 1°×1° cell whose south-west corner is 65 N 21 E) are memory-mapped, so a lookup touches only
-the pages it reads. GeoTIFF tiles (single band, north-up, with GeoTIFF model tie-point and pixel
-scale tags, in geographic coordinates) are read with ``tifffile`` (optional dependency).
-Elevations are bilinearly interpolated.
+``TerrainModel`` answers "how high is the ground here?" from DEM sources tried in the
+configured order (e.g. ``lantmateriet_2m`` GeoTIFFs, then ``srtm_30m`` ``.hgt`` tiles): the
+first source with data at a point answers, so a void or a gap in the fine grid falls through
+to the coarse one. Nothing is downloaded. Tile headers are indexed once, at construction, so
+a lookup touches only the tiles that can cover the point; decoded tiles stay in an LRU cache
+bounded by count and by bytes.
 
-AGL uncertainty = √(σ_baro² + σ_dem²); a commanded altitude is kept at least 3σ above ground.
+AGL = MSL altitude − ground elevation. Its 1σ uncertainty is √(σ_baro² + σ_dem²), and a
+commanded altitude keeps a 3σ margin above the wanted clearance.
+
+Vertical datums differ slightly (SRTM: EGM96; Lantmäteriet: RH 2000; the autopilot: its GNSS
+receiver's geoid, usually EGM96); in Sweden they agree to well under a metre, inside σ_dem.
 """
 
 from __future__ import annotations
 
 import math
-import mmap
-import re
-import struct
-from collections import OrderedDict
+from collections import OrderedDict, defaultdict
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal, Protocol
+from typing import Literal
 
-from gateway.errors import GatewayError
+import structlog
+
+from gateway.domain.dem import (
+    DemTile,
+    GeoTiffTile,
+    GridGeometry,
+    HgtTile,
+    TerrainError,
+    hgt_geometry,
+    read_geotiff_header,
+)
+from gateway.domain.projection import Geographic, TransverseMercator
 
 __all__ = [
+    "AglEstimate",
     "DemSource",
-    "GeoTiffTile",
-    "HgtTile",
     "TerrainError",
     "TerrainModel",
     "agl_from_msl",
     "agl_sigma",
+    "msl_from_agl",
     "safe_floor_agl_m",
+    "safe_floor_msl_m",
 ]
 
-_VOID = -32768
-_HGT_NAME = re.compile(r"^([NS])(\d{2})([EW])(\d{3})\.hgt$", re.IGNORECASE)
+log = structlog.get_logger(__name__)
 
-
-class TerrainError(GatewayError, ValueError):
-    """Raised for a DEM tile that cannot be read or understood."""
+#: The multiple of σ_AGL kept between a commanded altitude and the wanted clearance.
+SAFETY_SIGMAS = 3.0
 
 
 def agl_sigma(sigma_baro_m: float, sigma_dem_m: float) -> float:
-    """1σ uncertainty of height above ground from barometric and DEM errors (m)."""
+    """1σ uncertainty (m) of height above ground from independent altimeter and DEM errors."""
     return math.hypot(sigma_baro_m, sigma_dem_m)
 
 
 def agl_from_msl(alt_msl_m: float, ground_msl_m: float) -> float:
-    """Height above ground from altitude and ground elevation, both above mean sea level."""
+    """Height above ground (m) from an altitude and the ground elevation, both MSL metres."""
     return alt_msl_m - ground_msl_m
 
 
+def msl_from_agl(alt_agl_m: float, ground_msl_m: float) -> float:
+    """Altitude above mean sea level (m) of a height above ground at a ground elevation."""
+    return alt_agl_m + ground_msl_m
+
+
 def safe_floor_agl_m(sigma_m: float, clearance_m: float = 0.0) -> float:
-    """The lowest AGL to command: the wanted clearance plus 3σ of AGL uncertainty."""
-    return clearance_m + 3.0 * sigma_m
+    """The lowest AGL (m) to command: the wanted clearance plus 3σ of AGL uncertainty."""
+    if sigma_m < 0 or clearance_m < 0:
+        raise ValueError(f"σ and clearance must not be negative, found {sigma_m}, {clearance_m}")
+    return clearance_m + SAFETY_SIGMAS * sigma_m
 
 
-class Tile(Protocol):
-    """A DEM tile: its extent and an elevation lookup."""
-
-    def covers(self, lat: float, lon: float) -> bool:
-        """True if the point is inside this tile."""
-        ...
-
-    def elevation(self, lat: float, lon: float) -> float | None:
-        """Bilinear elevation (m), or None where the tile has no data."""
-        ...
-
-
-def _bilinear(grid: Sequence[float | None], row: float, col: float) -> float | None:
-    """Interpolate a 2×2 neighbourhood ``grid`` (nw, ne, sw, se) at fractional offsets."""
-    nw, ne, sw, se = grid
-    if nw is None or ne is None or sw is None or se is None:
-        return None
-    top = nw + (ne - nw) * col
-    bottom = sw + (se - sw) * col
-    return top + (bottom - top) * row
-
-
-class HgtTile:
-    """One SRTM ``.hgt`` tile, memory-mapped."""
-
-    def __init__(self, path: Path) -> None:
-        match = _HGT_NAME.match(path.name)
-        if match is None:
-            raise TerrainError(f"{path}: expected a name like N65E021.hgt")
-        ns, lat, ew, lon = match.groups()
-        self.south = int(lat) * (1 if ns.upper() == "N" else -1)
-        self.west = int(lon) * (1 if ew.upper() == "E" else -1)
-        size = path.stat().st_size
-        samples = math.isqrt(size // 2)
-        if samples * samples * 2 != size or samples not in (1201, 3601):
-            raise TerrainError(f"{path}: {size} bytes is not a 1201² or 3601² int16 grid")
-        self.samples = samples
-        with path.open("rb") as handle:
-            self._map = mmap.mmap(handle.fileno(), 0, access=mmap.ACCESS_READ)
-
-    def covers(self, lat: float, lon: float) -> bool:
-        """True if the point is inside the tile's 1°×1° cell."""
-        return self.south <= lat <= self.south + 1 and self.west <= lon <= self.west + 1
-
-    def _at(self, row: int, col: int) -> float | None:
-        (value,) = struct.unpack_from(">h", self._map, 2 * (row * self.samples + col))
-        return None if value == _VOID else float(value)
-
-    def elevation(self, lat: float, lon: float) -> float | None:
-        """Bilinear elevation (m MSL, EGM96) at the point, None over a void."""
-        span = self.samples - 1
-        y = (self.south + 1 - lat) * span  # row 0 is the north edge
-        x = (lon - self.west) * span
-        row, col = min(int(y), span - 1), min(int(x), span - 1)
-        grid = [self._at(row, col), self._at(row, col + 1)]
-        grid += [self._at(row + 1, col), self._at(row + 1, col + 1)]
-        return _bilinear(grid, y - row, x - col)
-
-
-class GeoTiffTile:
-    """A single-band, north-up GeoTIFF in geographic coordinates (read whole, once)."""
-
-    def __init__(self, path: Path) -> None:
-        try:
-            import tifffile
-        except ImportError as exc:
-            raise TerrainError(f"{path}: GeoTIFF sources need 'pip install tifffile'") from exc
-        try:
-            with tifffile.TiffFile(path) as tif:
-                page = tif.pages[0]
-                tags = page.tags  # type: ignore[union-attr]
-                scale = tags["ModelPixelScaleTag"].value
-                tie = tags["ModelTiepointTag"].value
-                nodata_tag = tags.get("GDAL_NODATA")
-                data = page.asarray()
-        except (OSError, KeyError, ValueError) as exc:
-            raise TerrainError(f"{path}: not a readable GeoTIFF with tie point and scale") from exc
-        if data.ndim != 2:
-            raise TerrainError(f"{path}: expected one band, found shape {data.shape}")
-        self.rows, self.cols = data.shape
-        self._data = data
-        self.dx, self.dy = float(scale[0]), float(scale[1])
-        # Tie point: raster (i, j) maps to model (x, y); pixel centres (PixelIsPoint) assumed.
-        self.west = float(tie[3]) - float(tie[0]) * self.dx
-        self.north = float(tie[4]) + float(tie[1]) * self.dy
-        self.nodata = float(nodata_tag.value) if nodata_tag is not None else None
-
-    def covers(self, lat: float, lon: float) -> bool:
-        """True if the point is inside the grid of sample centres."""
-        east = self.west + (self.cols - 1) * self.dx
-        south = self.north - (self.rows - 1) * self.dy
-        return bool(south <= lat <= self.north and self.west <= lon <= east)
-
-    def _at(self, row: int, col: int) -> float | None:
-        value = float(self._data[row, col])
-        return None if math.isnan(value) or value == self.nodata else value
-
-    def elevation(self, lat: float, lon: float) -> float | None:
-        """Bilinear elevation (m) at the point, None over no-data."""
-        y = (self.north - lat) / self.dy
-        x = (lon - self.west) / self.dx
-        row, col = min(int(y), self.rows - 2), min(int(x), self.cols - 2)
-        grid = [self._at(row, col), self._at(row, col + 1)]
-        grid += [self._at(row + 1, col), self._at(row + 1, col + 1)]
-        return _bilinear(grid, y - row, x - col)
+def safe_floor_msl_m(ground_msl_m: float, sigma_m: float, clearance_m: float = 0.0) -> float:
+    """The lowest MSL altitude (m) to command over ground at ``ground_msl_m``."""
+    return msl_from_agl(safe_floor_agl_m(sigma_m, clearance_m), ground_msl_m)
 
 
 @dataclass(frozen=True)
 class DemSource:
-    """A directory of tiles of one kind, with the DEM's own 1σ vertical error."""
+    """A directory of DEM tiles of one kind, with the DEM's own 1σ vertical error (m)."""
 
     name: str
     directory: Path
@@ -176,53 +91,172 @@ class DemSource:
     sigma_m: float
 
 
+@dataclass(frozen=True, slots=True)
+class AglEstimate:
+    """Height above ground at a point, its 1σ (m), and the ground and source it came from."""
+
+    alt_agl_m: float
+    sigma_m: float
+    ground_msl_m: float
+    source: str
+
+
+@dataclass(frozen=True, slots=True)
+class _Entry:
+    path: Path
+    kind: Literal["hgt", "geotiff"]
+    geometry: GridGeometry
+
+
+_Bucket = tuple[int, int]
+
+
+class _SourceIndex:
+    """The tiles of one source, bucketed on a grid per CRS so a lookup checks only a few."""
+
+    def __init__(self, source: DemSource, entries: list[_Entry]) -> None:
+        self.source = source
+        self._groups: list[
+            tuple[Geographic | TransverseMercator, float, dict[_Bucket, list[_Entry]]]
+        ] = []
+        by_crs: dict[int, list[_Entry]] = defaultdict(list)
+        for entry in entries:
+            by_crs[entry.geometry.crs.epsg].append(entry)
+        for group in by_crs.values():
+            # Buckets as large as the largest tile put each tile in at most four of them.
+            extents = [e.geometry.bounds() for e in group]
+            size = max(max(e - w, n - s) for w, s, e, n in extents)
+            buckets: dict[_Bucket, list[_Entry]] = defaultdict(list)
+            for entry, (west, south, east, north) in zip(group, extents, strict=True):
+                for bx in range(math.floor(west / size), math.floor(east / size) + 1):
+                    for by in range(math.floor(south / size), math.floor(north / size) + 1):
+                        buckets[(bx, by)].append(entry)
+            self._groups.append((group[0].geometry.crs, size, dict(buckets)))
+
+    def candidates(self, lat: float, lon: float) -> list[tuple[_Entry, float, float]]:
+        """Tiles covering the point, each with the point in that tile's CRS."""
+        found = []
+        for crs, size, buckets in self._groups:
+            x, y = crs.forward(lat, lon)
+            if not (math.isfinite(x) and math.isfinite(y)):
+                continue  # too far from this projection's meridian for any of its tiles
+            for entry in buckets.get((math.floor(x / size), math.floor(y / size)), ()):
+                if entry.geometry.covers(x, y):
+                    found.append((entry, x, y))
+        return found
+
+
 class TerrainModel:
-    """Looks points up in the configured sources, in order, with an LRU cache of tiles."""
+    """Ground elevation from DEM sources tried in order, with an LRU cache of decoded tiles.
 
-    def __init__(self, sources: Sequence[DemSource], *, cache_tiles: int = 16) -> None:
+    Construction reads every tile's header and raises ``TerrainError`` listing each file it
+    cannot use. Lookups are synchronous and cheap once a tile is cached; loading a tile
+    memory-maps (``.hgt``) or decodes (GeoTIFF, a few tens of ms for a 2.5 km Lantmäteriet
+    tile) it. A tile that fails to decode later is logged once and skipped.
+    """
+
+    def __init__(
+        self,
+        sources: Sequence[DemSource],
+        *,
+        cache_tiles: int = 16,
+        cache_bytes: int = 512 * 2**20,
+    ) -> None:
         self.sources = list(sources)
-        self._cache: OrderedDict[Path, Tile] = OrderedDict()
-        self._cache_tiles = cache_tiles
-        self._index: list[tuple[DemSource, list[Path]]] = [
-            (s, sorted(s.directory.glob("*.hgt" if s.kind == "hgt" else "*.tif*")))
-            for s in self.sources
-        ]
-
-    def _tile(self, source: DemSource, path: Path) -> Tile:
-        tile = self._cache.get(path)
-        if tile is None:
-            tile = HgtTile(path) if source.kind == "hgt" else GeoTiffTile(path)
-            self._cache[path] = tile
-            if len(self._cache) > self._cache_tiles:
-                self._cache.popitem(last=False)
-        else:
-            self._cache.move_to_end(path)
-        return tile
+        self._cache: OrderedDict[Path, DemTile] = OrderedDict()
+        self._cache_tiles = max(cache_tiles, 1)
+        self._cache_bytes = cache_bytes
+        self._bad: set[Path] = set()
+        problems: list[str] = []
+        self._indexes = [_SourceIndex(s, _scan(s, problems)) for s in self.sources]
+        if problems:
+            more = f"\n… and {len(problems) - 20} more" if len(problems) > 20 else ""
+            raise TerrainError("unusable DEM tiles:\n" + "\n".join(problems[:20]) + more)
 
     def lookup(self, lat: float, lon: float) -> tuple[float, DemSource] | None:
-        """(ground elevation m, the source that answered), or None if no source covers it."""
-        for source, paths in self._index:
-            for path in paths:
-                if source.kind == "hgt" and not _hgt_may_cover(path, lat, lon):
-                    continue
-                tile = self._tile(source, path)
-                if tile.covers(lat, lon):
-                    value = tile.elevation(lat, lon)
-                    if value is not None:
-                        return value, source
+        """(ground elevation in m MSL, the source that answered), or None if none has data."""
+        if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0):
+            return None  # also rejects NaN, which fails every comparison
+        for index in self._indexes:
+            for entry, x, y in index.candidates(lat, lon):
+                tile = self._tile(entry)
+                value = None if tile is None else tile.elevation_xy(x, y)
+                if value is not None:
+                    return value, index.source
         return None
 
     def ground_elevation_m(self, lat: float, lon: float) -> float | None:
-        """Ground elevation (m) at the point, or None where no tile has data."""
+        """Ground elevation (m MSL) at a WGS 84 point, or None where no tile has data."""
         found = self.lookup(lat, lon)
         return None if found is None else found[0]
 
+    def agl(
+        self, lat: float, lon: float, alt_msl_m: float, baro_sigma_m: float
+    ) -> AglEstimate | None:
+        """Height above ground and its 1σ at a point, or None where no DEM covers it."""
+        found = self.lookup(lat, lon)
+        if found is None:
+            return None
+        ground, source = found
+        return AglEstimate(
+            agl_from_msl(alt_msl_m, ground),
+            agl_sigma(baro_sigma_m, source.sigma_m),
+            ground,
+            source.name,
+        )
 
-def _hgt_may_cover(path: Path, lat: float, lon: float) -> bool:
-    match = _HGT_NAME.match(path.name)
-    if match is None:
-        return False
-    ns, south, ew, west = match.groups()
-    s = int(south) * (1 if ns.upper() == "N" else -1)
-    w = int(west) * (1 if ew.upper() == "E" else -1)
-    return s <= lat <= s + 1 and w <= lon <= w + 1
+    @property
+    def cached_paths(self) -> tuple[Path, ...]:
+        """The tiles held in the cache, least recently used first."""
+        return tuple(self._cache)
+
+    def close(self) -> None:
+        """Release every cached tile."""
+        while self._cache:
+            self._cache.popitem(last=False)[1].close()
+
+    def _tile(self, entry: _Entry) -> DemTile | None:
+        tile = self._cache.get(entry.path)
+        if tile is not None:
+            self._cache.move_to_end(entry.path)
+            return tile
+        if entry.path in self._bad:
+            return None
+        try:
+            tile = HgtTile(entry.path) if entry.kind == "hgt" else GeoTiffTile(entry.path)
+        except (OSError, TerrainError) as exc:
+            # A tile that indexed but will not decode (truncated since, or corrupt data)
+            # must not stop telemetry: the next source answers instead.
+            self._bad.add(entry.path)
+            log.warning("dem_tile_skipped", path=str(entry.path), error=str(exc))
+            return None
+        self._cache[entry.path] = tile
+        total = sum(t.nbytes for t in self._cache.values())
+        while len(self._cache) > 1 and (
+            len(self._cache) > self._cache_tiles or total > self._cache_bytes
+        ):
+            _, evicted = self._cache.popitem(last=False)
+            total -= evicted.nbytes
+            evicted.close()
+        return tile
+
+
+def _scan(source: DemSource, problems: list[str]) -> list[_Entry]:
+    """Index one source's directory; unusable files are added to ``problems``."""
+    if not source.directory.is_dir():
+        problems.append(f"{source.directory}: source {source.name!r} is not a directory")
+        return []
+    suffixes = (".hgt",) if source.kind == "hgt" else (".tif", ".tiff")
+    entries = []
+    for path in sorted(source.directory.iterdir()):
+        if path.suffix.lower() not in suffixes or not path.is_file():
+            continue
+        try:
+            geometry = (
+                hgt_geometry(path) if source.kind == "hgt" else read_geotiff_header(path).geometry
+            )
+        except (OSError, TerrainError) as exc:
+            problems.append(str(exc))
+            continue
+        entries.append(_Entry(path, source.kind, geometry))
+    return entries

@@ -1,4 +1,4 @@
-"""The CoT sink: XML and protobuf checked by independent decoders, real UDP, TCP and TLS."""
+"""The CoT sink on real sockets: UDP unicast and multicast, TCP and TLS to a TAK-like server."""
 
 from __future__ import annotations
 
@@ -6,502 +6,552 @@ import contextlib
 import socket
 import ssl
 import struct
-from datetime import UTC, datetime
+from collections.abc import AsyncIterator
+from datetime import timedelta
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
+from urllib.parse import urlparse
 
 import anyio
 import anyio.abc
 import pytest
 import trustme
-from hypothesis import given, settings
-from hypothesis import strategies as st
+from anyio.streams.tls import TLSListener
+from pydantic import ValidationError
+from test_cot_event import DETECTION, EVENTS, TELEMETRY, TRACK
 
-from gateway.cot_validate import CotError, parse_cot
+from gateway.config import SinkEntry
 from gateway.errors import TransientSinkError
-from gateway.events import Detection, Position, Sensor, Telemetry, Track, Velocity
-from gateway.testing import fuzz_examples
-from sinks._cot_codec import mesh_frame, stream_frame, to_proto, to_xml
-from sinks._cot_event import CotOptions, build
-from sinks._cot_geoid import GeoidGrid
+from gateway.events import Position
+from gateway.instruments import Instruments
+from gateway.sinkrunner import SinkRunner
+from gateway.testing import eventually
+from sinks._cot_proto import read_varint, stream_frame
+from sinks._cot_validate import parse_cot
 from sinks.cot import CotSink, CotSinkConfig
 
 takproto = pytest.importorskip("takproto")
-etree = pytest.importorskip("lxml.etree")
 
-CORPUS = Path(__file__).resolve().parents[2].parent / "shared" / "corpus" / "cot"
-XSD = CORPUS / "atak_civ_takcot" / "mitre" / "CoT Base-Event Schema  (PUBLIC RELEASE).xsd"
-T0 = datetime(2026, 11, 22, 10, 15, 30, 250000, tzinfo=UTC)
-
-TELEMETRY = Telemetry(
-    event_id="t1",
-    airframe="F26E-007",
-    time=T0,
-    position=Position(lat_deg=58.4108123, lon_deg=15.6214031, alt_msl_m=583.0, alt_hae_m=612.4),
-    heading_deg=87.5,
-    groundspeed_mps=23.1,
-    battery_pct=76.0,
-    h_acc_m=4.5,
-    mav_type=1,
-    active_link="sdr",
-)
-DETECTION = Detection(
-    event_id="d1",
-    airframe="F26E-007",
-    time=T0,
-    sensor=Sensor.IR,
-    object_class="tank",
-    subtype="T-72",
-    confidence=0.91,
-    position=Position(lat_deg=58.423917, lon_deg=15.650112),
-    sigma_h_m=12.0,
-)
-TRACK = Track(
-    event_id="k1",
-    track_id="2026-000042",
-    time=T0,
-    object_class="uav",
-    confidence=0.78,
-    position=Position(lat_deg=58.401002, lon_deg=15.59877, alt_hae_m=245.0),
-    cep50_m=20.0,
-    cep90_m=36.5,
-    velocity=Velocity(north_mps=10.0, east_mps=10.0, down_mps=0.0),
-    detection_ids=("d1", "d2"),
-    airframes=("F26E-007",),
-    first_seen=T0,
-    last_seen=T0,
-    hostility="hostile",
-)
-EVENTS = [TELEMETRY, DETECTION, TRACK]
+UIDS = ["fischer-F26E-007", "fischer-det-d1", "fischer-trk-2026-000042"]
 
 
-def cot_events() -> list[Any]:
-    return [build(e, CotOptions()) for e in EVENTS]
-
-
-class TestEncoding:
-    """What each event becomes, checked by the schema, our validator and takproto."""
-
-    def test_own_airframe_detection_and_track(self) -> None:
-        own, det, trk = cot_events()
-        assert (own.uid, own.type, own.how, own.hae) == (
-            "fischer-F26E-007",
-            "a-f-A-M-F-Q",
-            "m-g",
-            612.4,
-        )
-        assert (det.type, det.how, det.ce) == ("a-h-G-E-V-A-T", "m-i", 12.0)
-        assert trk.type == "a-h-A-M-F-Q"
-        assert trk.course_deg == pytest.approx(45.0)
-        assert trk.ce == pytest.approx(20.0 / 1.1774, rel=1e-4)
-        assert b"SHGPEVAT-------" in to_xml(det)
-        assert b'relation="p-p"' in to_xml(det)
-
-    def test_no_position_no_event(self) -> None:
-        assert build(Telemetry(event_id="x", airframe="A", time=T0), CotOptions()) is None
-
-    def test_msl_is_never_sent_as_hae(self, tmp_path: Path) -> None:
-        msl_only = TELEMETRY.model_copy(
-            update={"position": Position(lat_deg=58.4, lon_deg=15.6, alt_msl_m=583.0)}
-        )
-        assert build(msl_only, CotOptions()).hae == 9999999.0  # type: ignore[union-attr]
-        grid = tmp_path / "g.gtx"
-        header = struct.pack(">ddddii", 50.0, 10.0, 1.0, 1.0, 20, 20)
-        grid.write_bytes(header + struct.pack(">400f", *([29.4] * 400)))
-        with_geoid = build(msl_only, CotOptions(geoid=GeoidGrid(grid).undulation))
-        assert with_geoid is not None
-        assert with_geoid.hae == pytest.approx(583.0 + 29.4, abs=1e-4)
-
-    @pytest.mark.parametrize("index", range(3))
-    def test_xml_validates_against_the_mitre_schema(self, index: int) -> None:
-        if not XSD.exists():
-            pytest.skip("shared corpus absent")
-        schema = etree.XMLSchema(etree.parse(str(XSD)))
-        document = etree.fromstring(to_xml(cot_events()[index]))
-        assert schema.validate(document), schema.error_log
-        parse_cot(to_xml(cot_events()[index]))
-
-    @pytest.mark.parametrize("index", range(3))
-    def test_protobuf_decodes_in_takproto_in_both_framings(self, index: int) -> None:
-        event = cot_events()[index]
-        for framed in (mesh_frame(to_proto(event)), stream_frame(to_proto(event))):
-            message = takproto.parse_proto(bytearray(framed))
-            cot = message.cotEvent
-            assert (cot.uid, cot.type, cot.how) == (event.uid, event.type, event.how)
-            assert (cot.lat, cot.lon) == (event.lat, event.lon)
-            assert cot.staleTime == int(event.stale.timestamp() * 1000)
-        if event.callsign:
-            assert message.cotEvent.detail.contact.callsign == event.callsign
-
-    def test_xml_decodes_in_takproto(self) -> None:
-        message = takproto.parse_proto(bytearray(to_xml(cot_events()[0])))
-        assert message.cotEvent.detail.track.speed == pytest.approx(23.1)
-        assert message.cotEvent.detail.status.battery == 76
-
-    def test_xml_ends_at_the_event(self) -> None:
-        assert to_xml(cot_events()[0]).endswith(b"</event>")
-
-
-class TestValidator:
-    """Our validator refuses what receivers drop and the decoders let through."""
-
-    def test_latitude_91_is_refused_though_takproto_accepts_it(self) -> None:
-        bad = to_xml(cot_events()[0]).replace(b'lat="58.4108123"', b'lat="91.0"')
-        assert takproto.parse_proto(bytearray(bad)) is not None
-        with pytest.raises(CotError, match="off the globe"):
-            parse_cot(bad)
-
-    @pytest.mark.parametrize(
-        ("old", "new", "reason"),
-        [
-            (b'how="m-g"', b'how=""', "how"),
-            (b'Z" start', b'+00:00" start', "UTC"),
-            (b"<point", b"<nopoint", "point"),
-            (b'hae="612.4"', b'hae="NaN"', "not a number"),
-        ],
-    )
-    def test_broken_events_name_the_problem(self, old: bytes, new: bytes, reason: str) -> None:
-        bad = to_xml(cot_events()[0]).replace(old, new, 1)
-        with pytest.raises(CotError, match=reason):
-            parse_cot(bad)
-
-    def test_entities_are_refused(self) -> None:
-        bomb = b'<?xml version="1.0"?><!DOCTYPE x [<!ENTITY a "aaaa">]><event/>'
-        with pytest.raises(CotError, match="DOCTYPE"):
-            parse_cot(bomb)
-
-    @settings(max_examples=fuzz_examples(300), deadline=None)
-    @given(st.binary(max_size=2000))
-    def test_arbitrary_bytes_raise_only_cot_errors(self, blob: bytes) -> None:
-        with contextlib.suppress(CotError):
-            parse_cot(blob)
-
-
-def sink(*destinations: dict[str, Any], **extra: Any) -> CotSink:
+def sink(*destinations: Any, **extra: Any) -> CotSink:
     return CotSink("cot", CotSinkConfig.model_validate({"destinations": destinations, **extra}))
 
 
-def free_udp() -> socket.socket:
-    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    sock.bind(("127.0.0.1", 0))
-    sock.settimeout(5)
-    return sock
+def control(kind: str, detail: str) -> bytes:
+    return (
+        '<?xml version="1.0" encoding="UTF-8"?>\n<event version="2.0" uid="protouid" '
+        f'type="t-x-takp-{kind}" time="2026-11-22T10:00:00Z" start="2026-11-22T10:00:00Z" '
+        'stale="2026-11-22T10:01:00Z" how="m-g"><point lat="0.0" lon="0.0" hae="0.0" '
+        f'ce="999999" le="999999"/><detail><TakControl>{detail}</TakControl></detail></event>'
+    ).encode()
+
+
+OFFER = control("v", '<TakProtocolSupport version="1"/>')
+RELAYED = control("x", "").replace(b"t-x-takp-x", b"a-f-G-U-C")  # another client's position
+
+
+def xml_events(data: bytes) -> list[bytes]:
+    return [part + b"</event>" for part in data.split(b"</event>")[:-1]]
+
+
+def stream_frames(data: bytes) -> list[bytes]:
+    frames, pos = [], 0
+    while pos < len(data):
+        assert data[pos] == 0xBF
+        length, pos = read_varint(data, pos + 1)
+        frames.append(stream_frame(data[pos : pos + length]))
+        pos += length
+    return frames
+
+
+class Connection:
+    """What one client sent: XML before the switch, protobuf after."""
+
+    def __init__(self) -> None:
+        self.xml = bytearray()
+        self.proto = bytearray()
+        self.requested_after_offer: bool | None = None
+
+
+class TakServer:
+    """A TAK-server-like peer: plain or TLS (client certificate required), and TAK protocol v1.
+
+    ``offer``: send the TakControl offer on connect, after the client's first event, or never.
+    ``respond``: the TakResponse status to send, or None to never answer the request.
+    """
+
+    def __init__(
+        self,
+        *,
+        offer: Literal["connect", "late", "never"] = "never",
+        respond: str | None = "true",
+        tls: ssl.SSLContext | None = None,
+        hang_up_after_events: int | None = None,
+    ) -> None:
+        self.offer, self.respond, self.tls = offer, respond, tls
+        self.hang_up_after_events = hang_up_after_events
+        self.connections: list[Connection] = []
+        self.port = 0
+
+    def conn(self, index: int) -> Connection:
+        """Connection ``index``, or an empty one while it has not arrived."""
+        return self.connections[index] if len(self.connections) > index else Connection()
+
+    async def run(
+        self, *, task_status: anyio.abc.TaskStatus[None] = anyio.TASK_STATUS_IGNORED
+    ) -> None:
+        tcp = await anyio.create_tcp_listener(local_host="127.0.0.1", local_port=0)
+        self.port = tcp.extra(anyio.abc.SocketAttribute.local_port)
+        listener: anyio.abc.Listener[Any] = tcp
+        if self.tls is not None:
+            listener = TLSListener(tcp, self.tls, standard_compatible=False)
+        task_status.started()
+        async with listener:
+            await listener.serve(self.handle)
+
+    async def handle(self, stream: anyio.abc.ByteStream) -> None:
+        conn = Connection()
+        self.connections.append(conn)
+        offered = self.offer == "connect"
+        async with stream:
+            if offered:
+                await stream.send(RELAYED + OFFER)
+            try:
+                async for chunk in stream:
+                    if conn.requested_after_offer and self.respond == "true":
+                        conn.proto += chunk
+                        continue
+                    conn.xml += chunk
+                    if self.offer == "late" and not offered and b"</event>" in conn.xml:
+                        offered = True
+                        await stream.send(OFFER)
+                    if conn.requested_after_offer is None and b"t-x-takp-q" in conn.xml:
+                        conn.requested_after_offer = offered
+                        end = conn.xml.find(b"</event>", conn.xml.find(b"t-x-takp-q")) + 8
+                        conn.proto += conn.xml[end:]
+                        del conn.xml[end:]
+                        if self.respond is not None:
+                            detail = f'<TakResponse status="{self.respond}"/>'
+                            await stream.send(control("r", detail))
+                    limit = self.hang_up_after_events
+                    if limit is not None and conn.xml.count(b"</event>") >= limit:
+                        return
+            except (anyio.BrokenResourceError, ssl.SSLError, OSError):
+                return
+
+
+@pytest.fixture
+def pki(tmp_path: Path) -> tuple[trustme.CA, ssl.SSLContext, dict[str, str]]:
+    """A CA, a server context demanding client certificates, and the client's PEM files."""
+    ca = trustme.CA()
+    server = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
+    ca.issue_cert("tak.example.test", "127.0.0.1").configure_cert(server)
+    ca.configure_trust(server)
+    server.verify_mode = ssl.CERT_REQUIRED  # TAK servers demand a client certificate
+    ca.cert_pem.write_to_path(str(tmp_path / "ca.pem"))
+    ca.issue_cert("fischer-gateway").private_key_and_cert_chain_pem.write_to_path(
+        str(tmp_path / "client.pem")
+    )
+    return (
+        ca,
+        server,
+        {"ca_file": str(tmp_path / "ca.pem"), "cert_file": str(tmp_path / "client.pem")},
+    )
+
+
+@contextlib.asynccontextmanager
+async def serving(server: TakServer) -> AsyncIterator[int]:
+    """Run ``server`` for the body of the block; yields its port."""
+    async with anyio.create_task_group() as tg:
+        await tg.start(server.run)
+        yield server.port
+        tg.cancel_scope.cancel()
+
+
+def received_uids(conn: Connection) -> list[str]:
+    """Our events on one connection, XML ones first, control events left out."""
+    xml = [parse_cot(e.strip()).uid for e in xml_events(bytes(conn.xml)) if b"t-x-takp" not in e]
+    proto = [
+        takproto.parse_proto(bytearray(f)).cotEvent.uid for f in stream_frames(bytes(conn.proto))
+    ]
+    return xml + proto
 
 
 class TestUdp:
-    """UDP unicast and multicast, XML and mesh protobuf, received by pytak and a socket."""
+    """Unicast and multicast datagrams: one event each, XML or mesh protobuf."""
 
     @pytest.mark.anyio
     async def test_pytak_receives_the_events(self) -> None:
         pytak = pytest.importorskip("pytak")
-        from urllib.parse import urlparse
-
-        with free_udp() as probe:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+            probe.bind(("127.0.0.1", 0))
             port = probe.getsockname()[1]
         reader, _ = await pytak.create_udp_client(urlparse(f"udp+ro://127.0.0.1:{port}"))
-        cot = sink({"uri": f"udp://127.0.0.1:{port}"})
-        with anyio.fail_after(10):
-            await cot.open()
-            await cot.send(EVENTS)
-            received = [(await reader.recv())[0] for _ in range(3)]
+        cot = sink(f"udp://127.0.0.1:{port}")
+        try:
+            with anyio.fail_after(10):
+                await cot.open()
+                await cot.send(list(EVENTS))
+                received = [(await reader.recv())[0] for _ in range(3)]
+        finally:
             await cot.aclose()
-        reader.close()
-        assert [parse_cot(data).uid for data in received] == [e.uid for e in cot_events()]
+            reader.close()
+        assert [parse_cot(data, strict=True).uid for data in received] == UIDS
 
     @pytest.mark.anyio
-    async def test_mesh_protobuf_over_multicast(self) -> None:
+    async def test_mesh_protobuf_over_loopback_multicast(self) -> None:
+        """Multicast on the loopback interface (IP_MULTICAST_IF 127.0.0.1, loop on)."""
         group = "239.2.3.1"
         receiver = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         receiver.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        receiver.bind(("0.0.0.0", 0))
+        receiver.bind((group, 0))
         port = receiver.getsockname()[1]
         try:
             membership = struct.pack("4s4s", socket.inet_aton(group), socket.inet_aton("127.0.0.1"))
             receiver.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP, membership)
         except OSError as exc:
             receiver.close()
-            pytest.skip(f"no multicast on loopback here: {exc}")
-        receiver.settimeout(5)
-        cot = sink(
-            {"uri": f"udp://{group}:{port}", "protocol": "protobuf", "interface": "127.0.0.1"}
-        )
+            pytest.skip(f"this host cannot join a multicast group on loopback: {exc}")
+        receiver.setblocking(False)
+        cot = sink(f"udp+multicast://{group}:{port}?ttl=1&iface=127.0.0.1", protocol="protobuf")
         try:
             with anyio.fail_after(10):
                 await cot.open()
                 await cot.send([TELEMETRY])
-                await cot.aclose()
-                data = await anyio.to_thread.run_sync(receiver.recv, 65536)
-        except (OSError, TimeoutError) as exc:
-            pytest.skip(f"multicast not delivered on this host: {exc}")
+                await anyio.wait_readable(receiver)
+                data = receiver.recv(65536)
         finally:
+            await cot.aclose()
             receiver.close()
         assert data.startswith(b"\xbf\x01\xbf")
-        assert takproto.parse_proto(bytearray(data)).cotEvent.uid == "fischer-F26E-007"
+        assert takproto.parse_proto(bytearray(data)).cotEvent.uid == UIDS[0]
 
-
-class TakServer:
-    """A TAK-server-like peer: optional TLS with client certificates and protocol offer."""
-
-    def __init__(self, *, offer: bool, tls: ssl.SSLContext | None = None) -> None:
-        self.offer = offer
-        self.tls = tls
-        self.received = b""
-        self.negotiated = anyio.Event()
-        self.port = 0
-        self.got_data = anyio.Event()
-
-    async def run(
-        self, *, task_status: anyio.abc.TaskStatus[None] = anyio.TASK_STATUS_IGNORED
-    ) -> None:
-        listener = await anyio.create_tcp_listener(local_host="127.0.0.1", local_port=0)
-        self.port = listener.extra(anyio.abc.SocketAttribute.local_port)
-        if self.tls is not None:
-            from anyio.streams.tls import TLSListener
-
-            listener = TLSListener(listener, self.tls, standard_compatible=False)  # type: ignore[assignment]
-        task_status.started()
-        async with listener:
-            await listener.serve(self.handle)
-
-    async def handle(self, stream: anyio.abc.ByteStream) -> None:
-        async with stream:
-            await self.converse(stream)
-
-    async def converse(self, stream: anyio.abc.ByteStream) -> None:
-        if self.offer:
-            await stream.send(
-                b'<?xml version="1.0"?>\n<event version="2.0" uid="protouid" type="t-x-takp-v" '
-                b'time="2026-11-22T10:00:00Z" start="2026-11-22T10:00:00Z" '
-                b'stale="2026-11-22T10:01:00Z" how="m-g"><point lat="0.0" lon="0.0" '
-                b'hae="0.0" ce="999999" le="999999"/><detail><TakControl>'
-                b'<TakProtocolSupport version="1"/></TakControl></detail></event>'
+    @pytest.mark.anyio
+    async def test_tracks_go_on_change(self) -> None:
+        """An unchanged track waits for its refresh; a moved one goes at once."""
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as receiver:
+            receiver.bind(("127.0.0.1", 0))
+            receiver.setblocking(False)
+            cot = sink(f"udp://127.0.0.1:{receiver.getsockname()[1]}", track_refresh_s=60)
+            later = TRACK.time + timedelta(seconds=30)
+            moved = TRACK.model_copy(
+                update={"time": later, "position": Position(lat_deg=58.5, lon_deg=15.6)}
             )
-        try:
-            async for chunk in stream:
-                await self.take(stream, chunk)
-        except (anyio.BrokenResourceError, ssl.SSLError, OSError):
-            return
+            batches = [
+                [TRACK],
+                [TRACK.model_copy(update={"time": later})],  # unchanged: skipped
+                [moved],
+                [moved.model_copy(update={"time": later + timedelta(seconds=61)})],  # refresh
+            ]
+            got = []
+            with anyio.fail_after(10):
+                await cot.open()
+                for batch in batches:
+                    await cot.send(batch)
+                await cot.send([TELEMETRY])  # a marker: everything before it has arrived
+                while not got or parse_cot(got[-1]).uid != UIDS[0]:
+                    await anyio.wait_readable(receiver)
+                    got.append(receiver.recv(65536))
+                await cot.aclose()
+        assert [parse_cot(d).lat for d in got] == [
+            TRACK.position.lat_deg,
+            58.5,
+            58.5,
+            TELEMETRY.position.lat_deg,
+        ]  # type: ignore[union-attr]
 
-    async def take(self, stream: anyio.abc.ByteStream, chunk: bytes) -> None:
-        self.received += chunk
-        if b"t-x-takp-q" in self.received and not self.negotiated.is_set():
-            self.negotiated.set()
-            self.received = b""
-            await stream.send(
-                b'<?xml version="1.0"?>\n<event version="2.0" uid="protouid" '
-                b'type="t-x-takp-r" time="2026-11-22T10:00:00Z" '
-                b'start="2026-11-22T10:00:00Z" stale="2026-11-22T10:01:00Z" how="m-g">'
-                b'<point lat="0.0" lon="0.0" hae="0.0" ce="999999" le="999999"/><detail>'
-                b'<TakControl><TakResponse status="true"/></TakControl></detail></event>'
-            )
-        elif self.received:
-            self.got_data.set()
-
-
-def split_stream_frames(data: bytes) -> list[bytes]:
-    frames, pos = [], 0
-    while pos < len(data):
-        assert data[pos] == 0xBF
-        pos += 1
-        length, shift = 0, 0
-        while True:
-            byte = data[pos]
-            pos += 1
-            length |= (byte & 0x7F) << shift
-            shift += 7
-            if not byte & 0x80:
-                break
-        frames.append(data[pos : pos + length])
-        pos += length
-    return frames
+    @pytest.mark.anyio
+    async def test_a_failed_track_is_not_taken_as_delivered(self) -> None:
+        with socket.socket() as probe:
+            probe.bind(("127.0.0.1", 0))
+            port = probe.getsockname()[1]
+        cot = sink(f"tcp://127.0.0.1:{port}", connect_timeout_s=2)
+        with anyio.fail_after(10):
+            for _ in range(2):  # the retry is not skipped as "unchanged"
+                with pytest.raises(TransientSinkError, match=f"tcp://127.0.0.1:{port}"):
+                    await cot.send([TRACK])
+            await cot.aclose()
+        assert cot._delivered == {}
 
 
 class TestStreams:
-    """TAK server streaming: XML framing, TLS with client certificates, protobuf negotiation."""
+    """TAK server streams: XML framing, TLS with client certificates, TAK protocol v1."""
 
     @pytest.mark.anyio
     async def test_tcp_xml_stream_has_nothing_after_each_event(self) -> None:
-        server = TakServer(offer=False)
+        server = TakServer()
         with anyio.fail_after(10):
-            async with anyio.create_task_group() as tg:
-                await tg.start(server.run)
-                cot = sink({"uri": f"tcp://127.0.0.1:{server.port}"})
+            async with serving(server) as port:
+                cot = sink(f"tcp://127.0.0.1:{port}")
                 await cot.open()
-                await cot.send(EVENTS)
-                expected = b"".join(to_xml(e) for e in cot_events())
-                while len(server.received) < len(expected):
-                    await server.got_data.wait()
-                    server.got_data = anyio.Event()
+                await cot.send(list(EVENTS))
+                expected = b"".join(e.get("xml") for e in _encoded(cot, EVENTS))
+                await eventually(lambda: len(server.conn(0).xml) >= len(expected))
                 await cot.aclose()
-                tg.cancel_scope.cancel()
-        assert server.received == expected
-
-    def certificates(self, tmp_path: Path) -> tuple[trustme.CA, ssl.SSLContext, dict[str, Any]]:
-        ca = trustme.CA()
-        server_cert = ca.issue_cert("tak.example.test", "127.0.0.1")
-        server = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
-        server_cert.configure_cert(server)
-        ca.configure_trust(server)
-        server.verify_mode = ssl.CERT_REQUIRED  # TAK servers demand a client certificate
-        client_cert = ca.issue_cert("fischer-gateway")
-        ca.cert_pem.write_to_path(str(tmp_path / "ca.pem"))
-        client_cert.private_key_and_cert_chain_pem.write_to_path(str(tmp_path / "client.pem"))
-        tls = {"ca_file": str(tmp_path / "ca.pem"), "cert_file": str(tmp_path / "client.pem")}
-        return ca, server, tls
+        assert bytes(server.connections[0].xml) == expected
+        assert all(e.endswith(b"</event>") for e in xml_events(expected))
 
     @pytest.mark.anyio
-    async def test_tls_with_client_certificate_negotiates_protobuf(self, tmp_path: Path) -> None:
-        _, server_ctx, tls = self.certificates(tmp_path)
-        server = TakServer(offer=True, tls=server_ctx)
+    async def test_tls_negotiates_protobuf_after_the_offer(
+        self, pki: tuple[trustme.CA, ssl.SSLContext, dict[str, str]]
+    ) -> None:
+        _, server_tls, files = pki
+        server = TakServer(offer="connect", tls=server_tls)
         with anyio.fail_after(15):
-            async with anyio.create_task_group() as tg:
-                await tg.start(server.run)
-                cot = sink(
-                    {
-                        "uri": f"tls://127.0.0.1:{server.port}",
-                        "protocol": "negotiate",
-                        "tls": {**tls, "server_hostname": "tak.example.test"},
-                    }
-                )
+            async with serving(server) as port:
+                tls = {**files, "server_hostname": "tak.example.test"}
+                cot = sink({"uri": f"tls://127.0.0.1:{port}", "tls": tls}, protocol="negotiate")
                 await cot.open()
-                assert server.negotiated.is_set()
-                await cot.send(EVENTS)
-                await server.got_data.wait()
-                while len(split_stream_frames_safe(server.received)) < 3:
-                    server.got_data = anyio.Event()
-                    await server.got_data.wait()
+                assert cot._transports[0].mode == "protobuf"  # type: ignore[union-attr]
+                await cot.send(list(EVENTS))
+                await eventually(lambda: len(stream_frames_safe(server.conn(0).proto)) == 3)
                 await cot.aclose()
-                tg.cancel_scope.cancel()
-        uids = [
-            takproto.parse_proto(bytearray(stream_frame(frame))).cotEvent.uid
-            for frame in split_stream_frames(server.received)
-        ]
-        assert uids == [e.uid for e in cot_events()]
+        conn = server.connections[0]
+        assert conn.requested_after_offer is True
+        assert xml_events(bytes(conn.xml))[0].count(b"t-x-takp-q") == 1  # only the request
+        assert received_uids(conn) == UIDS
 
     @pytest.mark.anyio
-    async def test_pkcs12_client_certificate_with_password_file(self, tmp_path: Path) -> None:
+    async def test_a_late_offer_switches_the_stream_mid_way(self) -> None:
+        server = TakServer(offer="late")
+        with anyio.fail_after(15):
+            async with serving(server) as port:
+                cot = sink(f"tcp://127.0.0.1:{port}", protocol="negotiate", offer_wait_s=0)
+                await cot.open()
+                await cot.send([TELEMETRY])  # XML: no offer yet
+                await eventually(lambda: b"</event>" in server.conn(0).xml)
+                await cot.send([DETECTION])  # sees the offer, asks, switches, then sends
+                await eventually(lambda: len(stream_frames_safe(server.conn(0).proto)) == 1)
+                await cot.aclose()
+        assert received_uids(server.connections[0]) == UIDS[:2]
+        assert server.connections[0].requested_after_offer is True
+
+    @pytest.mark.anyio
+    async def test_a_refused_request_stays_on_xml(self) -> None:
+        server = TakServer(offer="connect", respond="false")
+        with anyio.fail_after(15):
+            async with serving(server) as port:
+                cot = sink(f"tcp://127.0.0.1:{port}", protocol="negotiate")
+                await cot.open()
+                await cot.send([TELEMETRY])
+                await eventually(lambda: server.conn(0).xml.count(b"</event>") == 2)
+                await cot.aclose()
+        assert received_uids(server.connections[0]) == UIDS[:1]
+        assert not server.connections[0].proto
+
+    @pytest.mark.anyio
+    async def test_no_response_ends_the_connection_and_xml_is_used_after(self) -> None:
+        server = TakServer(offer="connect", respond=None)
+        with anyio.fail_after(15):
+            async with serving(server) as port:
+                cot = sink(f"tcp://127.0.0.1:{port}", protocol="negotiate", response_wait_s=0.2)
+                with pytest.raises(TransientSinkError, match=r"no TakResponse within 0\.2 s"):
+                    await cot.open()
+                await cot.open()  # the retry: connects again and does not ask
+                await cot.send([TELEMETRY])
+                await eventually(
+                    lambda: (
+                        len(server.connections) == 2 and b"</event>" in server.connections[1].xml
+                    )
+                )
+                await cot.aclose()
+        assert b"t-x-takp-q" not in server.connections[1].xml
+        assert received_uids(server.connections[1]) == UIDS[:1]
+
+    @pytest.mark.anyio
+    async def test_a_server_that_hangs_up_is_reconnected(self) -> None:
+        server = TakServer(hang_up_after_events=1)
+        with anyio.fail_after(15):
+            async with serving(server) as port:
+                cot = sink(f"tcp://127.0.0.1:{port}")
+                await cot.open()
+                await cot.send([TELEMETRY])
+                await eventually(lambda: cot._transports[0]._sock is not None and _peer_closed(cot))
+                await cot.send([DETECTION])  # notices the EOF first, reconnects, delivers
+                await eventually(
+                    lambda: (
+                        len(server.connections) == 2 and b"</event>" in server.connections[1].xml
+                    )
+                )
+                await cot.aclose()
+        assert [received_uids(c) for c in server.connections] == [UIDS[:1], UIDS[1:2]]
+
+    @pytest.mark.anyio
+    async def test_pkcs12_client_certificate_with_password_file(
+        self, tmp_path: Path, pki: tuple[trustme.CA, ssl.SSLContext, dict[str, str]]
+    ) -> None:
         from cryptography import x509
         from cryptography.hazmat.primitives import serialization
         from cryptography.hazmat.primitives.serialization import pkcs12
 
-        ca, server_ctx, _ = self.certificates(tmp_path)
+        ca, server_tls, files = pki
         leaf = ca.issue_cert("fischer-gateway")
         key = serialization.load_pem_private_key(leaf.private_key_pem.bytes(), None)
         cert = x509.load_pem_x509_certificate(leaf.cert_chain_pems[0].bytes())
-        bundle = pkcs12.serialize_key_and_certificates(
-            b"gw",
-            key,
-            cert,
-            None,
-            serialization.BestAvailableEncryption(b"s3cret"),  # type: ignore[arg-type]
-        )
+        encryption = serialization.BestAvailableEncryption(b"s3cret")
+        bundle = pkcs12.serialize_key_and_certificates(b"gw", key, cert, None, encryption)  # type: ignore[arg-type]
         (tmp_path / "client.p12").write_bytes(bundle)
         (tmp_path / "p12.pass").write_text("s3cret\n")
-        server = TakServer(offer=False, tls=server_ctx)
+        tls = {"ca_file": files["ca_file"], "pkcs12_file": str(tmp_path / "client.p12"),
+               "password_file": str(tmp_path / "p12.pass")}  # fmt: skip
+        server = TakServer(tls=server_tls)
         with anyio.fail_after(15):
-            async with anyio.create_task_group() as tg:
-                await tg.start(server.run)
-                cot = sink(
-                    {
-                        "uri": f"tls://127.0.0.1:{server.port}",
-                        "tls": {
-                            "ca_file": str(tmp_path / "ca.pem"),
-                            "pkcs12_file": str(tmp_path / "client.p12"),
-                            "password_file": str(tmp_path / "p12.pass"),
-                        },
-                    }
-                )
+            async with serving(server) as port:
+                cot = sink({"uri": f"tls://127.0.0.1:{port}", "tls": tls})
                 await cot.open()
                 await cot.send([TELEMETRY])
-                await server.got_data.wait()
+                await eventually(
+                    lambda: bool(server.connections) and b"</event>" in server.connections[0].xml
+                )
                 await cot.aclose()
-                tg.cancel_scope.cancel()
-        assert parse_cot(server.received).uid == "fischer-F26E-007"
+        assert received_uids(server.connections[0]) == UIDS[:1]
 
+    @pytest.mark.parametrize(
+        ("change", "message"),
+        [
+            ({"ca_file": "other-ca.pem"}, r"not trusted by the pinned CA .*other-ca\.pem"),
+            (
+                {"server_hostname": "evil.example.test"},
+                "not valid for hostname 'evil.example.test'",
+            ),
+            ({"password_file": "wrong.pass", "cert_file": "client.p12"}, "cannot"),
+        ],
+    )
     @pytest.mark.anyio
-    async def test_wrong_ca_is_refused_with_a_clear_error(self, tmp_path: Path) -> None:
-        _, server_ctx, tls = self.certificates(tmp_path)
+    async def test_wrong_ca_or_hostname_is_refused_with_a_clear_error(
+        self, tmp_path: Path, pki: tuple[trustme.CA, ssl.SSLContext, dict[str, str]],
+        change: dict[str, str], message: str,
+    ) -> None:  # fmt: skip
+        _, server_tls, files = pki
         trustme.CA().cert_pem.write_to_path(str(tmp_path / "other-ca.pem"))
-        server = TakServer(offer=False, tls=server_ctx)
+        (tmp_path / "wrong.pass").write_text("nope")
+        (tmp_path / "client.p12").write_bytes(b"not pkcs12")
+        paths = {k: (v if k == "server_hostname" else str(tmp_path / v)) for k, v in change.items()}
+        server = TakServer(tls=server_tls)
         with anyio.fail_after(15):
-            async with anyio.create_task_group() as tg:
-                await tg.start(server.run)
-                cot = sink(
-                    {
-                        "uri": f"tls://127.0.0.1:{server.port}",
-                        "tls": {**tls, "ca_file": str(tmp_path / "other-ca.pem")},
-                    }
-                )
-                with pytest.raises(TransientSinkError, match="CERTIFICATE_VERIFY_FAILED"):
+            async with serving(server) as port:
+                cot = sink({"uri": f"tls://127.0.0.1:{port}", "tls": {**files, **paths}})
+                with pytest.raises(TransientSinkError, match=message) as caught:
                     await cot.open()
                 await cot.aclose()
-                tg.cancel_scope.cancel()
+        assert caught.value.sink == "cot"
+        assert f"tls://127.0.0.1:{port}" in str(caught.value)
+        assert "s3cret" not in str(caught.value)
+        assert not any(c.xml for c in server.connections)
 
     @pytest.mark.anyio
-    async def test_wrong_hostname_is_refused(self, tmp_path: Path) -> None:
-        _, server_ctx, tls = self.certificates(tmp_path)
-        server = TakServer(offer=False, tls=server_ctx)
+    async def test_a_server_refusing_our_certificate_fails_the_send(
+        self, tmp_path: Path, pki: tuple[trustme.CA, ssl.SSLContext, dict[str, str]]
+    ) -> None:
+        _, server_tls, files = pki
+        stranger = trustme.CA().issue_cert("someone-else")
+        stranger.private_key_and_cert_chain_pem.write_to_path(str(tmp_path / "stranger.pem"))
+        server = TakServer(offer="connect", tls=server_tls)
         with anyio.fail_after(15):
-            async with anyio.create_task_group() as tg:
-                await tg.start(server.run)
-                cot = sink(
-                    {
-                        "uri": f"tls://127.0.0.1:{server.port}",
-                        "tls": {**tls, "server_hostname": "evil.example.test"},
-                    }
-                )
-                with pytest.raises(TransientSinkError, match=r"hostname|match"):
+            async with serving(server) as port:
+                tls = {**files, "cert_file": str(tmp_path / "stranger.pem")}
+                cot = sink({"uri": f"tls://127.0.0.1:{port}", "tls": tls}, protocol="negotiate")
+                with pytest.raises(TransientSinkError, match=r"TLS|certificate|closed"):  # noqa: PT012 - the refusal may come at open or at the first send
                     await cot.open()
+                    await cot.send([TELEMETRY])
                 await cot.aclose()
-                tg.cancel_scope.cancel()
+        assert not any(c.xml or c.proto for c in server.connections)
 
     @pytest.mark.anyio
-    async def test_unreachable_server_is_transient(self) -> None:
+    async def test_unreachable_server_is_transient_and_named(self) -> None:
         with socket.socket() as probe:
             probe.bind(("127.0.0.1", 0))
             port = probe.getsockname()[1]
-        cot = sink({"uri": f"tcp://127.0.0.1:{port}"})
-        with anyio.fail_after(10), pytest.raises(TransientSinkError, match="cannot reach"):
+        cot = sink(f"tcp://127.0.0.1:{port}")
+        with (
+            anyio.fail_after(10),
+            pytest.raises(TransientSinkError, match="cannot connect") as caught,
+        ):
             await cot.open()
         await cot.aclose()
+        assert f"sink cot: tcp://127.0.0.1:{port}" in str(caught.value)
+
+    @pytest.mark.anyio
+    async def test_runs_under_the_sink_runner(self) -> None:
+        """The real runner drives open/send/aclose under its own deadlines and cancel scopes."""
+        server = TakServer(offer="connect")
+        with anyio.fail_after(15):
+            async with serving(server) as port, anyio.create_task_group() as tg:
+                cot = sink(f"tcp://127.0.0.1:{port}", protocol="negotiate")
+                runner = SinkRunner(SinkEntry(name="cot", type="cot"), cot, Instruments())
+                await tg.start(runner.run)
+                runner.offer(TELEMETRY, 0.0)
+                runner.offer(TRACK, 0.0)
+                await eventually(lambda: len(stream_frames_safe(server.conn(0).proto)) == 2)
+                runner.stop()
+                await runner.wait_done()
+        assert received_uids(server.connections[0]) == [UIDS[0], UIDS[2]]
+        assert runner.status()["state"] == "closed"
 
 
-def split_stream_frames_safe(data: bytes) -> list[bytes]:
+def _encoded(cot: CotSink, events: tuple[Any, ...]) -> list[Any]:
+    from sinks._cot_codec import Encoded
+    from sinks._cot_event import build
+
+    return [Encoded(c) for e in events if (c := build(e, cot.options)) is not None]
+
+
+def _peer_closed(cot: CotSink) -> bool:
+    sock = cot._transports[0]._sock  # type: ignore[union-attr]
+    assert sock is not None
     try:
-        return split_stream_frames(data)
-    except (AssertionError, IndexError):
+        return sock.recv(1, socket.MSG_PEEK | socket.MSG_DONTWAIT) == b""
+    except BlockingIOError:
+        return False
+
+
+def stream_frames_safe(data: bytes | bytearray) -> list[bytes]:
+    try:
+        return stream_frames(bytes(data))
+    except (AssertionError, IndexError, ValueError):
         return []
 
 
-def test_unchanged_tracks_are_not_resent() -> None:
-    cot = sink({"uri": "udp://127.0.0.1:9"})
-    event = build(TRACK, cot.options)
-    assert event is not None
-    assert cot._changed(TRACK, event)
-    assert not cot._changed(TRACK, event)
-    moved = TRACK.model_copy(update={"position": Position(lat_deg=58.5, lon_deg=15.6)})
-    moved_event = build(moved, cot.options)
-    assert moved_event is not None
-    assert cot._changed(moved, moved_event)
+class TestConfig:
+    """Destinations are validated when the config loads, with messages naming the URI."""
 
+    def test_uris_with_options(self) -> None:
+        config = CotSinkConfig.model_validate(
+            {"destinations": ["udp+multicast://239.2.3.1:6969?ttl=3&iface=eth0", "tcp://tak:8087"]}
+        )
+        mesh, stream = (d.endpoint("negotiate") for d in config.destinations)
+        assert (mesh.ttl, mesh.interface, mesh.protocol) == (3, "eth0", "xml")
+        assert (stream.host, stream.port, stream.protocol) == ("tak", 8087, "negotiate")
 
-EGM96 = Path("/usr/share/proj/egm96_15.gtx")
+    @pytest.mark.parametrize(
+        ("destination", "message"),
+        [
+            ("http://tak:8087", "expected udp://"),
+            ("tcp://tak", "expected udp://"),
+            ("udp+multicast://10.0.0.1:6969", "not a multicast group"),
+            ("tcp://tak:8087?ttl=2", "only udp URIs take query options"),
+            ("tls://tak:8089", "a 'tls' section goes with tls://"),
+            ({"uri": "udp://h:1", "protocol": "negotiate"}, "negotiate is for tcp"),
+            ("tcp://user:pw@tak:8087", "no passwords in URIs"),
+            ({"uri": "tls://t:1", "tls": {"ca_file": "ca.pem"}}, "exactly one of cert_file"),
+        ],
+    )
+    def test_bad_destinations_are_named(self, destination: Any, message: str) -> None:
+        with pytest.raises(ValidationError, match=message):
+            CotSinkConfig.model_validate({"destinations": [destination]})
 
+    def test_stale_per_kind_is_checked(self) -> None:
+        with pytest.raises(ValidationError, match="Extra inputs"):
+            CotSinkConfig.model_validate({"destinations": ["udp://h:1"], "stale": {"tracks_s": 5}})
+        config = CotSinkConfig.model_validate(
+            {"destinations": ["udp://h:1"], "stale": {"track_s": 60}}
+        )
+        assert (config.stale.telemetry_s, config.stale.track_s) == (15.0, 60.0)
 
-@pytest.mark.parametrize(
-    ("lat", "lon", "undulation_m"),
-    [
-        (55.605, 13.0038, 35.5),
-        (58.4108, 15.6214, 29.4),
-        (59.3293, 18.0686, 23.4),
-        (67.8558, 20.2253, 30.0),
-    ],
-)
-def test_egm96_grid_from_proj_data_gives_the_known_undulations(
-    lat: float, lon: float, undulation_m: float
-) -> None:
-    """Debian's proj-data EGM96 grid (installed by .ci/run) against the spec digest's values."""
-    if not EGM96.exists():
-        pytest.skip("proj-data is not installed")
-    value = GeoidGrid(EGM96).undulation(lat, lon)
-    assert value == pytest.approx(undulation_m, abs=0.5)
+    def test_link_state_may_be_routed_and_is_ignored(self) -> None:
+        kinds = ["telemetry", "link_state"]
+        assert CotSinkConfig.model_validate({"destinations": ["udp://h:1"], "kinds": kinds})
+        with pytest.raises(ValidationError, match="not"):
+            CotSinkConfig.model_validate({"destinations": ["udp://h:1"], "kinds": ["blue_force"]})
