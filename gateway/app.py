@@ -22,7 +22,7 @@ from gateway.bus import Bus
 from gateway.config import Config
 from gateway.cot_listener import CotListener
 from gateway.domain.terrain import DemSource, TerrainModel
-from gateway.errors import LinkUnavailable
+from gateway.errors import FrameError, LinkError, LinkUnavailable
 from gateway.health import HealthServer
 from gateway.ingest import Ingest, LinkIntake
 from gateway.instruments import Instruments
@@ -130,6 +130,7 @@ class Gateway:
                 registry=self.instruments.registry,
                 status=self.status,
                 is_ready=self.is_ready,
+                max_connections=config.health.max_connections,
             )
         self.health_port: int | None = None
         self._shutdown = anyio.Event()
@@ -216,17 +217,38 @@ class Gateway:
             await anyio.sleep(_LINK_CHECK_INTERVAL_S)
 
     async def send_to_airframe(self, airframe: str, frames: bytes) -> None:
-        """Send raw MAVLink ``frames`` to ``airframe`` on its active link, sealed as needed.
+        """Send raw MAVLink ``frames`` to ``airframe`` on its active link, in the link's mode.
 
-        Raises ``LinkUnavailable`` when no link of the airframe is up.
+        Only one of the airframe's configured links is used, and on it only the peer that
+        last authenticated for the airframe; a tunnel link seals, a signed link signs. With
+        no such link or peer the frames are refused and counted, never sent elsewhere:
+        raises ``LinkUnavailable`` (or ``FrameError`` for frames a signed link cannot sign).
         """
+        refused = self.instruments.uplink_refused
         label = self.ingest.active_link(airframe)
-        if label is None:
+        if label is None or not self.ingest.is_configured(airframe, label):
+            refused.labels(airframe, "no_link").inc()
             raise LinkUnavailable(airframe, "no link of this airframe is up")
         link = self._links_by_label[label]
-        if self._link_security[label] == "tunnel":
-            frames = self.security.seal(airframe, frames, stream=link.endpoint.scheme != "udp")
-        await link.send(frames)
+        peer = self.ingest.peer_for(airframe, label)
+        if peer is None and link.endpoint.mode == "listen":
+            refused.labels(airframe, "no_peer").inc()
+            raise LinkUnavailable(label, f"no authenticated peer of {airframe} on this link")
+        security = self._link_security[label]
+        try:
+            if security == "tunnel":
+                frames = self.security.seal(airframe, frames, stream=link.endpoint.scheme != "udp")
+            elif security == "signed":
+                frames = self.security.sign(airframe, frames)
+        except FrameError:
+            refused.labels(airframe, "unsignable").inc()
+            raise
+        try:
+            await link.send_to(peer, frames)
+        except LinkError:
+            refused.labels(airframe, "send_failed").inc()
+            raise
+        self.instruments.uplink_frames.labels(airframe, label).inc()
 
     def status(self) -> dict[str, Any]:
         """The whole node's state, for /status."""
@@ -247,4 +269,5 @@ class Gateway:
             ],
             "unknown_sysids": sorted(self.ingest.unknown_sysids),
             "sinks": [runner.status() for runner in self.runners.values()],
+            "listeners": [self.health.stats.status()] if self.health is not None else [],
         }

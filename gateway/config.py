@@ -41,7 +41,8 @@ __all__ = [
     "parse_endpoint",
 ]
 
-_FROZEN = ConfigDict(frozen=True, extra="forbid")
+# allow_inf_nan=False: a duration of .inf would mean "never" (a failover that never comes).
+_FROZEN = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 _ID = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$"
 
 
@@ -174,8 +175,21 @@ class LinkConfig(BaseModel):
     name: str | None = Field(default=None, pattern=_ID, description="Defaults to the URI.")
     priority: int = Field(default=0, ge=0, le=100, description="Lower is preferred.")
     max_frame_bytes: int = Field(default=2048, ge=64, le=65535)
-    reconnect_initial_s: float = Field(default=0.5, gt=0)
-    reconnect_max_s: float = Field(default=30.0, gt=0)
+    reconnect_initial_s: float = Field(default=0.5, gt=0, le=3600)
+    reconnect_max_s: float = Field(default=30.0, gt=0, le=3600)
+    max_connections: int = Field(
+        default=16, ge=1, le=4096, description="tcp ?mode=listen only: connections held at once."
+    )
+    idle_timeout_s: float = Field(
+        default=30.0,
+        gt=0,
+        le=86400,
+        description="tcp ?mode=listen only: a connection silent this long is closed.",
+    )
+    allow_non_loopback: bool = Field(
+        default=False,
+        description="An unsecured link may listen beyond loopback only if this says so.",
+    )
 
     @property
     def label(self) -> str:
@@ -191,9 +205,12 @@ class AirframeConfig(BaseModel):
     id: str = Field(pattern=_ID)
     sysid: int = Field(ge=1, le=255, description="MAVLink system id.")
     links: tuple[LinkConfig, ...] = Field(min_length=1)
-    link_timeout_s: float = Field(default=3.0, gt=0)
+    link_timeout_s: float = Field(default=3.0, gt=0, le=3600)
     failback_hold_s: float = Field(
-        default=3.0, ge=0, description="A preferred link must be up this long to take over again."
+        default=3.0,
+        ge=0,
+        le=3600,
+        description="A preferred link must be up this long to take over again.",
     )
     dedup_window_s: float = Field(
         default=0.5,
@@ -210,6 +227,11 @@ class AirframeConfig(BaseModel):
         default=None,
         description="A plain local MAVLink endpoint (udp:// only) for QGroundControl, "
         "MAVProxy or MAVSDK; keep it on loopback.",
+    )
+    passthrough_allow_non_loopback: bool = Field(
+        default=False,
+        description="The passthrough is plain MAVLink: it may bind beyond loopback only if "
+        "this says so.",
     )
 
 
@@ -272,6 +294,12 @@ class HealthConfig(BaseModel):
     enabled: bool = True
     host: str = "127.0.0.1"
     port: int = Field(default=8765, ge=0, le=65535)
+    allow_non_loopback: bool = Field(
+        default=False,
+        description="/status and /metrics describe the fleet: binding beyond loopback must be "
+        "stated here.",
+    )
+    max_connections: int = Field(default=32, ge=1, le=1024)
 
 
 class GatewayConfig(BaseModel):

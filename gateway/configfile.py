@@ -3,24 +3,99 @@
 ``load_config`` reports every problem it finds, each as ``FILE:LINE key.path: what was
 expected, what was found``, by raising one ``ConfigError``: pydantic's validation errors,
 duplicate YAML keys, and the checks across items (duplicate sysids, routes naming sinks
-that do not exist, links whose security needs a key that is not configured ...).
+that do not exist, links whose security needs a key that is not configured, listeners
+beyond loopback that the config does not say it wants ...).
+
+The file is input like any other, so reading it is bounded: at most ``MAX_CONFIG_BYTES``,
+nesting at most ``MAX_DEPTH`` deep, at most ``MAX_ALIASES`` aliases and ``MAX_NODES`` nodes
+once aliases are expanded (a 368-byte alias bomb expands to billions), each refused with
+the line where the limit was passed. A boolean where a number belongs (``port: true``) and
+a non-finite number (``.inf``, ``.nan``) are errors, not 1 and "never".
 """
 
 from __future__ import annotations
 
+import math
+import os
+import stat
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
+from types import UnionType
+from typing import Annotated, Any, Union, get_args, get_origin
 
 import yaml
-from pydantic import ValidationError
+from pydantic import BaseModel, ValidationError
 
 from gateway.config import Config
 from gateway.errors import ConfigError, ConfigIssue, SinkLoadError
 
-__all__ = ["SinkChecker", "format_loc", "load_config", "load_config_text"]
+__all__ = [
+    "MAX_ALIASES",
+    "MAX_CONFIG_BYTES",
+    "MAX_DEPTH",
+    "MAX_NODES",
+    "SinkChecker",
+    "format_loc",
+    "is_loopback_host",
+    "load_config",
+    "load_config_text",
+]
 
 Loc = tuple[str | int, ...]
+
+#: Largest config file read; a brigade's config is a few kilobytes.
+MAX_CONFIG_BYTES = 1024 * 1024
+#: Deepest nesting of mappings and sequences.
+MAX_DEPTH = 32
+#: Most aliases (``*name``) in one document.
+MAX_ALIASES = 256
+#: Most nodes once every alias is expanded.
+MAX_NODES = 200_000
+
+
+class _TooBig(Exception):
+    """A limit of the loader was passed at ``line``."""
+
+    def __init__(self, line: int, message: str) -> None:
+        super().__init__(message)
+        self.line = line
+        self.message = message
+
+
+class _BoundedLoader(yaml.SafeLoader):
+    """PyYAML's safe loader with the nesting depth and alias count bounded while composing."""
+
+    def __init__(self, stream: str) -> None:
+        super().__init__(stream)
+        self._depth = 0
+        self._aliases = 0
+
+    def compose_node(self, parent: yaml.Node | None, index: int) -> yaml.Node | None:
+        event = self.peek_event()  # type: ignore[no-untyped-call]
+        line = event.start_mark.line + 1 if event.start_mark is not None else 0
+        if isinstance(event, yaml.AliasEvent):
+            self._aliases += 1
+            if self._aliases > MAX_ALIASES:
+                raise _TooBig(line, f"more than {MAX_ALIASES} aliases in one document")
+        self._depth += 1
+        try:
+            if self._depth > MAX_DEPTH:
+                raise _TooBig(line, f"nested more than {MAX_DEPTH} levels deep")
+            return super().compose_node(parent, index)
+        finally:
+            self._depth -= 1
+
+
+def is_loopback_host(host: str) -> bool:
+    """True for ``localhost``, 127.0.0.0/8 and ::1; False for wildcards and other names."""
+    if host == "localhost":
+        return True
+    try:
+        from ipaddress import ip_address
+
+        return ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
 
 
 def format_loc(loc: Loc) -> str:
@@ -40,8 +115,18 @@ class _Lines:
     def __init__(self) -> None:
         self.by_loc: dict[Loc, int] = {(): 1}
         self.duplicates: list[tuple[Loc, int]] = []
+        self.nodes = 0
 
     def walk(self, node: yaml.Node, loc: Loc) -> None:
+        self.nodes += 1
+        if self.nodes > MAX_NODES:
+            # Report the top-level key being expanded: an aliased node's own mark points
+            # back at its anchor, far from where the expansion happens.
+            line = self.by_loc.get(loc[:1], node.start_mark.line + 1)
+            where = f"'{loc[0]}'" if loc else "the document"
+            raise _TooBig(
+                line, f"{where} expands to more than {MAX_NODES} nodes (aliases of aliases?)"
+            )
         self.by_loc.setdefault(loc, node.start_mark.line + 1)
         if isinstance(node, yaml.MappingNode):
             seen: set[str] = set()
@@ -225,23 +310,33 @@ def load_config_text(
     ``check_sink``, when given, also validates each sink's type and options (the plugin
     loader provides it), so those problems are reported with their lines too.
     """
+    if len(text) > MAX_CONFIG_BYTES:
+        message = f"{len(text)} characters; a config file is at most {MAX_CONFIG_BYTES}"
+        raise ConfigError([ConfigIssue(source, None, "(file)", message)])
+    lines = _Lines()
+    loader: _BoundedLoader | None = None
     try:
-        node = yaml.compose(text, Loader=yaml.SafeLoader)
-        data = yaml.safe_load(text)
+        loader = _BoundedLoader(text)
+        node = loader.get_single_node()
+        if node is not None:
+            lines.walk(node, ())
+        data = loader.construct_document(node) if node is not None else None
+    except _TooBig as exc:
+        raise ConfigError([ConfigIssue(source, exc.line, "(yaml)", exc.message)]) from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         line = mark.line + 1 if mark is not None else None
         problem = getattr(exc, "problem", None) or str(exc)
         issue = ConfigIssue(source, line, "(yaml)", f"not valid YAML: {problem}")
         raise ConfigError([issue]) from exc
+    finally:
+        if loader is not None:
+            loader.dispose()
     if data is None:
         data = {}
     if not isinstance(data, dict):
         issue = ConfigIssue(source, 1, "(top level)", "expected a mapping of sections")
         raise ConfigError([issue])
-    lines = _Lines()
-    if node is not None:
-        lines.walk(node, ())
     found: list[tuple[Loc, str]] = [
         (loc, "duplicate key; the later value would silently win") for loc, _ in lines.duplicates
     ]
@@ -250,8 +345,11 @@ def load_config_text(
         config = Config.model_validate(data)
     except ValidationError as exc:
         found.extend(_issues_from_validation(exc, ()))
+    reported = {loc for loc, _ in found}
+    found.extend(issue for issue in _number_checks(data, Config, ()) if issue[0] not in reported)
     found.extend(_cross_check(data))
     found.extend(_link_checks(data))
+    found.extend(_bind_checks(data))
     if check_sink is not None:
         found.extend(_sink_issues(data, check_sink))
     if found or config is None:
@@ -266,10 +364,140 @@ def load_config_text(
 
 
 def load_config(path: Path, *, check_sink: SinkChecker | None = None) -> Config:
-    """Read and validate the config file at ``path``; raise ``ConfigError`` naming its lines."""
+    """Read and validate the config file at ``path``; raise ``ConfigError`` naming its lines.
+
+    Refuses anything but a regular file of at most ``MAX_CONFIG_BYTES`` before reading it.
+    """
+    source = str(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
     except OSError as exc:
-        issue = ConfigIssue(str(path), None, "(file)", f"cannot read: {exc.strerror}")
+        issue = ConfigIssue(source, None, "(file)", f"cannot read: {exc.strerror}")
         raise ConfigError([issue]) from exc
-    return load_config_text(text, str(path), check_sink=check_sink)
+    with os.fdopen(fd, "rb") as handle:
+        info = os.fstat(fd)
+        problem = None
+        if not stat.S_ISREG(info.st_mode):
+            problem = "not a regular file"
+        elif info.st_size > MAX_CONFIG_BYTES:
+            problem = f"{info.st_size} bytes; a config file is at most {MAX_CONFIG_BYTES}"
+        if problem is not None:
+            raise ConfigError([ConfigIssue(source, None, "(file)", problem)])
+        raw = handle.read(MAX_CONFIG_BYTES + 1)
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        message = f"not UTF-8 text (byte {exc.start})"
+        raise ConfigError([ConfigIssue(source, None, "(file)", message)]) from exc
+    return load_config_text(text, source, check_sink=check_sink)
+
+
+def _number_checks(raw: object, expected: object, loc: Loc) -> Iterator[tuple[Loc, str]]:
+    """Non-finite numbers anywhere; booleans where the model's type is a number.
+
+    ``expected`` is the annotation the models give this position (walked from ``Config``),
+    so the check works even when validation failed elsewhere in the file.
+    """
+    if isinstance(raw, bool):
+        if _is_number_type(expected):
+            yield loc, f"expected a number, found the boolean {raw!r}"
+    elif isinstance(raw, float):
+        if not math.isfinite(raw):
+            yield loc, f"expected a finite number, found {raw!r}"
+    elif isinstance(raw, dict):
+        for key, value in raw.items():
+            yield from _number_checks(value, _child_type(expected, key), (*loc, str(key)))
+    elif isinstance(raw, list):
+        item = _child_type(expected, 0)
+        for index, value in enumerate(raw):
+            yield from _number_checks(value, item, (*loc, index))
+
+
+def _unwrap(annotation: object) -> list[object]:
+    """The alternatives of an annotation, without Annotated, Optional and None."""
+    origin = get_origin(annotation)
+    if origin is Annotated:
+        return _unwrap(get_args(annotation)[0])
+    if origin in (Union, UnionType):
+        return [alt for arg in get_args(annotation) for alt in _unwrap(arg)]
+    return [] if annotation is type(None) else [annotation]
+
+
+def _is_number_type(annotation: object) -> bool:
+    alternatives = _unwrap(annotation)
+    return bool(alternatives) and all(alt in (int, float) for alt in alternatives)
+
+
+def _child_type(annotation: object, key: object) -> object:
+    """The annotation of the value under ``key`` of a value annotated ``annotation``."""
+    alternatives = _unwrap(annotation)
+    if len(alternatives) != 1:
+        return None
+    (kind,) = alternatives
+    if isinstance(kind, type) and issubclass(kind, BaseModel):
+        field = kind.model_fields.get(key) if isinstance(key, str) else None
+        return None if field is None else field.annotation
+    origin, args = get_origin(kind), get_args(kind)
+    if origin in (tuple, list) and args:
+        return args[0]
+    if origin is dict and len(args) == 2:
+        return args[1]
+    return None
+
+
+def _bind_checks(data: dict[str, Any]) -> Iterator[tuple[Loc, str]]:
+    """Plain-MAVLink and status listeners beyond loopback only where the config says so."""
+    health = data.get("health")
+    if isinstance(health, dict) and health.get("enabled", True):
+        host = health.get("host", "127.0.0.1")
+        if (
+            isinstance(host, str)
+            and not is_loopback_host(host)
+            and not health.get("allow_non_loopback")
+        ):
+            yield (
+                ("health", "host"),
+                f"{host!r} is beyond loopback: /status and /metrics describe the fleet; "
+                "add health.allow_non_loopback: true if that is intended",
+            )
+    airframes = data.get("airframes")
+    for i, airframe in enumerate(airframes if isinstance(airframes, list) else ()):
+        if not isinstance(airframe, dict):
+            continue
+        host = _uri_host(airframe.get("passthrough"))
+        exposed = host is not None and not is_loopback_host(host)
+        if exposed and not airframe.get("passthrough_allow_non_loopback"):
+            yield (
+                ("airframes", i, "passthrough"),
+                f"{host!r} is beyond loopback and the passthrough is plain MAVLink (anyone "
+                "who reaches it can command the airframe); add "
+                "passthrough_allow_non_loopback: true if that is intended",
+            )
+        links = airframe.get("links")
+        for j, link in enumerate(links if isinstance(links, list) else ()):
+            if not isinstance(link, dict) or link.get("security") != "unsecured":
+                continue
+            uri = link.get("uri")
+            host = _uri_host(uri)
+            listens = isinstance(uri, str) and (
+                (uri.startswith("udp://") and "mode=connect" not in uri) or "mode=listen" in uri
+            )
+            exposed = host is not None and listens and not is_loopback_host(host)
+            if exposed and not link.get("allow_non_loopback"):
+                yield (
+                    ("airframes", i, "links", j, "uri"),
+                    f"an unsecured link listening on {host!r} (beyond loopback) accepts "
+                    "anyone's frames; add allow_non_loopback: true to this link if that "
+                    "is intended",
+                )
+
+
+def _uri_host(uri: object) -> str | None:
+    if not isinstance(uri, str) or not uri.startswith(("udp://", "tcp://")):
+        return None
+    try:
+        from urllib.parse import urlsplit
+
+        return urlsplit(uri).hostname
+    except ValueError:
+        return None

@@ -1,8 +1,10 @@
 """The HTTP health endpoint: /healthz, /readyz, /metrics and /status, on anyio sockets.
 
 A deliberately small, strict HTTP/1.1 server: GET and HEAD only, one request per connection,
-the request head bounded (8 KiB, 64 header lines), at most 32 connections served at once and
-each under a 5 s deadline, so a slow or hostile client cannot tie it up. Anything it does not
+the request head bounded (8 KiB, 64 header lines), at most 32 connections held at once (more
+are closed as soon as they are accepted, see ``gateway.listener``) and each under a 5 s
+deadline, so a slow or hostile client cannot tie it up nor exhaust the daemon's descriptors;
+rejections are counted and logged at most once a minute per reason. Anything it does not
 understand is refused with 400 rather than guessed at. It binds to 127.0.0.1 unless the
 config says otherwise.
 """
@@ -19,6 +21,8 @@ import anyio.abc
 import structlog
 
 from gateway.errors import LinkUnavailable
+from gateway.listener import ListenerStats, serve_tcp
+from gateway.logsetup import RateLimit
 from gateway.metrics import Registry
 
 __all__ = ["HealthServer"]
@@ -29,6 +33,7 @@ MAX_HEAD_BYTES = 8192
 MAX_HEADERS = 64
 MAX_CONNECTIONS = 32
 CONNECTION_DEADLINE_S = 5.0
+_LOG_INTERVAL_S = 60.0
 # After answering, read and discard what the client still sends (up to this much, for up to
 # this long) before closing: closing with unread input makes the kernel send a reset, which
 # can destroy the response (a 431 above all) before the client reads it.
@@ -78,13 +83,15 @@ class HealthServer:
         registry: Registry,
         status: Callable[[], Mapping[str, Any]],
         is_ready: Callable[[], bool],
+        max_connections: int = MAX_CONNECTIONS,
     ) -> None:
         self.host = host
         self.port = port
         self._registry = registry
         self._status = status
         self._is_ready = is_ready
-        self._limiter = anyio.CapacityLimiter(MAX_CONNECTIONS)
+        self.stats = ListenerStats("health", max_connections)
+        self._log_limit = RateLimit(interval_s=_LOG_INTERVAL_S)
         self.rejected = 0
         """Requests refused with 400, 405 or 431, or that timed out."""
 
@@ -105,18 +112,29 @@ class HealthServer:
             port = int(listener.extra(anyio.abc.SocketAttribute.local_port))
             log.info("health_listening", host=self.host, port=port)
             task_status.started(port)
-            await listener.serve(self._handle)
+            await serve_tcp(
+                listener,
+                self._handle,
+                name="health",
+                max_connections=self.stats.max_connections,
+                stats=self.stats,
+            )
+
+    def _reject_logged(self, reason: str) -> bool:
+        self.rejected += 1
+        return self._log_limit.allow(reason)
 
     async def _handle(self, stream: anyio.abc.SocketStream) -> None:
         peer = _peer(stream)
         async with stream:
             try:
                 with anyio.fail_after(CONNECTION_DEADLINE_S):
-                    async with self._limiter:
-                        await self._serve_one(stream, peer)
+                    await self._serve_one(stream, peer)
             except TimeoutError:
-                self.rejected += 1
-                log.warning("health_request_rejected", reason="timeout", peer=peer)
+                if self._reject_logged("timeout"):
+                    log.warning(
+                        "health_request_rejected", reason="timeout", peer=peer, total=self.rejected
+                    )
             except (anyio.BrokenResourceError, anyio.ClosedResourceError, OSError):
                 # The client went away mid-exchange; there is nobody left to answer.
                 log.debug("health_connection_lost", peer=peer)
@@ -127,13 +145,25 @@ class HealthServer:
         except anyio.EndOfStream:
             return  # a bare connect-and-close, as TCP health checks do
         except _Rejected as exc:
-            self.rejected += 1
-            log.warning("health_request_rejected", reason=exc.reason, code=exc.code, peer=peer)
+            if self._reject_logged(exc.reason):
+                log.warning(
+                    "health_request_rejected",
+                    reason=exc.reason,
+                    code=exc.code,
+                    peer=peer,
+                    total=self.rejected,
+                )
             await _respond(stream, exc.code, f"{exc.reason}\n".encode(), _TEXT, head_only=False)
             return
         if method not in (b"GET", b"HEAD"):
-            self.rejected += 1
-            log.warning("health_request_rejected", reason="method", code=405, peer=peer)
+            if self._reject_logged("method"):
+                log.warning(
+                    "health_request_rejected",
+                    reason="method",
+                    code=405,
+                    peer=peer,
+                    total=self.rejected,
+                )
             body = b"only GET and HEAD\n"
             await _respond(stream, 405, body, _TEXT, head_only=False, allow=True)
             return

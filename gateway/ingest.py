@@ -1,11 +1,23 @@
 """From bytes on a link to events on the bus: authenticate, parse, demultiplex, de-duplicate.
 
 ``Ingest.on_data`` is the per-chunk hot path. It is synchronous and never raises: bytes that
-do not authenticate or parse are counted by reason and logged (rate-limited); a frame from
-an unknown system id is counted and logged once per sysid; a frame that already arrived on
-another link of the same airframe is delivered once. What is left becomes Telemetry, goes
-to the airframe's passthrough if it has one, and updates link health (``linkhealth``).
-Telemetry snapshots are coalesced per pass of the event loop (see ``flush``).
+do not authenticate or parse are counted by reason and logged (rate-limited: at most one
+line per link and reason every ``REJECT_LOG_INTERVAL_S``).
+
+A frame is attributed to an airframe only when it arrives on a link *configured for that
+airframe* and passes that link's security: on a tunnel link the key that sealed it names
+the airframe; on a signed link the airframe's signing key must verify it; on an unsecured
+link its sysid must be one of the airframes configured on that link. Anything else is
+counted with a reason (``foreign_link``, ``unknown_sysid``, ``auth`` ...) and dropped; no
+link is ever added to an airframe at run time. The peer that last authenticated for an
+airframe on a link is remembered, and it is the only peer uplink traffic goes to
+(``peer_for``). A frame that already arrived on another link of the same airframe is
+delivered once. What is left becomes Telemetry, goes to the airframe's passthrough if it has
+one, and updates link health (``linkhealth``). Telemetry snapshots are coalesced per pass of
+the event loop (see ``flush``).
+
+State per sender is bounded: a datagram link keeps one parser for the whole link (each
+datagram is parsed on its own), a stream link one per connection (the listener caps them).
 """
 
 from __future__ import annotations
@@ -43,6 +55,8 @@ log = structlog.get_logger(__name__)
 
 _SIGNED_V2 = 0xFD
 _DEDUP_PRUNE_EVERY = 1024
+#: Seconds between two log lines for the same link and rejection reason.
+REJECT_LOG_INTERVAL_S = 10.0
 
 
 @dataclass(slots=True)
@@ -56,6 +70,9 @@ class LinkIntake:
     parsers: dict[object, MavlinkParser] = field(default_factory=dict)
     deframers: dict[object, StreamDeframer] = field(default_factory=dict)
     counters: tuple[CounterChild, CounterChild, CounterChild] | None = None
+    airframes: dict[int, _Airframe] = field(default_factory=dict)
+    """The airframes configured on this link, by sysid: the only ones it may speak for."""
+    datagram_parser: MavlinkParser | None = None
 
 
 @dataclass(slots=True)
@@ -63,10 +80,13 @@ class _Airframe:
     config: AirframeConfig
     state: AirframeState
     health: LinkHealth
+    labels: frozenset[str] = frozenset()
     verifier: SigningVerifier | None = None
     passthrough: Callable[[bytes], None] | None = None
     recent: dict[bytes, float] = field(default_factory=dict)
     inserts: int = 0
+    peers: dict[str, object] = field(default_factory=dict)
+    """Per link label, the peer that last sent an authenticated frame of this airframe."""
 
 
 class Ingest:
@@ -94,14 +114,15 @@ class Ingest:
             enrichment = Enrichment(cfg.energy, cfg.ew_mode, terrain, baro_sigma_m)
             state = AirframeState(cfg.id, clock, enrichment)
             health = LinkHealth(cfg, publish, clock, instruments, on_active=state.set_active_link)
-            airframe = _Airframe(cfg, state, health, (verifiers or {}).get(cfg.sysid))
+            labels = frozenset(link.label for link in cfg.links)
+            airframe = _Airframe(cfg, state, health, labels, (verifiers or {}).get(cfg.sysid))
             self._by_sysid[cfg.sysid] = airframe
             self._by_id[cfg.id] = airframe
         self._intakes: dict[str, LinkIntake] = {}
         self._unknown_sysids: set[int] = set()
         self._dirty: dict[str, _Airframe] = {}
         self._flush_pending = False
-        self._reject_log = RateLimit(interval_s=10.0)
+        self._reject_log = RateLimit(interval_s=REJECT_LOG_INTERVAL_S)
 
     def register_link(self, intake: LinkIntake) -> None:
         """Declare a link endpoint before it delivers data."""
@@ -112,6 +133,9 @@ class Ingest:
             inst.link_chunks.labels(label),
             inst.link_frames.labels(label),
         )
+        intake.airframes = {a.config.sysid: a for a in self._by_sysid.values() if label in a.labels}
+        if not intake.is_stream:
+            intake.datagram_parser = MavlinkParser(max_chunk_bytes=intake.max_chunk_bytes)
         self._intakes[label] = intake
 
     def set_passthrough(self, airframe: str, forward: Callable[[bytes], None]) -> None:
@@ -121,23 +145,31 @@ class Ingest:
     def forget_peer(self, label: str, peer: object) -> None:
         """Drop the per-peer state of a closed stream connection."""
         intake = self._intakes.get(label)
-        if intake is not None:
-            intake.parsers.pop(peer, None)
-            intake.deframers.pop(peer, None)
+        if intake is None:
+            return
+        intake.deframers.pop(peer, None)
+        for key in [k for k in intake.parsers if k == peer or (type(k) is tuple and k[0] == peer)]:
+            del intake.parsers[key]
+        for airframe in intake.airframes.values():
+            if airframe.peers.get(label) == peer:
+                del airframe.peers[label]
 
     def on_data(self, label: str, peer: object, data: bytes) -> None:
         """Take one datagram or stream read from link ``label``; never raises."""
-        intake = self._intakes[label]
+        intake = self._intakes.get(label)
+        if intake is None or intake.counters is None:
+            return  # not a registered link: nothing to attribute it to
         counters = intake.counters
-        assert counters is not None  # noqa: S101 - set by register_link
         counters[0].value += len(data)
         counters[1].value += 1
         if intake.security != "tunnel":
             for msg in self._parse(intake, peer, data):
-                self._frame(intake, msg, None)
+                self._frame(intake, peer, msg, None)
             return
         opener = self._opener
-        assert opener is not None  # noqa: S101 - config guarantees a key for tunnel links
+        if opener is None:
+            self._rejected(label, "auth", "tunnel link without a tunnel key")
+            return
         if intake.is_stream:
             deframer = intake.deframers.get(peer)
             if deframer is None:
@@ -156,39 +188,57 @@ class Ingest:
         now = self._clock() if opened else None
         for frame in opened:
             airframe = self._by_id.get(frame.airframe)
-            if airframe is None:  # the opener only knows configured airframes
+            if airframe is None or label not in airframe.labels:
+                # A valid key, but this link is not one of that airframe's links.
+                self._rejected(label, "foreign_link", f"{frame.airframe} is not configured here")
                 continue
             if now is not None:
                 latency_s = (now - frame.sent).total_seconds()
                 self._inst.link_latency.labels(frame.airframe, label).observe(max(latency_s, 0.0))
                 airframe.health.latency(label, latency_s)
-            for msg in self._parse(intake, (peer, frame.airframe), frame.payload):
-                self._frame(intake, msg, airframe)
+            # The key authenticated the datagram, so the sender is this airframe's peer.
+            key = frame.airframe if not intake.is_stream else (peer, frame.airframe)
+            for msg in self._parse(intake, key, frame.payload):
+                self._frame(intake, peer, msg, airframe)
 
     def _parse(self, intake: LinkIntake, peer: object, data: bytes) -> list[MavMessage]:
-        parser = intake.parsers.get(peer)
+        parser = intake.datagram_parser
         if parser is None:
-            parser = intake.parsers[peer] = MavlinkParser(max_chunk_bytes=intake.max_chunk_bytes)
-        bad_before = parser.bad
+            parser = intake.parsers.get(peer)
+            if parser is None:
+                parser = MavlinkParser(max_chunk_bytes=intake.max_chunk_bytes)
+                intake.parsers[peer] = parser
+        bad, unknown, truncated = parser.bad, parser.unknown, parser.truncated
         try:
-            messages = parser.feed(data)
+            messages = parser.feed(data, whole=intake.datagram_parser is not None)
         except FrameError as exc:
             self._rejected(intake.label, exc.reason, str(exc))
             return []
-        if parser.bad != bad_before:
-            self._rejected(intake.label, "malformed", "bad MAVLink frame", parser.bad - bad_before)
+        label = intake.label
+        if parser.bad != bad:
+            self._rejected(label, "malformed", "bad MAVLink frame", parser.bad - bad)
+        if parser.truncated != truncated:
+            self._rejected(label, "truncated", "datagram ended inside a frame")
+        if parser.unknown != unknown:
+            self._inst.link_ignored.labels(label, "unknown_msgid").inc(parser.unknown - unknown)
         return messages
 
-    def _frame(self, intake: LinkIntake, msg: MavMessage, sealed_by: _Airframe | None) -> None:
+    def _frame(
+        self, intake: LinkIntake, peer: object, msg: MavMessage, sealed_by: _Airframe | None
+    ) -> None:
         label = intake.label
-        intake.counters[2].value += 1  # type: ignore[index]
         sysid = msg.get_srcSystem()
-        airframe = self._by_sysid.get(sysid)
+        airframe = intake.airframes.get(sysid)
         if airframe is None:
-            self._inst.link_ignored.labels(label, "unknown_sysid").inc()
-            if sysid not in self._unknown_sysids:
-                self._unknown_sysids.add(sysid)
-                log.info("unknown_sysid_heard", link=label, sysid=sysid)
+            if sysid in self._by_sysid:
+                # A configured airframe's sysid on a link not configured for it: impersonation
+                # or a wiring mistake, and never attributed either way.
+                self._rejected(label, "foreign_link", f"sysid {sysid} is not configured here")
+            else:
+                self._inst.link_ignored.labels(label, "unknown_sysid").inc()
+                if len(self._unknown_sysids) < 256 and sysid not in self._unknown_sysids:
+                    self._unknown_sysids.add(sysid)
+                    log.info("unknown_sysid_heard", link=label, sysid=sysid)
             return
         if sealed_by is not None and sealed_by is not airframe:
             # A tunnel key proves who sealed the frame: it may not speak for another sysid.
@@ -197,12 +247,16 @@ class Ingest:
         buf = msg.get_msgbuf()
         if intake.security == "signed":
             verifier = airframe.verifier
-            assert verifier is not None  # noqa: S101 - config guarantees signing for signed links
+            if verifier is None:
+                self._rejected(label, "auth", f"{airframe.config.id} has no signing key")
+                return
             try:
                 verifier.verify(bytes(buf))
             except FrameError as exc:
                 self._rejected(label, exc.reason, str(exc))
                 return
+        intake.counters[2].value += 1  # type: ignore[index]
+        airframe.peers[label] = peer
         now_mono = time.monotonic()
         airframe.health.heard(label, msg.get_srcComponent(), msg.get_seq(), now_mono)
         if len(airframe.health.links) > 1 and self._duplicate(airframe, buf, now_mono):
@@ -271,6 +325,15 @@ class Ingest:
     def active_link(self, airframe: str) -> str | None:
         """The label of the link commands to ``airframe`` should go out on."""
         return self._by_id[airframe].health.active
+
+    def peer_for(self, airframe: str, label: str) -> object | None:
+        """The peer on link ``label`` that last sent an authenticated frame of ``airframe``."""
+        return self._by_id[airframe].peers.get(label)
+
+    def is_configured(self, airframe: str, label: str) -> bool:
+        """True if link ``label`` is one of ``airframe``'s configured links."""
+        known = self._by_id.get(airframe)
+        return known is not None and label in known.labels
 
     def status(self) -> list[dict[str, object]]:
         """Per airframe: its links with health, for /status."""

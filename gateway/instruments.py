@@ -22,16 +22,19 @@ class Instruments:
             "fg_link_chunks_total", "Datagrams or stream reads from a link.", ("link",)
         )
         self.link_frames = r.counter(
-            "fg_link_frames_total", "Good MAVLink frames read from a link.", ("link",)
+            "fg_link_frames_total",
+            "MAVLink frames accepted from a link (attributed and authenticated).",
+            ("link",),
         )
         self.link_ignored = r.counter(
             "fg_link_frames_ignored_total",
-            "Good frames not used, by reason (unknown_sysid, unknown_msgid).",
+            "Good frames not used, by reason (unknown_sysid, unknown_msgid, duplicate).",
             ("link", "reason"),
         )
         self.link_rejected = r.counter(
             "fg_link_frames_rejected_total",
-            "Bytes that did not become a frame, by reason (malformed, oversize, auth, replay).",
+            "Frames refused, by reason (malformed, truncated, oversize, auth, replay, "
+            "foreign_link: a configured airframe's sysid or key on a link not configured for it).",
             ("link", "reason"),
         )
         self.link_loss = r.gauge(
@@ -82,6 +85,16 @@ class Instruments:
             ("sink",),
         )
         self.sink_open = r.gauge("fg_sink_open", "1 while a sink is open and healthy.", ("sink",))
+        self.uplink_frames = r.counter(
+            "fg_uplink_sends_total",
+            "Sends to an airframe (passthrough, commands), per airframe and link.",
+            ("airframe", "link"),
+        )
+        self.uplink_refused = r.counter(
+            "fg_uplink_refused_total",
+            "Sends to an airframe refused, by reason (no_link, no_peer, unsignable, send_failed).",
+            ("airframe", "reason"),
+        )
         self.link_latency = r.histogram(
             "fg_link_latency_seconds",
             "Airframe to gateway, from the tunnel's send time (needs both clocks on GPS/NTP).",

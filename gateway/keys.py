@@ -23,17 +23,41 @@ def _problem(path: Path, message: str) -> ConfigError:
     return ConfigError([ConfigIssue(str(path), None, "(key file)", message)])
 
 
-def read_key_file(path: Path, *, min_bytes: int = 32, exact: bool = False) -> bytes:
-    """Read a key from ``path``: raw bytes or hex text; refuse group/world-readable files."""
+#: Largest key file read: a key is 32 bytes, or 64 hex digits and a newline.
+MAX_KEY_FILE_BYTES = 4096
+
+
+def _read_small_file(path: Path, what: str, *, check_mode: bool) -> bytes:
+    """Read a regular file of at most ``MAX_KEY_FILE_BYTES``, checked *before* reading."""
     try:
-        info = path.stat()
-        data = path.read_bytes()
+        # O_NONBLOCK: opening a FIFO someone put in the key's place must not hang start-up.
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
     except OSError as exc:
-        raise _problem(path, f"cannot read key file: {exc.strerror}") from exc
-    if info.st_mode & (stat.S_IRWXG | stat.S_IRWXO):
-        raise _problem(
-            path, f"key file mode is {stat.S_IMODE(info.st_mode):o}; expected 600 or stricter"
-        )
+        raise _problem(path, f"cannot read {what}: {exc.strerror}") from exc
+    with os.fdopen(fd, "rb") as handle:
+        info = os.fstat(fd)
+        if not stat.S_ISREG(info.st_mode):
+            raise _problem(path, f"{what} is not a regular file")
+        if check_mode and info.st_mode & (stat.S_IRWXG | stat.S_IRWXO):
+            mode = stat.S_IMODE(info.st_mode)
+            raise _problem(path, f"{what} mode is {mode:o}; expected 600 or stricter")
+        if info.st_size > MAX_KEY_FILE_BYTES:
+            raise _problem(
+                path, f"{what} is {info.st_size} bytes; a key file is at most {MAX_KEY_FILE_BYTES}"
+            )
+        try:
+            return handle.read(MAX_KEY_FILE_BYTES + 1)
+        except OSError as exc:
+            raise _problem(path, f"cannot read {what}: {exc.strerror}") from exc
+
+
+def read_key_file(path: Path, *, min_bytes: int = 32, exact: bool = False) -> bytes:
+    """Read a key from ``path``: raw bytes or hex text.
+
+    Refuses, before reading a byte, anything but a regular file, a file group or others may
+    access, and a file over ``MAX_KEY_FILE_BYTES``.
+    """
+    data = _read_small_file(path, "key file", check_mode=True)
     text = data.strip()
     try:
         key = bytes.fromhex(text.decode("ascii")) if text else b""
@@ -63,10 +87,7 @@ def read_credential(name: str, env: Mapping[str, str] | None = None) -> bytes:
         )
     # systemd makes credential files readable by the service only; no mode check needed.
     path = Path(directory) / name
-    try:
-        data = path.read_bytes()
-    except OSError as exc:
-        raise _problem(path, f"cannot read credential: {exc.strerror}") from exc
+    data = _read_small_file(path, "credential", check_mode=False)
     text = data.strip()
     try:
         return bytes.fromhex(text.decode("ascii"))

@@ -22,8 +22,6 @@ from gateway.normalise import Clock
 __all__ = ["AirframeLink", "LinkHealth"]
 
 _BOOT_ID = secrets.token_hex(4)
-#: Priority given to a link an airframe is heard on that its config does not list.
-_UNLISTED_PRIORITY = 1000
 
 
 @dataclass(slots=True)
@@ -76,8 +74,7 @@ class LinkHealth:
         """Record one authenticated frame from component ``compid`` on link ``label``."""
         link = self.links.get(label)
         if link is None:
-            # A shared socket can carry an airframe on a link not listed for it: track it last.
-            link = self.links[label] = AirframeLink(label, _UNLISTED_PRIORITY)
+            return  # ingest attributes frames only on configured links; never add one here
         last = link.last_seq.get(compid)
         if last is not None:
             gap = (seq - last - 1) & 0xFF

@@ -2,7 +2,10 @@
 
 Each link reads bytes and hands them, with a peer key, to ``on_data``; a stream peer that
 goes away is reported to ``on_close`` so its parser is dropped. Links bound by several
-airframes (one UDP port for a fleet) are opened once and demultiplexed by sysid later.
+airframes (one UDP port for a fleet) are opened once and demultiplexed later, by ingest,
+among the airframes configured on them. A link does not decide who its peers are: ingest
+records the peer that authenticated for an airframe, and uplink goes to that peer only
+(``send_to``). A TCP server link caps its connections and closes one that stays silent.
 
 Every link is a component with ``run(task_status=...)``: it reports started once its socket
 is bound (or, for clients, once the first connection attempt has been made, so a dead
@@ -16,6 +19,7 @@ import asyncio
 import os
 import random
 import socket
+from collections import OrderedDict
 from collections.abc import Callable
 
 import anyio
@@ -24,6 +28,8 @@ import structlog
 
 from gateway.config import Endpoint, LinkConfig
 from gateway.errors import LinkClosed, LinkUnavailable
+from gateway.listener import serve_tcp
+from gateway.logsetup import RateLimit
 
 __all__ = ["DataHandler", "Link", "make_link"]
 
@@ -61,6 +67,13 @@ class Link:
         """Send ``data`` to the peer(s); raise ``LinkError`` if there is none."""
         raise NotImplementedError
 
+    async def send_to(self, peer: object, data: bytes) -> None:
+        """Send ``data`` to ``peer`` only (a key ``on_data`` reported); raise ``LinkError``.
+
+        Links with one peer (a client, a device) ignore ``peer``.
+        """
+        await self.send(data)
+
     def status(self) -> dict[str, object]:
         """The link's state for /status."""
         return {
@@ -80,20 +93,55 @@ class _DatagramProtocol(asyncio.DatagramProtocol):
         self.link = link
 
     def datagram_received(self, data: bytes, addr: tuple[str, int]) -> None:
-        self.link.peers.add(addr)
-        self.link.on_data(self.link.label, addr, data)
+        link = self.link
+        if link.max_learned_peers:
+            link.learn_peer(addr)
+        link.on_data(link.label, addr, data)
 
     def error_received(self, exc: Exception) -> None:
-        self.link.log.warning("udp_error_received", error=str(exc))
+        # Typically ICMP port unreachable for a peer that went away: one per datagram sent,
+        # so it is counted and logged at most once per interval.
+        link = self.link
+        link.send_errors += 1
+        if link.error_log.allow(type(exc).__name__):
+            link.log.warning("udp_error_received", error=str(exc), errors_total=link.send_errors)
+
+
+_ERROR_LOG_INTERVAL_S = 60.0
 
 
 class UdpLink(Link):
-    """UDP: ``listen`` binds HOST:PORT and answers whoever sent; ``connect`` sends to it."""
+    """UDP: ``listen`` binds HOST:PORT; ``connect`` sends to it.
 
-    def __init__(self, config: LinkConfig, on_data: DataHandler, on_close: CloseHandler) -> None:
+    A listening link sends only to peers it is told (``send_to``), except when built with
+    ``max_learned_peers`` (the passthrough): then it remembers that many most recent senders
+    and ``send_nowait`` reaches them.
+    """
+
+    def __init__(
+        self,
+        config: LinkConfig,
+        on_data: DataHandler,
+        on_close: CloseHandler,
+        *,
+        max_learned_peers: int = 0,
+    ) -> None:
         super().__init__(config, on_data, on_close)
-        self.peers: set[tuple[str, int]] = set()
+        self.max_learned_peers = max_learned_peers
+        self.peers: OrderedDict[tuple[str, int], None] = OrderedDict()
+        self.send_errors = 0
+        self.error_log = RateLimit(interval_s=_ERROR_LOG_INTERVAL_S)
         self._transport: asyncio.DatagramTransport | None = None
+
+    def learn_peer(self, addr: tuple[str, int]) -> None:
+        """Remember ``addr`` as the most recent sender, forgetting the oldest beyond the cap."""
+        peers = self.peers
+        if addr in peers:
+            peers.move_to_end(addr)
+            return
+        peers[addr] = None
+        if len(peers) > self.max_learned_peers:
+            peers.popitem(last=False)
 
     async def run(
         self, *, task_status: anyio.abc.TaskStatus[None] = anyio.TASK_STATUS_IGNORED
@@ -159,16 +207,38 @@ class UdpLink(Link):
             for peer in self.peers:
                 transport.sendto(data, peer)
 
+    async def send_to(self, peer: object, data: bytes) -> None:
+        transport = self._transport
+        if transport is None:
+            raise LinkUnavailable(self.label, "not open")
+        if self.endpoint.mode == "connect":
+            transport.sendto(data)
+        elif not isinstance(peer, tuple):
+            raise LinkUnavailable(self.label, "no authenticated peer to send to")
+        else:
+            transport.sendto(data, peer)
+
 
 class _StreamLink(Link):
     """Shared read loop of TCP and serial streams."""
 
-    async def _pump(self, stream: anyio.abc.ByteReceiveStream, peer: object) -> None:
+    async def _pump(
+        self,
+        stream: anyio.abc.ByteReceiveStream,
+        peer: object,
+        *,
+        idle_timeout_s: float = float("inf"),
+    ) -> None:
         try:
             while True:
                 try:
-                    data = await stream.receive(_READ_CHUNK)
-                except (anyio.EndOfStream, anyio.BrokenResourceError) as exc:
+                    with anyio.fail_after(idle_timeout_s):
+                        data = await stream.receive(_READ_CHUNK)
+                except TimeoutError as exc:
+                    raise LinkClosed(
+                        self.label, f"peer {peer} silent for {idle_timeout_s} s"
+                    ) from exc
+                except (anyio.EndOfStream, anyio.BrokenResourceError, OSError) as exc:
                     raise LinkClosed(self.label, f"peer {peer} closed the stream") from exc
                 self.on_data(self.label, peer, data)
         finally:
@@ -226,12 +296,19 @@ class TcpClientLink(_StreamLink):
 
 
 class TcpServerLink(_StreamLink):
-    """TCP server: each accepted connection is a peer with its own parser."""
+    """TCP server: each accepted connection is a peer with its own parser.
+
+    At most ``max_connections`` at once (more are closed on accept); a connection silent for
+    ``idle_timeout_s`` is closed, so half-open or hostile connections cannot pile up.
+    """
 
     def __init__(self, config: LinkConfig, on_data: DataHandler, on_close: CloseHandler) -> None:
         super().__init__(config, on_data, on_close)
         self._streams: dict[object, anyio.abc.SocketStream] = {}
         self.local_port = 0
+        self.max_connections = config.max_connections
+        self.idle_timeout_s = config.idle_timeout_s
+        self.refused = 0
 
     async def run(
         self, *, task_status: anyio.abc.TaskStatus[None] = anyio.TASK_STATUS_IGNORED
@@ -248,7 +325,12 @@ class TcpServerLink(_StreamLink):
         self.log.info("link_bound", uri=str(ep), port=self.local_port)
         task_status.started()
         async with listener:
-            await listener.serve(self._serve)
+            self.listener_stats = await serve_tcp(
+                listener,
+                self._serve,
+                name=self.label,
+                max_connections=self.max_connections,
+            )
 
     async def _serve(self, stream: anyio.abc.SocketStream) -> None:
         peer = stream.extra(anyio.abc.SocketAttribute.remote_address)
@@ -257,9 +339,9 @@ class TcpServerLink(_StreamLink):
         self.log.info("link_peer_connected", peer=str(peer))
         try:
             async with stream:
-                await self._pump(stream, peer)
-        except LinkClosed:
-            self.log.info("link_peer_closed", peer=str(peer))
+                await self._pump(stream, peer, idle_timeout_s=self.idle_timeout_s)
+        except LinkClosed as exc:
+            self.log.info("link_peer_closed", peer=str(peer), reason=str(exc))
         finally:
             self._streams.pop(peer, None)
 
@@ -268,6 +350,12 @@ class TcpServerLink(_StreamLink):
             raise LinkUnavailable(self.label, "no peer connected")
         for stream in list(self._streams.values()):
             await stream.send(data)
+
+    async def send_to(self, peer: object, data: bytes) -> None:
+        stream = self._streams.get(peer)
+        if stream is None:
+            raise LinkUnavailable(self.label, "the authenticated peer is no longer connected")
+        await stream.send(data)
 
 
 class SerialLink(Link):

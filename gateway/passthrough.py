@@ -25,6 +25,8 @@ __all__ = ["Passthrough"]
 log = structlog.get_logger(__name__)
 
 _UPLINK_QUEUE = 256
+#: Ground stations the passthrough answers at once (the most recent senders).
+MAX_GCS_PEERS = 4
 
 
 class Passthrough:
@@ -38,7 +40,9 @@ class Passthrough:
     ) -> None:
         self.airframe = airframe
         config = LinkConfig(uri=endpoint, security="unsecured", name=f"{airframe}-passthrough")
-        self.link = UdpLink(config, self._from_gcs, lambda _label, _peer: None)
+        self.link = UdpLink(
+            config, self._from_gcs, lambda _label, _peer: None, max_learned_peers=MAX_GCS_PEERS
+        )
         self._send_to_airframe = send_to_airframe
         self._send: MemoryObjectSendStream[bytes] | None = None
         self.downlink_frames = 0

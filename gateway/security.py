@@ -12,8 +12,9 @@ from dataclasses import dataclass, field
 from gateway.config import Config
 from gateway.deframe import frame_for_stream
 from gateway.keys import read_credential, read_key_file
+from gateway.mavlink import crc_extra, split_frames
 from gateway.normalise import Clock
-from gateway.signing import SigningVerifier
+from gateway.signing import OutboundSigner, SigningVerifier
 from gateway.tunnel import DayKeys, Sealer, TunnelOpener
 
 __all__ = ["Security"]
@@ -21,11 +22,12 @@ __all__ = ["Security"]
 
 @dataclass
 class Security:
-    """Tunnel opener and sealers, and MAVLink signing verifiers by sysid."""
+    """Tunnel opener and sealers, MAVLink signing verifiers by sysid and signers by airframe."""
 
     opener: TunnelOpener | None = None
     sealers: dict[str, Sealer] = field(default_factory=dict)
     verifiers: dict[int, SigningVerifier] = field(default_factory=dict)
+    signers: dict[str, OutboundSigner] = field(default_factory=dict)
 
     @classmethod
     def from_config(cls, config: Config, clock: Clock) -> Security:
@@ -56,13 +58,26 @@ class Security:
         for airframe in config.airframes:
             if airframe.signing is not None:
                 signing = airframe.signing
+                key = read_key_file(signing.key_file, exact=True)
                 security.verifiers[airframe.sysid] = SigningVerifier(
-                    read_key_file(signing.key_file, exact=True),
+                    key,
                     require_signed=signing.require_signed,
                     clock=time.time,
                     accept_unsigned_msgids=frozenset(signing.accept_unsigned_msgids),
                 )
+                security.signers[airframe.id] = OutboundSigner(
+                    key, crc_extra=crc_extra, clock=time.time
+                )
         return security
+
+    def sign(self, airframe: str, frames: bytes) -> bytes:
+        """Sign every MAVLink 2 frame in ``frames`` for ``airframe``; raise ``FrameError``.
+
+        Refuses (``Malformed``) MAVLink 1 frames, unknown message ids and trailing bytes:
+        nothing goes out on a signed link unsigned.
+        """
+        signer = self.signers[airframe]
+        return b"".join(signer.sign(frame) for frame in split_frames(frames))
 
     def seal(self, airframe: str, frames: bytes, *, stream: bool) -> bytes:
         """Seal outbound MAVLink ``frames`` for ``airframe`` (length-prefixed on streams)."""

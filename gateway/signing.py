@@ -19,6 +19,7 @@ from gateway.errors import AuthenticationFailed, Malformed, Replayed
 
 __all__ = [
     "SIGNATURE_BYTES",
+    "OutboundSigner",
     "SigningCounters",
     "SigningVerifier",
     "mavlink_timestamp_now",
@@ -79,6 +80,9 @@ class SigningVerifier:
         self._accept_unsigned = accept_unsigned_msgids
         self._streams: dict[tuple[int, int, int], int] = {}
         self._local_ts = 0
+        # Replay state lives in memory; a frame signed before this verifier existed could be
+        # a capture from before a restart, so no stream may start earlier (docs/tunnel.md).
+        self._started_ts = mavlink_timestamp_now(clock())
         self.counters = SigningCounters()
 
     def verify(self, frame: bytes) -> bool:
@@ -108,6 +112,9 @@ class SigningVerifier:
             if timestamp + _NEW_STREAM_LAG < now:
                 self.counters.replayed += 1
                 raise Replayed("new signing stream starts more than a minute in the past")
+            if timestamp < self._started_ts:
+                self.counters.replayed += 1
+                raise Replayed("signed before the gateway started (a replay across a restart?)")
         elif timestamp <= last:
             self.counters.replayed += 1
             raise Replayed("signing timestamp not newer than the stream's last")
@@ -115,6 +122,61 @@ class SigningVerifier:
         self._local_ts = max(self._local_ts, timestamp)
         self.counters.signed += 1
         return True
+
+
+class OutboundSigner:
+    """Signs MAVLink 2 frames the gateway sends to one airframe on a ``signed`` link.
+
+    A ground station on the passthrough sends unsigned frames; on a signed link they go out
+    signed with the airframe's key, never weaker than the link. ``sign`` needs the message's
+    CRC_EXTRA (to recompute the CRC once the signed flag is set) and refuses MAVLink 1
+    frames, which cannot carry a signature. Timestamps never repeat and never go back.
+    """
+
+    def __init__(
+        self,
+        key: bytes,
+        *,
+        crc_extra: Callable[[int], int | None],
+        clock: Callable[[], float],
+        link_id: int = 0,
+    ) -> None:
+        if len(key) != 32:
+            raise ValueError("a MAVLink signing key is 32 bytes")
+        self._key = key
+        self._crc_extra = crc_extra
+        self._clock = clock
+        self.link_id = link_id
+        self._last_ts = 0
+
+    def sign(self, frame: bytes) -> bytes:
+        """Return ``frame`` (one complete MAVLink 2 frame, signed or not) signed by us."""
+        if len(frame) < 12 or frame[0] != _STX_V2:
+            raise Malformed("only MAVLink 2 frames can be signed")
+        body_end = 10 + frame[1]
+        if len(frame) not in (body_end + 2, body_end + 2 + SIGNATURE_BYTES):
+            raise Malformed("frame length does not match its header")
+        extra = self._crc_extra(_msgid(frame))
+        if extra is None:
+            raise Malformed("unknown message id: its CRC cannot be recomputed")
+        head = bytearray(frame[:body_end])
+        head[2] |= _IFLAG_SIGNED
+        crc = _x25(bytes(head[1:]) + bytes([extra]))
+        timestamp = max(self._last_ts + 1, mavlink_timestamp_now(self._clock()))
+        self._last_ts = timestamp
+        return sign_frame(
+            bytes(head) + crc.to_bytes(2, "little"), self._key, self.link_id, timestamp
+        )
+
+
+def _x25(data: bytes) -> int:
+    """CRC-16/MCRF4XX, MAVLink's X.25 checksum."""
+    crc = 0xFFFF
+    for byte in data:
+        tmp = byte ^ (crc & 0xFF)
+        tmp = (tmp ^ (tmp << 4)) & 0xFF
+        crc = ((crc >> 8) ^ (tmp << 8) ^ (tmp << 3) ^ (tmp >> 4)) & 0xFFFF
+    return crc
 
 
 def _msgid(frame: bytes) -> int:

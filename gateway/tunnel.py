@@ -19,7 +19,9 @@ yesterday within the grace window after 00:00 UTC, or tomorrow within the clock-
 allowance; its ``sent_ms`` is within the freshness window of the receiver's clock; and its
 (session, counter) has not been seen (a sliding window per airframe, link and session).
 Sessions idle for longer than the freshness window are forgotten: their frames are too old
-to be accepted anyway, so forgetting them cannot re-open a replay.
+to be accepted anyway, so forgetting them cannot re-open a replay. The windows live in
+memory, so a frame sealed before the opener was made (before this process started) is
+refused too: a capture replayed after a restart finds no window to stop it otherwise.
 """
 
 from __future__ import annotations
@@ -55,7 +57,8 @@ MAX_ID_BYTES = 64
 _EPOCH = date(1970, 1, 1)
 _TAG = 16
 _NONCE = 12
-_FIXED = struct.Struct(">2sBHB")  # magic, version, key_day, id_len
+_FIXED = struct.Struct(">2sBHB")
+_PLAIN_MAVLINK = (0xFD, 0xFE)  # MAVLink 2 and 1 start bytes  # magic, version, key_day, id_len
 #: Bytes a sealed frame adds to its payload, for an airframe id of 8 bytes.
 OVERHEAD_BYTES = _FIXED.size + 8 + 6 + _NONCE + _TAG
 
@@ -226,6 +229,9 @@ class TunnelOpener:
         self.freshness_s = freshness_s
         self.max_frame_bytes = max_frame_bytes
         self._streams: dict[tuple[object, str], _Sessions] = {}
+        # The replay windows live in memory, so a frame sealed before this opener existed
+        # could be a capture from before a restart: refuse it (docs/tunnel.md, "Restarts").
+        self.started_ms = int(clock().timestamp() * 1000)
 
     def accepted_days(self, now: datetime) -> tuple[date, ...]:
         """The key days a frame may use at ``now``: today, plus neighbours near midnight."""
@@ -246,6 +252,8 @@ class TunnelOpener:
             raise Malformed("shorter than a tunnel header")
         magic, version, key_day, id_len = _FIXED.unpack_from(frame)
         if magic != MAGIC:
+            if frame[0] in _PLAIN_MAVLINK:
+                raise Malformed("plain MAVLink on a tunnel link (does the sender have its key?)")
             raise Malformed("not a tunnel frame (bad magic)")
         if version != VERSION:
             raise Malformed(f"tunnel version {version} is not supported")
@@ -282,6 +290,8 @@ class TunnelOpener:
         now_ms = int(now.timestamp() * 1000)
         if abs(now_ms - sent_ms) > self.freshness_s * 1000:
             raise Replayed("frame is older (or newer) than the freshness window")
+        if sent_ms < self.started_ms:
+            raise Replayed("frame sealed before the gateway started (a replay across a restart?)")
         if window is None:
             self._forget_idle(sessions, now_ms)
             window = ReplayWindow()

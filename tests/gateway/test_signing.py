@@ -41,7 +41,7 @@ def test_the_spec_digest_example_verifies() -> None:
 
 
 def test_pymavlink_signed_frames_are_accepted() -> None:
-    m, v = signer(), verifier()
+    v, m = verifier(), signer()
     assert all(v.verify(heartbeat(m)) for _ in range(10))
     assert v.counters.signed == 10
 
@@ -62,7 +62,7 @@ def test_unsigned_rejected_when_required_accepted_in_lab_mode() -> None:
 
 
 def test_replayed_frame_is_rejected() -> None:
-    m, v = signer(), verifier()
+    v, m = verifier(), signer()
     frame = heartbeat(m)
     v.verify(frame)
     with pytest.raises(Replayed):
@@ -71,7 +71,7 @@ def test_replayed_frame_is_rejected() -> None:
 
 def test_forged_huge_timestamp_does_not_lock_out_genuine_frames() -> None:
     """The pymavlink pitfall: a forged frame must not advance the stream's timestamp."""
-    genuine, v = signer(), verifier()
+    v, genuine = verifier(), signer()
     v.verify(heartbeat(genuine))
     forger = signer(key=bytes(32), ts=2**47)
     with pytest.raises(AuthenticationFailed):
@@ -102,3 +102,38 @@ def test_arbitrary_bytes_raise_only_frame_errors(blob: bytes) -> None:
         pass
     else:
         assert v.counters.signed == 1
+
+
+def test_frames_signed_before_the_verifier_started_are_replays() -> None:
+    """Replay state is in memory: a capture from before a restart must not pass after it."""
+    captured = heartbeat(signer())
+    time.sleep(0.001)
+    v = verifier()
+    with pytest.raises(Replayed, match="before the gateway started"):
+        v.verify(captured)
+    assert v.counters.replayed == 1
+    assert v.verify(heartbeat(signer())) is True
+
+
+def test_outbound_signer_output_verifies_in_pymavlink() -> None:
+    """What the gateway signs for a signed link, pymavlink's own signing check accepts."""
+    from gateway.mavlink import crc_extra
+    from gateway.signing import OutboundSigner
+
+    plain = mav.MAVLink(None, srcSystem=255, srcComponent=190)
+    command = bytes(plain.command_long_encode(1, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0).pack(plain))
+    out = OutboundSigner(KEY, crc_extra=crc_extra, clock=time.time, link_id=7)
+    signed = [out.sign(command) for _ in range(3)]
+    receiver = mav.MAVLink(None)
+    receiver.signing.secret_key = KEY
+    receiver.signing.sign_outgoing = False
+    for frame in signed:
+        msg = receiver.parse_char(frame)
+        assert msg is not None
+        assert msg.get_type() == "COMMAND_LONG"
+        assert msg.get_signed()
+        assert msg.get_link_id() == 7
+        assert msg.command == 400
+    assert receiver.signing.badsig_count == 0
+    stamps = [int.from_bytes(f[-12:-6], "little") for f in signed]
+    assert stamps == sorted(set(stamps))
