@@ -216,8 +216,11 @@ class Ingest:
             return []
         label = intake.label
         if parser.bad != bad:
-            self._rejected(label, "malformed", "bad MAVLink frame", parser.bad - bad)
-        if parser.truncated != truncated:
+            # A datagram is one unit for the sender: it is counted once, however many bad
+            # runs pymavlink found in it (and any cut-off frame at its end is part of that).
+            count = 1 if intake.datagram_parser is not None else parser.bad - bad
+            self._rejected(label, "malformed", "bad MAVLink frame", count)
+        elif parser.truncated != truncated:
             self._rejected(label, "truncated", "datagram ended inside a frame")
         if parser.unknown != unknown:
             self._inst.link_ignored.labels(label, "unknown_msgid").inc(parser.unknown - unknown)

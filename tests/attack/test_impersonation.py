@@ -1,0 +1,218 @@
+"""An attacker on the node's network, against ``fischer-gateway run`` with all three link modes.
+
+The node has a tunnel airframe (TUN, sysid 1, with a passthrough for a ground station), a
+signed airframe (SIG, sysid 2) and an unsecured one (OPEN, sysid 3), each on its own UDP
+port on loopback. The attacker has no keys: it sends plain MAVLink carrying the sysids of
+TUN and SIG to OPEN's port, garbage to TUN's port, and listens for anything sent back.
+"""
+
+from __future__ import annotations
+
+import socket
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import pytest
+from attack_support import (
+    MASTER,
+    SIGNING_KEY,
+    Airframe,
+    archive_events,
+    free_udp_port,
+    running,
+    sealer,
+    wait_until,
+    write_key,
+)
+from pymavlink.dialects.v20 import ardupilotmega as mav
+
+pytestmark = pytest.mark.timeout(90)
+
+
+def write_config(tmp_path: Path) -> tuple[Path, dict[str, int], Path]:
+    ports = {name: free_udp_port() for name in ("tun", "sig", "open", "gcs")}
+    archive = tmp_path / "archive.jsonl"
+    master = write_key(tmp_path / "master.key", MASTER)
+    signing = write_key(tmp_path / "signing.key", SIGNING_KEY)
+    config = tmp_path / "node.yaml"
+    config.write_text(
+        f"""
+gateway: {{shutdown_deadline_s: 2}}
+health: {{port: 0}}
+tunnel: {{master_key_file: '{master}'}}
+airframes:
+  - id: TUN
+    sysid: 1
+    link_timeout_s: 0.5
+    failback_hold_s: 0
+    passthrough: 'udp://127.0.0.1:{ports["gcs"]}'
+    links: [{{uri: 'udp://127.0.0.1:{ports["tun"]}', security: tunnel, name: tun}}]
+  - id: SIG
+    sysid: 2
+    signing: {{key_file: '{signing}'}}
+    links: [{{uri: 'udp://127.0.0.1:{ports["sig"]}', security: signed, name: sig}}]
+  - id: OPEN
+    sysid: 3
+    links: [{{uri: 'udp://127.0.0.1:{ports["open"]}', security: unsecured, name: open}}]
+sinks:
+  - {{name: archive, type: jsonl, options: {{path: '{archive}'}}}}
+routes:
+  - {{sinks: [archive]}}
+"""
+    )
+    return config, ports, archive
+
+
+@pytest.fixture
+def udp_socket() -> Iterator[Callable[[], socket.socket]]:
+    """Makes loopback UDP sockets, all closed when the test ends."""
+    made: list[socket.socket] = []
+
+    def make() -> socket.socket:
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        made.append(sock)
+        sock.bind(("127.0.0.1", 0))
+        sock.settimeout(0.3)
+        return sock
+
+    yield make
+    for sock in made:
+        sock.close()
+
+
+def drain(sock: socket.socket) -> list[bytes]:
+    got = []
+    while True:
+        try:
+            got.append(sock.recv(4096))
+        except (TimeoutError, BlockingIOError):
+            return got
+        except ConnectionRefusedError:
+            continue
+
+
+def airframes_in(archive: Path) -> set[str]:
+    return {event.get("airframe") for event in archive_events(archive)}
+
+
+def test_plain_frames_with_a_secure_airframes_sysid_are_never_attributed(
+    tmp_path: Path, udp_socket: Callable[[], socket.socket]
+) -> None:
+    config, ports, archive = write_config(tmp_path)
+    attacker = udp_socket()
+    with running(config) as daemon:
+        before = daemon.status()
+        fakes = [Airframe(1), Airframe(2)]
+        sent = 0
+        for _ in range(10):
+            for fake in fakes:
+                for frame in (fake.heartbeat(), fake.position(), fake.detection()):
+                    attacker.sendto(frame, ("127.0.0.1", ports["open"]))
+                    sent += 1
+        # A genuine OPEN frame after the attack: once it is archived, the attack was read.
+        genuine = Airframe(3)
+        attacker.sendto(genuine.position(), ("127.0.0.1", ports["open"]))
+        wait_until(lambda: "OPEN" in airframes_in(archive), 10, "OPEN's telemetry archived")
+        wait_until(
+            lambda: (
+                daemon.metric("fg_link_frames_rejected_total", link="open", reason="foreign_link")
+                == sent
+            ),
+            5,
+            "every impersonating frame counted",
+        )
+        assert airframes_in(archive) == {"OPEN"}
+        after = daemon.status()
+        for name in ("TUN", "SIG"):
+            old = next(a for a in before["airframes"] if a["airframe"] == name)
+            new = next(a for a in after["airframes"] if a["airframe"] == name)
+            assert new["active_link"] is None
+            assert [link["link"] for link in new["links"]] == [
+                link["link"] for link in old["links"]
+            ]
+            assert all(link["frames"] == 0 for link in new["links"])
+        assert daemon.metric("fg_link_frames_total", link="open") == 1
+        # Logged, but not per frame: one line for the link and reason within the interval.
+        assert len([e for e in daemon.events("frame_rejected") if e["link"] == "open"]) == 1
+
+
+def test_uplink_goes_sealed_to_the_authenticated_peer_only_and_never_in_plaintext(
+    tmp_path: Path, udp_socket: Callable[[], socket.socket]
+) -> None:
+    config, ports, _archive = write_config(tmp_path)
+    genuine, garbage_sender, attacker, gcs = (udp_socket() for _ in range(4))
+    seal = sealer("TUN")
+    tun = Airframe(1)
+    gcs_mav = mav.MAVLink(None, srcSystem=255, srcComponent=190)
+    command = bytes(gcs_mav.command_long_encode(1, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0).pack(gcs_mav))
+    with running(config) as daemon:
+        # The attacker's plain TUN frames reach OPEN's port; a second socket sends garbage
+        # (and a plain frame) to the tunnel port; the genuine airframe sends sealed frames.
+        attacker.sendto(tun.heartbeat(), ("127.0.0.1", ports["open"]))
+        garbage_sender.sendto(b"\x00" * 40, ("127.0.0.1", ports["tun"]))
+        garbage_sender.sendto(tun.heartbeat(), ("127.0.0.1", ports["tun"]))
+        for _ in range(3):
+            genuine.sendto(seal.seal(tun.heartbeat()), ("127.0.0.1", ports["tun"]))
+        wait_until(lambda: daemon.status()["airframes"][0]["active_link"] == "tun", 10, "tunnel up")
+        gcs.sendto(command, ("127.0.0.1", ports["gcs"]))
+        wait_until(lambda: daemon.metric("fg_uplink_sends_total", airframe="TUN") == 1, 5, "uplink")
+        sealed = drain(genuine)
+        # Downlink copies go to the GCS, not here; what the airframe got is the sealed command.
+        assert len(sealed) == 1
+        assert sealed[0][:2] == b"F6"
+        assert command not in sealed[0]
+        assert drain(garbage_sender) == []
+        assert drain(attacker) == []
+        # Jammed: the tunnel falls silent, the link times out, and the ground station's next
+        # command has nowhere to go: refused and counted, never sent in plaintext elsewhere.
+        wait_until(
+            lambda: daemon.status()["airframes"][0]["active_link"] is None, 10, "tunnel timeout"
+        )
+        attacker.sendto(tun.heartbeat(), ("127.0.0.1", ports["open"]))
+        time.sleep(0.2)
+        gcs.sendto(command, ("127.0.0.1", ports["gcs"]))
+        wait_until(
+            lambda: daemon.metric("fg_uplink_refused_total", airframe="TUN", reason="no_link") == 1,
+            5,
+            "the refused uplink counted",
+        )
+        assert drain(attacker) == []
+        assert drain(garbage_sender) == []
+        assert drain(genuine) == []
+        assert daemon.metric("fg_uplink_sends_total", airframe="TUN") == 1
+
+
+def test_signed_link_uplink_is_signed(
+    tmp_path: Path, udp_socket: Callable[[], socket.socket]
+) -> None:
+    """A ground station's unsigned command leaves on a signed link signed with the key."""
+    config, ports, _archive = write_config(tmp_path)
+    gcs_port = free_udp_port()
+    sig_link = (
+        f"    links: [{{uri: 'udp://127.0.0.1:{ports['sig']}', security: signed, name: sig}}]"
+    )
+    text = config.read_text()
+    assert sig_link in text
+    passthrough = f"    passthrough: 'udp://127.0.0.1:{gcs_port}'\n"
+    config.write_text(text.replace(sig_link, passthrough + sig_link))
+    autopilot, gcs = udp_socket(), udp_socket()
+    gcs_mav = mav.MAVLink(None, srcSystem=255, srcComponent=190)
+    command = bytes(gcs_mav.command_long_encode(2, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0).pack(gcs_mav))
+    with running(config) as daemon:
+        # Its signing clock starts now, after the gateway's (see test_restart_replay.py).
+        sig = Airframe(2, signing_key=SIGNING_KEY)
+        autopilot.sendto(sig.heartbeat(), ("127.0.0.1", ports["sig"]))
+        wait_until(
+            lambda: daemon.status()["airframes"][1]["active_link"] == "sig", 10, "signed link up"
+        )
+        gcs.sendto(command, ("127.0.0.1", gcs_port))
+        wait_until(lambda: daemon.metric("fg_uplink_sends_total", airframe="SIG") == 1, 5, "sent")
+        received = [frame for frame in drain(autopilot) if frame[0] == 0xFD and frame[7] == 76]
+    checker = mav.MAVLink(None)
+    checker.signing.secret_key = SIGNING_KEY
+    msgs = [checker.parse_char(frame) for frame in received]
+    assert len(msgs) == 1
+    assert msgs[0] is not None
+    assert msgs[0].get_signed()
+    assert checker.signing.badsig_count == 0
