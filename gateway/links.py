@@ -359,23 +359,49 @@ class TcpServerLink(_StreamLink):
 
 
 class SerialLink(Link):
-    """A serial device (radio modem), read without a thread through the event loop."""
+    """A serial device (radio modem), read without a thread through the event loop.
+
+    A device missing at start, or lost while running (a USB radio unplugged), degrades this
+    link only: it reports started at once (readiness does not wait on hardware), shows
+    ``waiting for device`` with the reason on /status, and reopens the device with jittered
+    backoff up to ``reconnect_max_s``. No other link or airframe is affected.
+    """
+
+    def __init__(self, config: LinkConfig, on_data: DataHandler, on_close: CloseHandler) -> None:
+        super().__init__(config, on_data, on_close)
+        self._fd: int | None = None
 
     async def run(
         self, *, task_status: anyio.abc.TaskStatus[None] = anyio.TASK_STATUS_IGNORED
     ) -> None:
         ep = self.endpoint
-        try:
-            fd = self._open(ep.device, ep.baud)
-        except OSError as exc:
-            raise LinkUnavailable(
-                self.label, f"cannot open {ep.device}: {exc.strerror or exc}"
-            ) from exc
-        self._fd: int | None = fd
-        self.is_bound, self.state = True, "open"
-        self.log.info("link_bound", uri=str(ep))
+        delay = self.config.reconnect_initial_s
+        self.is_bound = True  # like a client: nothing to bind, readiness does not wait
         task_status.started()
-        peer = ep.device
+        while True:
+            try:
+                fd = self._open(ep.device, ep.baud)
+            except OSError as exc:
+                reason = f"cannot open {ep.device}: {exc.strerror or exc}"
+                if self.reason != reason:
+                    self.log.warning("link_device_unavailable", device=ep.device, error=reason)
+                self.state, self.reason = "waiting for device", reason
+            else:
+                self.connects += 1
+                self.state, self.reason = "open", ""
+                self.log.info("link_bound", uri=str(ep))
+                delay = self.config.reconnect_initial_s
+                try:
+                    await self._read(fd)
+                except LinkClosed as exc:
+                    self.state, self.reason = "waiting for device", str(exc)
+                    self.log.warning("link_device_lost", device=ep.device, error=str(exc))
+            await anyio.sleep(delay * random.uniform(0.5, 1.0))  # noqa: S311 - jitter
+            delay = min(delay * 2, self.config.reconnect_max_s)
+
+    async def _read(self, fd: int) -> None:
+        peer = self.endpoint.device
+        self._fd = fd
         try:
             while True:
                 await anyio.wait_readable(fd)
@@ -390,7 +416,7 @@ class SerialLink(Link):
                 self.on_data(self.label, peer, data)
         finally:
             self.on_close(self.label, peer)
-            self.is_bound, self.state, self._fd = False, "closed", None
+            self._fd = None
             os.close(fd)
 
     @staticmethod
@@ -422,9 +448,9 @@ class SerialLink(Link):
         return fd
 
     async def send(self, data: bytes) -> None:
-        fd = getattr(self, "_fd", None)
+        fd = self._fd
         if fd is None:
-            raise LinkUnavailable(self.label, "not open")
+            raise LinkUnavailable(self.label, f"not open ({self.reason or self.state})")
         view = memoryview(data)
         while view:
             await anyio.wait_writable(fd)

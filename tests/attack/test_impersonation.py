@@ -14,7 +14,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
-from attack_support import (
+from daemon_support import (
     MASTER,
     SIGNING_KEY,
     Airframe,

@@ -1,4 +1,4 @@
-"""The daemon as an operator runs it, for the attack tests: ``fischer-gateway run`` in a child.
+"""The daemon as an operator runs it: ``fischer-gateway run`` in a child process, for tests.
 
 ``Daemon`` starts ``python -m gateway run --config FILE``, collects its JSON log lines in a
 thread, and reads ``/metrics`` and ``/status`` over real HTTP. Frames are made with
