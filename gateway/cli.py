@@ -27,6 +27,7 @@ from gateway.config import Config
 from gateway.configfile import load_config, load_config_text
 from gateway.errors import ConfigError, ConfigIssue, GatewayError
 from gateway.keys import load_day_keys, read_key_file, write_day_keys
+from gateway.listener import raise_open_files_limit
 from gateway.logsetup import configure_logging
 from gateway.plugins import check_sink, load_plugin
 from gateway.tunnel import DayKeys, Sealer, derive_day_key
@@ -312,6 +313,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.command == "run":
             config = load_config(args.config, check_sink=check_sink)
             configure_logging(config.gateway.log_level)
+            soft, _hard = raise_open_files_limit()
+            log.info("open_files_limit", soft=soft)
             gateway = Gateway(config, source=str(args.config))
             _run_async(_serve, gateway, None)
             return EXIT_OK

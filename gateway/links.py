@@ -458,6 +458,8 @@ class SerialLink(Link):
                 written = os.write(fd, view)
             except BlockingIOError:
                 continue
+            except OSError as exc:
+                raise LinkUnavailable(self.label, f"write failed: {exc.strerror}") from exc
             view = view[written:]
 
 

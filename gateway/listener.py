@@ -13,6 +13,7 @@ an exception from one handler is logged and counted and ends only that connectio
 from __future__ import annotations
 
 import errno
+import resource
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from typing import Any
@@ -24,7 +25,7 @@ from anyio.streams.stapled import MultiListener
 
 from gateway.logsetup import RateLimit
 
-__all__ = ["ListenerStats", "serve_tcp"]
+__all__ = ["ListenerStats", "raise_open_files_limit", "serve_tcp"]
 
 log = structlog.get_logger(__name__)
 
@@ -142,3 +143,20 @@ async def _serve_one(
             log.exception("listener_handler_failed", listener=stats.name)
     finally:
         stats.active -= 1
+
+
+def raise_open_files_limit(wanted: int = 65536) -> tuple[int, int]:
+    """Raise the soft RLIMIT_NOFILE towards ``wanted`` (never past the hard limit).
+
+    systemd's default soft limit is 1024; the unit sets ``LimitNOFILE`` and this makes the
+    same true when the daemon is started by hand. Returns the (soft, hard) limits after.
+    """
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    target = wanted if hard == resource.RLIM_INFINITY else min(wanted, hard)
+    if target > soft:
+        try:
+            resource.setrlimit(resource.RLIMIT_NOFILE, (target, hard))
+            soft = target
+        except (ValueError, OSError):
+            log.warning("open_files_limit_not_raised", soft=soft, hard=hard)
+    return soft, hard
