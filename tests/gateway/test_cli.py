@@ -176,12 +176,13 @@ def test_sighup_checks_the_config_again_and_keeps_running(tmp_path: Path) -> Non
     config = udp_config(tmp_path, 0)
     proc = subprocess.Popen(
         [sys.executable, "-m", "gateway", "run", "--config", str(config)],
-        stdout=subprocess.DEVNULL,
+        stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
         env={**os.environ, "PYTHONUNBUFFERED": "1"},
     )
     assert proc.stderr is not None
+    assert proc.stdout is not None
     try:
         list(read_until(proc.stderr, "gateway_started"))
         config.write_text(config.read_text().replace("node_id: n1", "node_id: n2"))
@@ -198,10 +199,12 @@ def test_sighup_checks_the_config_again_and_keeps_running(tmp_path: Path) -> Non
         events = [r["event"] for r in read_until(proc.stderr, "gateway_stopped")]
         assert "gateway_stopped" in events
         assert proc.wait(timeout=10) == 0
+        assert proc.stdout.read() == ""  # logs on stderr: stdout is for the console sink
     finally:
         proc.kill()
         proc.wait()
         proc.stderr.close()
+        proc.stdout.close()
 
 
 def test_check_config_warns_about_a_dem_source_it_cannot_use(tmp_path: Path) -> None:
