@@ -1,4 +1,7 @@
-"""gateway.contract.check_sink: passes every shipped sink, catches each broken rule."""
+"""gateway.contract.check_sink: passes every shipped sink, catches each broken rule.
+
+(Not test_contract.py: tests/sinks/test_contract.py has that basename.)
+"""
 
 from __future__ import annotations
 
