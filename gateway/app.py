@@ -42,10 +42,15 @@ log = structlog.get_logger(__name__)
 _LINK_CHECK_INTERVAL_S = 0.25
 
 
+def dem_sources(config: Config) -> list[DemSource]:
+    """The DEM sources of the config, in order."""
+    return [DemSource(s.name, s.directory, s.kind, s.sigma_m) for s in config.terrain.sources]
+
+
 def terrain_model(config: Config) -> TerrainModel | None:
-    """The DEM sources of the config, in order; None when there are none."""
-    sources = [DemSource(s.name, s.directory, s.kind, s.sigma_m) for s in config.terrain.sources]
-    return TerrainModel(sources) if sources else None
+    """The config's terrain model, None without sources; a failing source is disabled."""
+    sources = dem_sources(config)
+    return TerrainModel(sources, strict=False) if sources else None
 
 
 def utc_now() -> datetime:
@@ -85,6 +90,8 @@ class Gateway:
         self.bus = Bus(config.routes, self.runners, self.instruments, source=source)
         self.instruments.sink_queue.set_function(self._queue_depths)
         self.security = Security.from_config(config, clock)
+        self.terrain = terrain_model(config)
+        self._instrument_terrain_and_readiness()
         self.ingest = Ingest(
             config.airframes,
             self.bus.publish,
@@ -92,7 +99,7 @@ class Gateway:
             clock,
             opener=self.security.opener,
             verifiers=self.security.verifiers,
-            terrain=terrain_model(config),
+            terrain=self.terrain,
             baro_sigma_m=config.terrain.baro_sigma_m,
         )
         self.links: dict[str, Link] = {}
@@ -146,6 +153,32 @@ class Gateway:
             depths += [((name, "latest"), float(latest)), ((name, "durable"), float(durable))]
         return depths
 
+    def _instrument_terrain_and_readiness(self) -> None:
+        inst, terrain = self.instruments, self.terrain
+        inst.ready.set_function(lambda: [((), float(self.is_ready()))])
+        if terrain is not None:
+            inst.dem_errors.set_function(lambda: [(k, float(n)) for k, n in terrain.errors.items()])
+            inst.dem_source_up.set_function(
+                lambda: [((s.name,), float(terrain.is_source_up(s.name))) for s in terrain.sources]
+            )
+
+    def status_line(self) -> str:
+        """One line for systemd's ``STATUS=``: airframes linked, sinks healthy, DEM state."""
+        ids = [a.id for a in self.config.airframes]
+        linked = sum(1 for a in ids if self.ingest.active_link(a) is not None)
+        unhealthy = [r.name for r in self.runners.values() if r.state != "open"]
+        line = (
+            f"{linked}/{len(ids)} airframes linked, "
+            f"{len(self.runners) - len(unhealthy)}/{len(self.runners)} sinks healthy"
+        )
+        if unhealthy:
+            line += f" (not: {', '.join(unhealthy[:3])}{', ...' if len(unhealthy) > 3 else ''})"
+        if self.terrain is not None:
+            down = [s.name for s in self.terrain.sources if not self.terrain.is_source_up(s.name)]
+            if down:
+                line += f"; DEM disabled: {', '.join(down)}"
+        return line
+
     def is_ready(self) -> bool:
         """True once every link is bound and every sink is open."""
         return (
@@ -184,7 +217,8 @@ class Gateway:
                 ingest.start_soon(self._watch_links)
                 self._links_up = True
                 outer.start_soon(self.notifier.run_watchdog)
-                self.notifier.ready(f"{len(self.links)} links, {len(self.runners)} sinks")
+                self.notifier.ready(self.status_line())
+                outer.start_soon(self.notifier.run_status, self.status_line)
                 self.log.info(
                     "gateway_started",
                     version=_version(),
@@ -270,4 +304,5 @@ class Gateway:
             "unknown_sysids": sorted(self.ingest.unknown_sysids),
             "sinks": [runner.status() for runner in self.runners.values()],
             "listeners": [self.health.stats.status()] if self.health is not None else [],
+            "terrain": [] if self.terrain is None else self.terrain.status(),
         }

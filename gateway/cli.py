@@ -1,5 +1,5 @@
 """The ``fischer-gateway`` command: run, demo, check-config, config-schema, replay, simulate,
-keys and selftest.
+keys, selftest and files.
 
 This is the only module that configures logging. Exit codes: 0 success, 1 runtime failure
 (a link that cannot be opened, ...), 2 a config error (systemd does not restart on it).
@@ -9,12 +9,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import secrets
 import signal
 import sys
 from collections.abc import Callable, Coroutine, Sequence
 from datetime import date, timedelta
+from functools import partial
 from importlib.resources import files
 from pathlib import Path
 from typing import Any, TextIO
@@ -22,21 +24,50 @@ from typing import Any, TextIO
 import anyio
 import structlog
 
-from gateway.app import Gateway, utc_now
+from gateway.app import Gateway, dem_sources, utc_now
 from gateway.config import Config
 from gateway.configfile import load_config, load_config_text
+from gateway.domain.terrain import check_sources
 from gateway.errors import ConfigError, ConfigIssue, GatewayError
 from gateway.keys import load_day_keys, read_key_file, write_day_keys
 from gateway.listener import raise_open_files_limit
-from gateway.logsetup import configure_logging
+from gateway.logsetup import configure_logging, install_loop_exception_handler
 from gateway.plugins import check_sink, load_plugin
 from gateway.tunnel import DayKeys, Sealer, derive_day_key
+from gateway.version import package_version
 
 __all__ = ["main"]
 
 log = structlog.get_logger(__name__)
 
 EXIT_OK, EXIT_FAILURE, EXIT_CONFIG = 0, 1, 2
+#: MAVLink system ids are 8 bits and 0 is broadcast; every airframe needs its own.
+MAX_AIRFRAMES = 255
+
+
+def _positive(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
+    return value
+
+
+def _airframes(text: str) -> int:
+    if not (text.isascii() and text.isdigit() and 1 <= int(text) <= MAX_AIRFRAMES):
+        raise argparse.ArgumentTypeError(
+            f"expected 1..{MAX_AIRFRAMES} (each airframe needs its own 8-bit MAVLink system "
+            f"id, 0 is broadcast), got {text!r}"
+        )
+    return int(text)
+
+
+def _port(text: str) -> int:
+    if not (text.isascii() and text.isdigit() and int(text) <= 65535):
+        raise argparse.ArgumentTypeError(f"expected a port 0..65535, got {text!r}")
+    return int(text)
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -44,13 +75,14 @@ def _parser() -> argparse.ArgumentParser:
         prog="fischer-gateway",
         description="Gateway between the Fischer 26E fleet and C2 systems.",
     )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {package_version()}")
     sub = parser.add_subparsers(dest="command", required=True)
     run = sub.add_parser("run", help="run the daemon")
     run.add_argument("--config", type=Path, required=True, help="YAML config file")
     demo = sub.add_parser("demo", help="the gateway and two simulated airframes, on loopback")
-    demo.add_argument("--duration", type=float, default=None, help="stop after S seconds")
-    demo.add_argument("--udp-port", type=int, default=None, help="override the demo's UDP port")
-    demo.add_argument("--health-port", type=int, default=None, help="override the health port")
+    demo.add_argument("--duration", type=_positive, default=None, help="stop after S seconds")
+    demo.add_argument("--udp-port", type=_port, default=None, help="override the demo's UDP port")
+    demo.add_argument("--health-port", type=_port, default=None, help="override the health port")
     demo.add_argument("--archive", type=Path, default=None, help="where the JSONL archive goes")
     check = sub.add_parser("check-config", help="validate a config file; exit 2 on errors")
     check.add_argument("file", type=Path)
@@ -60,12 +92,15 @@ def _parser() -> argparse.ArgumentParser:
     replay.add_argument("file", type=Path)
     replay.add_argument("--to", required=True, help="udp://HOST:PORT")
     pace = replay.add_mutually_exclusive_group()
-    pace.add_argument("--speed", type=float, default=1.0, help="recorded speed times X")
+    pace.add_argument("--speed", type=_positive, default=1.0, help="recorded speed times X")
     pace.add_argument("--fast", action="store_true", help="as fast as possible")
+    replay.add_argument(
+        "--progress-s", type=_positive, default=10.0, help="log progress every S seconds"
+    )
     simulate = sub.add_parser("simulate", help="simulated airframes sending to a gateway")
     simulate.add_argument("--to", required=True, help="udp://HOST:PORT")
-    simulate.add_argument("--airframes", type=int, default=2)
-    simulate.add_argument("--duration", type=float, default=None)
+    simulate.add_argument("--airframes", type=_airframes, default=2, help="1..255")
+    simulate.add_argument("--duration", type=_positive, default=None, help="seconds")
     for sub_parser in (replay, simulate):
         sub_parser.add_argument(
             "--key-dir", type=Path, default=None, help="day keys: seal frames in the tunnel"
@@ -86,6 +121,9 @@ def _parser() -> argparse.ArgumentParser:
     derive.add_argument("--from", dest="first", type=date.fromisoformat, required=True)
     derive.add_argument("--days", type=int, default=30)
     derive.add_argument("--out", type=Path, required=True, help="directory for the day keys")
+    shipped = sub.add_parser("files", help="list, print or write the shipped config, unit, docs")
+    shipped.add_argument("name", nargs="?", help="print this file")
+    shipped.add_argument("--out", type=Path, default=None, help="write every file to DIR")
     return parser
 
 
@@ -152,6 +190,10 @@ def _check_config(path: Path) -> int:
         _print_config_error(exc, sys.stderr)
         return EXIT_CONFIG
     out = sys.stdout
+    # Warnings, not errors: the daemon runs without such a DEM source (no AGL from it).
+    for index, problem in check_sources(dem_sources(config)):
+        warning = f"{path}: warning: terrain.sources[{index}]: {problem}"
+        print(warning, file=sys.stderr)  # noqa: T201 - the output
     print(f"{path}: ok ({len(config.airframes)} airframes, {len(config.sinks)} sinks)", file=out)
     for entry in config.sinks:
         plugin = load_plugin(entry.type)
@@ -166,14 +208,23 @@ async def _serve(
     gateway: Gateway,
     duration_s: float | None,
     extra: Callable[[], Coroutine[Any, Any, None]] | None = None,
+    config_path: Path | None = None,
 ) -> None:
+    from gateway.reload import recheck_config
+
+    install_loop_exception_handler()
+    # SIGHUP (systemctl reload) re-checks the config file; without one, its default stands.
+    wanted = (signal.SIGTERM, signal.SIGINT) + ((signal.SIGHUP,) if config_path else ())
     async with anyio.create_task_group() as tg:
 
         async def on_signal() -> None:
-            with anyio.open_signal_receiver(signal.SIGTERM, signal.SIGINT) as signals:
+            with anyio.open_signal_receiver(*wanted) as signals:
                 async for signum in signals:
                     log.info("signal_received", signal=signal.Signals(signum).name)
-                    gateway.shutdown()
+                    if signum == signal.SIGHUP and config_path is not None:
+                        await recheck_config(config_path, gateway.config)
+                    else:
+                        gateway.shutdown()
 
         async def stop_after(delay_s: float) -> None:
             await anyio.sleep(delay_s)
@@ -259,14 +310,35 @@ def _demo(args: argparse.Namespace) -> int:
 
 
 def _replay(args: argparse.Namespace) -> int:
-    from gateway.tlog import replay_udp
+    from gateway.tlog import ReplayStats, replay_udp
 
     host, port = _udp_target(args.to)
     speed = None if args.fast else args.speed
     (sealer,) = _sealers(args, 1) if args.key_dir else (None,)
     seal = sealer.seal if sealer else None
-    sent = anyio.run(lambda: replay_udp(args.file, host, port, speed=speed, seal=seal))
-    log.info("replay_finished", file=str(args.file), frames=sent)
+    stats = ReplayStats()
+    anyio.run(
+        lambda: replay_udp(
+            args.file,
+            host,
+            port,
+            speed=speed,
+            seal=seal,
+            progress_interval_s=args.progress_s,
+            stats=stats,
+        )
+    )
+    if stats.refused:
+        log.error(
+            "replay_unheard",
+            file=str(args.file),
+            target=args.to,
+            frames_sent=stats.sent,
+            refused=stats.refused,
+            reason="ICMP port unreachable: nothing listened for part or all of the replay",
+        )
+        return EXIT_FAILURE
+    log.info("replay_finished", file=str(args.file), frames=stats.sent)
     return EXIT_OK
 
 
@@ -292,6 +364,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_OK
     if args.command == "check-config":
         return _check_config(args.file)
+    if args.command == "files":
+        from gateway.share import files_command
+
+        return files_command(args.name, args.out, sys.stdout, sys.stderr)
     if args.command == "selftest":
         from gateway.domain.selftest import run_selftest
 
@@ -305,10 +381,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         except FileExistsError:
             print(f"{args.out} exists; not overwriting a key", file=sys.stderr)  # noqa: T201
             return EXIT_CONFIG
-    # The demo prints events on stdout (the console sink), so its logs go to stderr.
-    configure_logging(
-        "info", sys.stderr if args.command in ("demo", "replay", "simulate") else None
-    )
+    # Logs go to stderr for every command: stdout is for output (the console sink's events).
+    configure_logging("info")
     try:
         if args.command == "run":
             config = load_config(args.config, check_sink=check_sink)
@@ -316,7 +390,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             soft, _hard = raise_open_files_limit()
             log.info("open_files_limit", soft=soft)
             gateway = Gateway(config, source=str(args.config))
-            _run_async(_serve, gateway, None)
+            _run_async(partial(_serve, config_path=args.config), gateway, None)
             return EXIT_OK
         if args.command == "demo":
             return _demo(args)
@@ -334,10 +408,29 @@ def main(argv: Sequence[str] | None = None) -> int:
         if not failures:
             raise
         for failure in failures:
-            log.error("gateway_failed", error=str(failure), type=type(failure).__name__)
+            log.error(
+                "gateway_failed",
+                error=str(failure),
+                type=type(failure).__name__,
+                **_os_cause(failure),
+            )
         return EXIT_FAILURE
     except KeyboardInterrupt:
         return EXIT_OK
+
+
+def _os_cause(exc: BaseException) -> dict[str, Any]:
+    """errno and strerror of the first OSError in ``exc``'s cause chain that has them.
+
+    uvloop wraps a failed UDP bind as ``OSError("could not bind to local_addr ...")`` with
+    no errno, the real ``[Errno 98] Address already in use`` only in ``__cause__``.
+    """
+    seen: BaseException | None = exc
+    while seen is not None:
+        if isinstance(seen, OSError) and seen.errno is not None:
+            return {"errno": seen.errno, "strerror": seen.strerror}
+        seen = seen.__cause__ or seen.__context__
+    return {}
 
 
 def _leaves(exc: BaseException) -> list[BaseException]:

@@ -7,6 +7,8 @@ hot path only adds to an attribute.
 from __future__ import annotations
 
 from gateway.metrics import Registry
+from gateway.procmetrics import register_process_metrics
+from gateway.version import package_version
 
 __all__ = ["Instruments"]
 
@@ -100,3 +102,21 @@ class Instruments:
             "Airframe to gateway, from the tunnel's send time (needs both clocks on GPS/NTP).",
             ("airframe", "link"),
         )
+        self.build_info = r.gauge(
+            "fg_build_info", "Always 1; the label is the running gateway's version.", ("version",)
+        )
+        self.build_info.labels(package_version()).set(1)
+        self.ready = r.gauge(
+            "fg_ready", "1 once every link is bound and every sink open (as /readyz), else 0."
+        )
+        self.dem_source_up = r.gauge(
+            "fg_dem_source_up",
+            "1 while a DEM source is used for AGL, 0 once disabled.",
+            ("source",),
+        )
+        self.dem_errors = r.counter(
+            "fg_dem_errors_total",
+            "DEM tiles or sources that failed, by source and reason (unreadable, missing, ...).",
+            ("source", "reason"),
+        )
+        register_process_metrics(r)

@@ -182,8 +182,25 @@ class _Family(Generic[C]):
 V = TypeVar("V", CounterChild, GaugeChild)
 
 
+GaugeFunction = Callable[[], Iterable[tuple[tuple[str, ...], float]]]
+
+
 class _ValueFamily(_Family[V]):
     """A family whose series are one number each: counters and gauges."""
+
+    def __init__(self, name: str, help_text: str, labelnames: tuple[str, ...]) -> None:
+        super().__init__(name, help_text, labelnames)
+        self._function: GaugeFunction | None = None
+
+    def set_function(self, fn: GaugeFunction) -> None:
+        """Compute the series at scrape time instead of storing them.
+
+        ``fn`` runs on the event loop during ``render`` and yields (label values, value)
+        pairs, one per series; label values must match ``labelnames`` in number. Series
+        set through ``labels`` are no longer rendered. A counter's function must never
+        return less than it did before.
+        """
+        self._function = fn
 
     def inc(self, amount: float = 1.0) -> None:
         """Add to an unlabelled metric; ``ValueError`` if it has labels."""
@@ -195,6 +212,8 @@ class _ValueFamily(_Family[V]):
         return self._only().value
 
     def _series(self) -> Iterable[tuple[tuple[str, ...], float]]:
+        if self._function is not None:
+            return self._function()
         return ((values, child.value) for values, child in self._children.items())
 
     def _samples(self) -> Iterator[str]:
@@ -211,17 +230,10 @@ class Counter(_ValueFamily[CounterChild]):
         return CounterChild()
 
 
-GaugeFunction = Callable[[], Iterable[tuple[tuple[str, ...], float]]]
-
-
 class Gauge(_ValueFamily[GaugeChild]):
     """A value that goes up and down, stored or computed at scrape time."""
 
     kind = "gauge"
-
-    def __init__(self, name: str, help_text: str, labelnames: tuple[str, ...]) -> None:
-        super().__init__(name, help_text, labelnames)
-        self._function: GaugeFunction | None = None
 
     def _new_child(self) -> GaugeChild:
         return GaugeChild()
@@ -233,18 +245,6 @@ class Gauge(_ValueFamily[GaugeChild]):
     def dec(self, amount: float = 1.0) -> None:
         """Subtract from an unlabelled gauge."""
         self._only().value -= amount
-
-    def set_function(self, fn: GaugeFunction) -> None:
-        """Compute the series at scrape time instead of storing them.
-
-        ``fn`` runs on the event loop during ``render`` and yields (label values, value)
-        pairs, one per series; label values must match ``labelnames`` in number. Series
-        set through ``labels`` are no longer rendered.
-        """
-        self._function = fn
-
-    def _series(self) -> Iterable[tuple[tuple[str, ...], float]]:
-        return super()._series() if self._function is None else self._function()
 
 
 class Histogram(_Family[HistogramChild]):

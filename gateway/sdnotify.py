@@ -1,5 +1,8 @@
 """systemd's notify protocol without a dependency: READY, STOPPING, STATUS and WATCHDOG.
 
+``STATUS=`` is refreshed while the daemon runs (``run_status``), so ``systemctl status``
+shows the fleet as it is now, not as it was at start-up.
+
 A no-op when the daemon does not run under systemd (``NOTIFY_SOCKET`` unset). The watchdog
 is fed from a task on the event loop, so a stuck loop stops the pings and systemd restarts
 the daemon. Sending never raises: a lost notification must not take the gateway down, so
@@ -10,7 +13,7 @@ from __future__ import annotations
 
 import os
 import socket
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 
 import anyio
 import anyio.abc
@@ -19,6 +22,9 @@ import structlog
 __all__ = ["SystemdNotifier"]
 
 log = structlog.get_logger(__name__)
+
+#: How often ``run_status`` refreshes ``STATUS=`` by default.
+STATUS_INTERVAL_S = 10.0
 
 
 def _positive_int(text: str) -> int | None:
@@ -29,8 +35,12 @@ def _positive_int(text: str) -> int | None:
 class SystemdNotifier:
     """Sends sd_notify datagrams to ``$NOTIFY_SOCKET`` (a path, or ``@name`` for abstract)."""
 
-    def __init__(self, env: Mapping[str, str] | None = None) -> None:
+    def __init__(
+        self, env: Mapping[str, str] | None = None, *, status_interval_s: float = STATUS_INTERVAL_S
+    ) -> None:
         env = os.environ if env is None else env
+        self.status_interval_s = status_interval_s
+        """How often ``run_status`` refreshes ``STATUS=``."""
         address = env.get("NOTIFY_SOCKET", "")
         self._address: str | None = None
         if address.startswith("/"):
@@ -112,6 +122,27 @@ class SystemdNotifier:
             if next_ping_s <= now_s:
                 next_ping_s = now_s + interval
             await anyio.sleep_until(next_ping_s)
+
+    async def run_status(
+        self,
+        summary: Callable[[], str],
+        *,
+        task_status: anyio.abc.TaskStatus[None] = anyio.TASK_STATUS_IGNORED,
+    ) -> None:
+        """Send ``STATUS=summary()`` now and every ``status_interval_s`` when it changed.
+
+        Returns at once (after reporting started) when not under systemd. Cancellation-safe.
+        """
+        task_status.started()
+        if not self.is_enabled:
+            return
+        last = None
+        while True:
+            text = _one_line(summary())
+            if text != last:
+                self.status(text)
+                last = text
+            await anyio.sleep(self.status_interval_s)
 
 
 def _one_line(text: str) -> str:

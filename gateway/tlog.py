@@ -9,9 +9,11 @@ signed). ``read_tlog`` streams records with bounded memory and resynchronises af
 from __future__ import annotations
 
 import math
+import socket
 import struct
 from collections.abc import Callable, Generator, Iterator
 from dataclasses import dataclass
+from datetime import UTC, datetime
 from itertools import islice
 from pathlib import Path
 from urllib.parse import urlsplit
@@ -22,7 +24,14 @@ import anyio.lowlevel
 import anyio.to_thread
 import structlog
 
-__all__ = ["TlogRecord", "TlogStats", "parse_udp_target", "read_tlog", "replay_udp"]
+__all__ = [
+    "ReplayStats",
+    "TlogRecord",
+    "TlogStats",
+    "parse_udp_target",
+    "read_tlog",
+    "replay_udp",
+]
 
 log = structlog.get_logger(__name__)
 
@@ -157,6 +166,17 @@ def parse_udp_target(text: str) -> tuple[str, int]:
     return parts.hostname, port
 
 
+@dataclass(slots=True)
+class ReplayStats:
+    """How a replay went: frames sent, sends refused, and how far into the log it got."""
+
+    sent: int = 0
+    refused: int = 0
+    """Sends the kernel refused because an ICMP port-unreachable came back: nobody listens."""
+    log_position_s: float = 0.0
+    """Seconds from the log's first record to the last one sent."""
+
+
 async def replay_udp(
     path: Path,
     host: str,
@@ -164,6 +184,8 @@ async def replay_udp(
     *,
     speed: float | None = 1.0,
     seal: Callable[[bytes], bytes] | None = None,
+    progress_interval_s: float | None = None,
+    stats: ReplayStats | None = None,
     task_status: anyio.abc.TaskStatus[None] = anyio.TASK_STATUS_IGNORED,
 ) -> int:
     """Send each frame of ``path`` as one UDP datagram to ``host:port``; return how many.
@@ -173,21 +195,28 @@ async def replay_udp(
     forward by more than a day (a clock jump) is not waited for. ``seal``, when given,
     wraps each frame (the tunnel's ``Sealer.seal``). ``task_status.started()`` is called
     once the file is open and the socket exists. The file is read in a worker thread.
+
+    The socket is connected, so an ICMP port-unreachable from the target (nothing listens
+    there) refuses the next send: that frame is counted in ``stats.refused``, not sent, a
+    warning is logged once, and the replay goes on (a listener may come up). Every
+    ``progress_interval_s`` a ``replay_progress`` record says how far it got.
     Raises ``ValueError`` for a bad ``speed``, ``OSError`` for the file or the socket.
     """
     if speed is not None and not (math.isfinite(speed) and speed > 0):
         raise ValueError(f"speed: expected a positive finite number or None, got {speed!r}")
-    stats = TlogStats()
-    records = read_tlog(path, stats)
-    sent = 0
+    stats = stats if stats is not None else ReplayStats()
+    damage = TlogStats()
+    records = read_tlog(path, damage)
     try:
         batch = await anyio.to_thread.run_sync(_take, records)
-        async with await anyio.create_connected_udp_socket(
-            remote_host=host, remote_port=port
-        ) as sock:
+        family, _, _, _, address = (await anyio.getaddrinfo(host, port, type=socket.SOCK_DGRAM))[0]
+        with socket.socket(family, socket.SOCK_DGRAM) as sock:
+            sock.setblocking(False)
+            sock.connect(address)
             task_status.started()
-            due = anyio.current_time()
-            prev_ts: int | None = None
+            now = due = anyio.current_time()
+            next_progress = None if progress_interval_s is None else now + progress_interval_s
+            first_ts = prev_ts = batch[0].timestamp_us if batch else None
             while batch:
                 for record in batch:
                     if speed is not None:
@@ -199,13 +228,53 @@ async def replay_udp(
                         # A UDP send never yields: without this, a receiver in this process
                         # (tests, the demo) would starve and the kernel would drop datagrams.
                         await anyio.lowlevel.checkpoint()
-                    await sock.send(seal(record.frame) if seal else record.frame)
-                    sent += 1
+                    frame = seal(record.frame) if seal else record.frame
+                    if await _send(sock, frame):
+                        stats.sent += 1
+                    else:
+                        stats.refused += 1
+                        if stats.refused == 1:
+                            log.warning(
+                                "replay_refused",
+                                target=f"udp://{host}:{port}",
+                                reason="ICMP port unreachable: nothing listens there",
+                            )
+                    if first_ts is not None:
+                        stats.log_position_s = (record.timestamp_us - first_ts) / 1e6
+                    if next_progress is not None and anyio.current_time() >= next_progress:
+                        next_progress = anyio.current_time() + (progress_interval_s or 0.0)
+                        _log_progress(stats, record.timestamp_us)
                 batch = await anyio.to_thread.run_sync(_take, records)
     finally:
         records.close()
-    log.debug("tlog_replayed", path=str(path), frames=sent, skipped_bytes=stats.skipped_bytes)
-    return sent
+    log.debug(
+        "tlog_replayed", path=str(path), frames=stats.sent, skipped_bytes=damage.skipped_bytes
+    )
+    return stats.sent
+
+
+async def _send(sock: socket.socket, data: bytes) -> bool:
+    """Send one datagram; False if the kernel refused it after an ICMP port-unreachable."""
+    while True:
+        try:
+            sock.send(data)
+        except BlockingIOError:
+            await anyio.wait_writable(sock)
+        except ConnectionRefusedError:
+            return False
+        else:
+            return True
+
+
+def _log_progress(stats: ReplayStats, timestamp_us: int) -> None:
+    log_time = datetime.fromtimestamp(timestamp_us / 1e6, UTC).isoformat(timespec="seconds")
+    log.info(
+        "replay_progress",
+        frames_sent=stats.sent,
+        refused=stats.refused,
+        log_time=log_time,
+        log_position_s=round(stats.log_position_s, 1),
+    )
 
 
 def _take(records: Iterator[TlogRecord]) -> list[TlogRecord]:

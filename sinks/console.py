@@ -1,5 +1,10 @@
 """The console sink: one line per event on stdout, for the demo and for operators.
 
+``output`` chooses where: ``stdout`` (the default), ``stderr``, or a file path (appended to,
+opened by ``open`` and closed by ``aclose``). The gateway's own logs go to stderr, so on a
+terminal or a pipe the events on stdout stay apart from them; under systemd both streams end
+up in the journal, so give a service a file path (or use the ``jsonl`` sink).
+
 ``format: text`` gives a line a person can scan (``describe``); ``format: json`` gives
 ``event.model_dump_json()``, which ``gateway.events.event_adapter`` reads back. An unknown value
 is shown as ``-``, never as 0, and telemetry without a position says ``no fix``.
@@ -10,6 +15,7 @@ from __future__ import annotations
 import sys
 from collections.abc import Sequence
 from datetime import UTC
+from pathlib import Path
 from typing import Literal, TextIO, assert_never
 
 import anyio
@@ -42,6 +48,8 @@ class ConsoleSinkConfig(SinkConfig):
 
     kinds: frozenset[EventKind] = Field(default=frozenset(EventKind), min_length=1)
     format: Literal["text", "json"] = "text"
+    output: Literal["stdout", "stderr"] | Path = "stdout"
+    """Where the lines go: ``stdout``, ``stderr`` or a file appended to."""
 
 
 def _num(value: float | None, fmt: str, unit: str = "") -> str:
@@ -95,7 +103,7 @@ def describe(event: Event) -> str:
 
 
 class ConsoleSink:
-    """Writes each event as a line to ``stream`` (``sys.stdout`` when not given).
+    """Writes each event as a line to ``stream``, or else to the configured ``output``.
 
     The write runs in a worker thread, so a stalled terminal or an unread pipe holds up this
     sink only, never the event loop. Such a write is abandoned when the send is cancelled
@@ -109,6 +117,7 @@ class ConsoleSink:
         self.name = name
         self.config = config
         self._stream = stream
+        self._file: TextIO | None = None
         self._writes_in_flight = 0
         # Its own limiter: a stuck write must not hold a token of the shared thread pool.
         self._limiter = anyio.CapacityLimiter(1)
@@ -119,7 +128,16 @@ class ConsoleSink:
         return self.config.kinds
 
     async def open(self) -> None:
-        """Nothing to open: the stream belongs to the process."""
+        """Open the output file, if ``output`` is a path; ``TransientSinkError`` if it fails."""
+        output = self.config.output
+        if self._stream is not None or not isinstance(output, Path) or self._file is not None:
+            return
+        try:
+            self._file = await anyio.to_thread.run_sync(_append, output)
+        except OSError as exc:
+            raise TransientSinkError(
+                f"sink {self.name}: cannot open {output}: {exc.strerror or exc}", sink=self.name
+            ) from exc
 
     async def send(self, batch: Sequence[Event]) -> None:
         """Write one line per event, then flush.
@@ -150,14 +168,26 @@ class ConsoleSink:
             ) from exc
 
     async def aclose(self) -> None:
-        """Nothing to close: the stream belongs to the process."""
+        """Close the output file, if this sink opened one; the standard streams stay open."""
+        if self._file is not None:
+            handle, self._file = self._file, None
+            await anyio.to_thread.run_sync(handle.close)
 
     def _write(self, text: str) -> None:
         # Counted from inside the thread: a write cancelled before it started never runs.
         self._writes_in_flight += 1
         try:
-            stream = self._stream or sys.stdout
+            stream = self._stream or self._file or _standard(self.config.output)
             stream.write(text)
             stream.flush()
         finally:
             self._writes_in_flight -= 1
+
+
+def _append(path: Path) -> TextIO:
+    return path.open("a", encoding="utf-8")
+
+
+def _standard(output: str | Path) -> TextIO:
+    # Looked up at each write, not kept: tests and the demo replace sys.stdout.
+    return sys.stderr if output == "stderr" else sys.stdout

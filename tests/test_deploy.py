@@ -51,3 +51,10 @@ def test_unit_parses_as_ini() -> None:
     parser = ConfigParser(strict=False, interpolation=None)
     parser.read_string(UNIT.read_text())
     assert {"Unit", "Service", "Install"} <= set(parser.sections())
+
+
+def test_reload_sends_sighup_which_the_cli_handles() -> None:
+    """ExecReload= matches what the daemon does with SIGHUP (gateway/cli.py, reload.py)."""
+    assert service()["ExecReload"] == ["/bin/kill -HUP $MAINPID"]
+    cli = (UNIT.parents[1] / "gateway" / "cli.py").read_text()
+    assert "signal.SIGHUP" in cli

@@ -58,3 +58,35 @@ def test_no_dem_no_agl(tmp_path: Path) -> None:
     assert telemetry.alt_agl_m is None
     assert telemetry.agl_sigma_m is None
     assert telemetry.endurance_remaining_min == pytest.approx(50.0)
+
+
+def test_an_undecodable_dem_tile_costs_agl_not_telemetry(tmp_path: Path) -> None:
+    """Every position becomes telemetry (without AGL) although the only tile is corrupt.
+
+    The decoder's error used to escape ``Ingest.flush`` on every snapshot over the tile.
+    """
+    from test_domain_terrain import corrupt_geotiff  # same directory, imported by pytest
+
+    corrupt_geotiff(tmp_path)
+    events: list[Event] = []
+    airframe = AirframeConfig(
+        id="A",
+        sysid=1,
+        links=(LinkConfig(uri="udp://127.0.0.1:1", name="l", security="unsecured"),),
+    )
+    ingest = Ingest(
+        [airframe],
+        events.append,
+        Instruments(),
+        lambda: datetime(2026, 11, 22, tzinfo=UTC),
+        terrain=TerrainModel([DemSource("lantmateriet_2m", tmp_path, "geotiff", 0.5)]),
+    )
+    ingest.register_link(LinkIntake("l", "unsecured", is_stream=False))
+    m = mav.MAVLink(None, srcSystem=1, srcComponent=1)
+    for i in range(20):  # Linköping, inside the tile, moving a little each time
+        lat_e7, lon_e7 = 584_108_000 + i, 156_214_000 + i
+        msg = m.global_position_int_encode(i, lat_e7, lon_e7, 150_000, 0, 0, 0, 0, 0)
+        ingest.on_data("l", "p", bytes(msg.pack(m)))
+    telemetry = [e for e in events if isinstance(e, Telemetry)]
+    assert len(telemetry) == 20
+    assert all(t.position is not None and t.alt_agl_m is None for t in telemetry)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +16,7 @@ from gateway.domain.terrain import (
     TerrainModel,
     agl_from_msl,
     agl_sigma,
+    check_sources,
     msl_from_agl,
     safe_floor_agl_m,
     safe_floor_msl_m,
@@ -295,8 +297,11 @@ class TestTerrainModel:
         with capture_logs() as logs:
             assert model.ground_elevation_m(66.0, 21.0) == 500.0
             assert model.ground_elevation_m(66.0, 21.0) == 500.0
-        assert [e["event"] for e in logs] == ["dem_tile_skipped"]  # logged once
+        # Logged once; its only tile gone, the source is disabled.
+        assert [e["event"] for e in logs] == ["dem_tile_skipped", "dem_source_disabled"]
         assert logs[0]["path"] == str(path)
+        assert not model.is_source_up("fine")
+        assert model.is_source_up("coarse")
 
     @pytest.mark.parametrize(("lat", "lon"), [(float("nan"), 21.0), (95.0, 21.0), (66.0, 200.0)])
     def test_impossible_positions_have_no_ground(
@@ -329,3 +334,117 @@ def test_agl_sigma_and_safety_floors() -> None:
     assert msl_from_agl(70.0, 180.0) == 250.0
     with pytest.raises(ValueError, match="must not be negative"):
         safe_floor_agl_m(-1.0)
+
+
+def corrupt_geotiff(directory: Path) -> Path:
+    """A Lantmäteriet-like tile whose header reads but whose LZW data is garbage."""
+    path = lantmateriet_tile(directory)
+    with tifffile.TiffFile(path) as tif:
+        page = tif.pages[0]
+        spans = list(zip(page.dataoffsets, page.databytecounts, strict=True))
+    raw = bytearray(path.read_bytes())
+    for offset, count in spans:
+        raw[offset : offset + count] = b"\xff" * count
+    path.write_bytes(bytes(raw))
+    return path
+
+
+class TestDegradedTerrain:
+    """A failing DEM source never stops a lookup: it is skipped or disabled, and counted."""
+
+    def test_an_undecodable_tile_is_skipped_and_the_next_source_answers(
+        self, tmp_path: Path
+    ) -> None:
+        """imagecodecs raises its own RuntimeError subclass on corrupt LZW data."""
+        corrupt_geotiff(tmp_path / "lm")
+        write_hgt(tmp_path / "srtm", "N58E015.hgt", base=200)
+        model = TerrainModel(
+            [
+                DemSource("lantmateriet_2m", tmp_path / "lm", "geotiff", 0.5),
+                DemSource("srtm_30m", tmp_path / "srtm", "hgt", 5.0),
+            ]
+        )
+        with capture_logs() as logs:
+            for _ in range(3):
+                found = model.lookup(58.4108, 15.6214)
+                assert found is not None
+                assert found[1].name == "srtm_30m"
+        assert [e["event"] for e in logs] == ["dem_tile_skipped", "dem_source_disabled"]
+        assert "ImcdError" in logs[0]["error"]
+        assert model.errors == {("lantmateriet_2m", "undecodable"): 1}
+        states = {s["source"]: (s["state"], s["tiles_skipped"]) for s in model.status()}
+        assert states == {"lantmateriet_2m": ("disabled", 1), "srtm_30m": ("up", 0)}
+
+    def test_a_missing_directory_disables_only_that_source(self, tmp_path: Path) -> None:
+        write_hgt(tmp_path / "srtm")
+        with capture_logs() as logs:
+            model = TerrainModel(
+                [
+                    DemSource("lantmateriet_2m", tmp_path / "absent", "hgt", 0.5),
+                    DemSource("srtm_30m", tmp_path / "srtm", "hgt", 5.0),
+                ],
+                strict=False,
+            )
+        assert model.ground_elevation_m(66.0, 21.0) == 1000.0
+        assert not model.is_source_up("lantmateriet_2m")
+        assert model.errors == {("lantmateriet_2m", "missing"): 1}
+        assert {e["event"] for e in logs} == {"dem_error", "dem_source_disabled"}
+        assert model.status()[0]["reason"].endswith("is not a directory")
+
+    def test_unreadable_tiles_are_skipped_at_start_when_not_strict(self, tmp_path: Path) -> None:
+        write_hgt(tmp_path)
+        (tmp_path / "N60E014.hgt").write_bytes(b"\x00" * 10)
+        model = TerrainModel([DemSource("srtm", tmp_path, "hgt", 5.0)], strict=False)
+        assert model.ground_elevation_m(66.0, 21.0) == 1000.0
+        assert model.errors == {("srtm", "unreadable"): 1}
+        assert model.status()[0]["tiles"] == 1
+        assert model.status()[0]["tiles_skipped"] == 1
+
+    def test_a_geotiff_source_without_tifffile_is_disabled(
+        self, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    ) -> None:
+        lantmateriet_tile(tmp_path / "lm")
+        write_hgt(tmp_path / "srtm", "N58E015.hgt", base=200)
+        monkeypatch.setitem(sys.modules, "tifffile", None)  # import tifffile → ImportError
+        model = TerrainModel(
+            [
+                DemSource("lantmateriet_2m", tmp_path / "lm", "geotiff", 0.5),
+                DemSource("srtm_30m", tmp_path / "srtm", "hgt", 5.0),
+            ],
+            strict=False,
+        )
+        found = model.lookup(58.4108, 15.6214)
+        assert found is not None
+        assert found[1].name == "srtm_30m"
+        assert model.errors == {("lantmateriet_2m", "no_tifffile"): 1}
+        assert "fischer-gateway[terrain]" in str(model.status()[0]["reason"])
+
+
+class TestCheckSources:
+    """check_sources: what check-config warns about, without opening a tile."""
+
+    def test_good_sources_have_no_problems(self, tmp_path: Path) -> None:
+        write_hgt(tmp_path / "srtm")
+        lantmateriet_tile(tmp_path / "lm")
+        sources = [
+            DemSource("lm", tmp_path / "lm", "geotiff", 0.5),
+            DemSource("srtm", tmp_path / "srtm", "hgt", 5.0),
+        ]
+        assert check_sources(sources) == []
+
+    def test_each_problem_names_its_source(
+        self, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    ) -> None:
+        (tmp_path / "empty").mkdir()
+        monkeypatch.setitem(sys.modules, "tifffile", None)
+        problems = check_sources(
+            [
+                DemSource("lm", tmp_path / "absent", "geotiff", 0.5),
+                DemSource("srtm", tmp_path / "empty", "hgt", 5.0),
+            ]
+        )
+        assert [index for index, _ in problems] == [0, 0, 1]
+        assert "tifffile" in problems[0][1]
+        assert "'lm'" in problems[0][1]
+        assert "is not a directory" in problems[1][1]
+        assert "no .hgt tiles" in problems[2][1]

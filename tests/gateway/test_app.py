@@ -297,4 +297,4 @@ def test_port_in_use_is_a_clear_error_and_exit_1(tmp_path: Path) -> None:
             check=False,
         )
     assert result.returncode == 1
-    assert f"health endpoint 127.0.0.1:{port}: cannot listen" in result.stdout
+    assert f"health endpoint 127.0.0.1:{port}: cannot listen" in result.stderr  # logs: stderr

@@ -7,6 +7,7 @@ import io
 import os
 import threading
 from datetime import UTC, datetime, timedelta, timezone
+from pathlib import Path
 
 import anyio
 import pytest
@@ -231,3 +232,33 @@ class TestSink:
             await eventually(lambda: not sink._writes_in_flight)
             await sink.send([event])
         assert out.getvalue().count("\n") == 2
+
+
+@pytest.mark.anyio
+class TestOutput:
+    """``output`` keeps the events apart from the gateway's logs (which go to stderr)."""
+
+    async def test_a_file_output_is_appended_to_and_closed(self, tmp_path: Path) -> None:
+        path = tmp_path / "events.txt"
+        path.write_text("earlier\n")
+        sink = ConsoleSink("c", ConsoleSinkConfig.model_validate({"output": str(path)}))
+        with anyio.fail_after(5):
+            await sink.open()
+            await sink.send([Telemetry(event_id="1", airframe="A", time=T0)])
+            await sink.aclose()
+        assert path.read_text() == (
+            "earlier\n12:00:01.234Z telemetry  A no fix hdg - gs - batt - link -\n"
+        )
+
+    async def test_stderr_output(self, capsys: pytest.CaptureFixture[str]) -> None:
+        sink = ConsoleSink("c", ConsoleSinkConfig(output="stderr"))
+        with anyio.fail_after(5):
+            await sink.open()
+            await sink.send([Telemetry(event_id="1", airframe="A", time=T0)])
+        captured = capsys.readouterr()
+        assert (captured.out, captured.err.count("telemetry")) == ("", 1)
+
+    async def test_a_file_that_cannot_be_opened_is_a_transient_error(self, tmp_path: Path) -> None:
+        config = ConsoleSinkConfig.model_validate({"output": str(tmp_path / "no" / "x.txt")})
+        with anyio.fail_after(5), pytest.raises(TransientSinkError, match="sink c: cannot open"):
+            await ConsoleSink("c", config).open()

@@ -1,0 +1,77 @@
+"""Files shipped in the wheel for installing without the source tree.
+
+The example config, the systemd unit and the operator documentation live in the repository
+(``config/``, ``deploy/``, ``docs/``); ``gateway/data/share`` holds symbolic links to them, and
+the wheel carries their contents. ``fischer-gateway files`` lists, prints or writes them, so
+deploy/INSTALL.md works the same from a wheel as from a checkout.
+"""
+
+from __future__ import annotations
+
+from importlib.resources import files
+from importlib.resources.abc import Traversable
+from pathlib import Path
+from typing import TextIO
+
+__all__ = ["DESCRIPTIONS", "files_command", "read_shared", "shared_names", "write_shared"]
+
+#: Every shipped file and what it is.
+DESCRIPTIONS = {
+    "example.yaml": "the example config, commented (copy to /etc/fischer-gateway/config.yaml)",
+    "fischer-gateway.service": "the hardened systemd unit (copy to /etc/systemd/system/)",
+    "INSTALL.md": "installing on a Debian 12 node as a service",
+    "operations.md": "running it: reload, logs, metrics and alerts, health endpoints",
+    "architecture.md": "how the gateway is built, with a diagram",
+    "writing-a-sink.md": "the sink contract, an example sink and its contract check",
+    "tunnel.md": "the AES-256-GCM airframe tunnel",
+    "README.md": "what works today",
+}
+
+
+def _share() -> Traversable:
+    return files("gateway").joinpath("data/share")
+
+
+def shared_names() -> list[str]:
+    """The names of the shipped files, in ``DESCRIPTIONS`` order."""
+    return list(DESCRIPTIONS)
+
+
+def read_shared(name: str) -> str:
+    """The text of one shipped file; ``KeyError`` naming the known ones for anything else."""
+    if name not in DESCRIPTIONS:
+        raise KeyError(f"no shipped file {name!r}; expected one of {', '.join(DESCRIPTIONS)}")
+    return _share().joinpath(name).read_text(encoding="utf-8")
+
+
+def write_shared(directory: Path) -> list[Path]:
+    """Write every shipped file into ``directory`` (created, files replaced); the paths."""
+    directory.mkdir(parents=True, exist_ok=True)
+    written = []
+    for name in DESCRIPTIONS:
+        target = directory / name
+        target.write_text(read_shared(name), encoding="utf-8")
+        target.chmod(0o644)
+        written.append(target)
+    return written
+
+
+def files_command(name: str | None, out_dir: Path | None, out: TextIO, err: TextIO) -> int:
+    """``fischer-gateway files [NAME] [--out DIR]``: list, print one, or write all; exit code.
+
+    Exit 2 for an unknown name.
+    """
+    if out_dir is not None:
+        for path in write_shared(out_dir):
+            print(f"wrote {path}", file=out)
+        return 0
+    if name is None:
+        for known, what in DESCRIPTIONS.items():
+            print(f"{known:<24} {what}", file=out)
+        return 0
+    try:
+        out.write(read_shared(name))
+    except KeyError as exc:
+        print(exc.args[0], file=err)
+        return 2
+    return 0

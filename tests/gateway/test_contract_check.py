@@ -1,0 +1,99 @@
+"""gateway.contract.check_sink: passes every shipped sink, catches each broken rule.
+
+(Not test_contract.py: tests/sinks/test_contract.py has that basename.)
+"""
+
+from __future__ import annotations
+
+import socket
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import pytest
+from pydantic import ConfigDict
+
+from gateway.contract import ContractViolation, check_sink, sample_events
+from gateway.events import Event, EventKind, event_adapter
+from gateway.plugins import available, load_plugin
+from gateway.sink import SinkConfig
+from gateway.testing import MemorySink, MemorySinkConfig
+from sinks.example import ExampleSink
+
+OPTIONS: dict[str, Any] = {
+    "jsonl": lambda tmp: {"path": str(tmp / "contract.jsonl")},
+    "cot": lambda tmp: {"destinations": [{"uri": "udp://127.0.0.1:9"}]},
+}
+
+
+@pytest.mark.parametrize("type_name", sorted(available()))
+def test_every_installed_sink_passes(type_name: str, tmp_path: Path) -> None:
+    make = OPTIONS.get(type_name)
+    check_sink(load_plugin(type_name).factory, make(tmp_path) if make else {})
+
+
+def test_sample_events_cover_every_kind_and_validate() -> None:
+    events = sample_events(frozenset(EventKind))
+    assert [e.kind for e in events] == list(EventKind)
+    for event in events:
+        assert event_adapter.validate_json(event.model_dump_json()) == event
+
+
+def test_the_example_sink_passes_and_delivers_json_datagrams() -> None:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as peer:
+        peer.bind(("127.0.0.1", 0))
+        peer.settimeout(5)
+        check_sink(ExampleSink, {"port": peer.getsockname()[1]})
+        got = [peer.recv(65536) for _ in range(2)]
+    assert [event_adapter.validate_json(data).kind for data in got] == [
+        EventKind.TELEMETRY,
+        EventKind.DETECTION,
+    ]
+
+
+class BlockingSink(MemorySink):
+    """Sleeps on the event loop in send: what the contract forbids."""
+
+    async def send(self, batch: Sequence[Event]) -> None:
+        time.sleep(0.3)  # noqa: ASYNC251 - the violation under test
+        await super().send(batch)
+
+
+class NamelessSink(MemorySink):
+    def __init__(self, name: str, config: MemorySinkConfig | None = None) -> None:
+        super().__init__("fixed", config)
+
+
+class LooseConfig(SinkConfig):
+    model_config = ConfigDict(extra="ignore", frozen=True)
+
+
+class LooseSink(MemorySink):
+    config_model = LooseConfig  # type: ignore[assignment]
+
+
+class TestViolations:
+    """Each broken rule is named."""
+
+    def test_blocking_the_loop(self) -> None:
+        with pytest.raises(
+            ContractViolation, match=r"send\(\[\]\) blocked the event loop for 0\.[23]"
+        ):
+            check_sink(BlockingSink)
+
+    def test_ignoring_the_given_name(self) -> None:
+        with pytest.raises(ContractViolation, match=r"sink\.name is 'fixed'"):
+            check_sink(NamelessSink)
+
+    def test_accepting_unknown_options(self) -> None:
+        with pytest.raises(ContractViolation, match="unknown options must be rejected"):
+            check_sink(LooseSink)
+
+    def test_no_kinds(self) -> None:
+        with pytest.raises(ContractViolation, match="non-empty frozenset of EventKind"):
+            check_sink(MemorySink, {"kinds": []})
+
+    def test_a_send_that_never_returns(self) -> None:
+        with pytest.raises(ContractViolation, match=r"did not return within 0\.2 s"):
+            check_sink(MemorySink, {"hang": True}, deadline_s=0.2)

@@ -1,0 +1,71 @@
+"""The documentation a newcomer and an operator read stays inside the repo and true."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import pytest
+
+from gateway.share import DESCRIPTIONS
+
+ROOT = Path(__file__).resolve().parents[1]
+DOCS = [ROOT / "README.md", ROOT / "deploy" / "INSTALL.md", *sorted((ROOT / "docs").glob("*.md"))]
+LINK = re.compile(r"\]\(([^)#\s]+)(?:#[^)]*)?\)")
+
+
+@pytest.mark.parametrize("doc", DOCS, ids=lambda p: str(p.relative_to(ROOT)))
+def test_relative_links_resolve_inside_the_repository(doc: Path) -> None:
+    for target in LINK.findall(doc.read_text()):
+        if re.match(r"[a-z]+:", target):
+            continue  # http(s):, file:, mailto:
+        resolved = (doc.parent / target).resolve()
+        assert resolved.is_relative_to(ROOT), f"{doc.name} links outside the repo: {target}"
+        assert resolved.exists(), f"{doc.name} links to a missing file: {target}"
+
+
+def test_the_sink_guide_shows_the_example_sink_verbatim() -> None:
+    guide = (ROOT / "docs" / "writing-a-sink.md").read_text()
+    assert (ROOT / "sinks" / "example.py").read_text() in guide
+    assert "## Changes in progress" in guide  # the section the contract rework updates
+
+
+def test_install_names_the_debian_packages_and_the_terrain_extra() -> None:
+    install = (ROOT / "deploy" / "INSTALL.md").read_text()
+    assert "sudo apt-get install python3-venv proj-data" in install
+    assert "[terrain]" in install
+    assert "fischer-gateway files --out /opt/fischer-gateway/share" in install
+
+
+def test_the_units_documentation_is_what_files_out_writes() -> None:
+    unit = (ROOT / "deploy" / "fischer-gateway.service").read_text()
+    (line,) = [x for x in unit.splitlines() if x.startswith("Documentation=")]
+    uris = line.removeprefix("Documentation=").split()
+    assert uris
+    for uri in uris:
+        path = Path(uri.removeprefix("file://"))
+        assert path.parent == Path("/opt/fischer-gateway/share"), uri
+        assert path.name in DESCRIPTIONS, uri
+
+
+def test_the_wheel_ships_config_unit_docs_contract_and_example(tmp_path: Path) -> None:
+    subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w", str(tmp_path), str(ROOT)],
+        check=True,
+        capture_output=True,
+        timeout=120,
+    )
+    (wheel,) = tmp_path.glob("fischer_gateway-*.whl")
+    with zipfile.ZipFile(wheel) as archive:
+        names = set(archive.namelist())
+        for name in DESCRIPTIONS:
+            shipped = archive.read(f"gateway/data/share/{name}").decode()
+            assert shipped, name  # a symlink would have been shipped as its target's text
+        assert (
+            archive.read("gateway/data/share/example.yaml").decode()
+            == (ROOT / "config" / "example.yaml").read_text()
+        )
+    assert {"gateway/contract.py", "gateway/testing.py", "sinks/example.py"} <= names
