@@ -24,10 +24,10 @@ from typing import Any, TextIO
 import anyio
 import structlog
 
-from gateway.app import Gateway, dem_sources, utc_now
+from gateway.app import Gateway, utc_now
 from gateway.config import Config
+from gateway.configcheck import NodeCheck
 from gateway.configfile import load_config, load_config_text
-from gateway.domain.terrain import check_sources
 from gateway.errors import ConfigError, ConfigIssue, GatewayError
 from gateway.keys import load_day_keys, read_key_file, write_day_keys
 from gateway.listener import raise_open_files_limit
@@ -86,6 +86,12 @@ def _parser() -> argparse.ArgumentParser:
     demo.add_argument("--archive", type=Path, default=None, help="where the JSONL archive goes")
     check = sub.add_parser("check-config", help="validate a config file; exit 2 on errors")
     check.add_argument("file", type=Path)
+    check.add_argument(
+        "--no-environment",
+        action="store_true",
+        help="check the file alone: no key files, credentials, devices, DEMs or sink files "
+        "(for a config checked away from the node it will run on)",
+    )
     sub.add_parser("config-schema", help="print the JSON Schema of the config")
     sub.add_parser("selftest", help="compute every claim of the ledger; exit 1 on a mismatch")
     replay = sub.add_parser("replay", help="send a .tlog to a gateway as an airframe would")
@@ -182,19 +188,22 @@ def _print_config_error(exc: ConfigError, stream: TextIO) -> None:
     print(f"{len(exc.issues)} error(s)", file=stream)
 
 
-def _check_config(path: Path) -> int:
+def _check_config(path: Path, *, environment: bool) -> int:
+    warnings: list[ConfigIssue] = []
+    node = NodeCheck(environment=environment)
     try:
-        config = load_config(path, check_sink=check_sink)
-        Gateway(config, source=str(path))  # route/sink kind checks need the built sinks
+        config = load_config(path, check_sink=check_sink, extra=node, warnings=warnings)
     except ConfigError as exc:
         _print_config_error(exc, sys.stderr)
+        for warning in warnings:
+            print(f"{warning} (warning)", file=sys.stderr)  # noqa: T201 - the output
         return EXIT_CONFIG
+    for warning in warnings:
+        print(f"{warning} (warning)", file=sys.stderr)  # noqa: T201 - the output
     out = sys.stdout
-    # Warnings, not errors: the daemon runs without such a DEM source (no AGL from it).
-    for index, problem in check_sources(dem_sources(config)):
-        warning = f"{path}: warning: terrain.sources[{index}]: {problem}"
-        print(warning, file=sys.stderr)  # noqa: T201 - the output
-    print(f"{path}: ok ({len(config.airframes)} airframes, {len(config.sinks)} sinks)", file=out)
+    scope = "" if environment else ", file only: --no-environment"
+    summary = f"{len(config.airframes)} airframes, {len(config.sinks)} sinks{scope}"
+    print(f"{path}: ok ({summary})", file=out)
     for entry in config.sinks:
         plugin = load_plugin(entry.type)
         print(
@@ -363,7 +372,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(json.dumps(Config.model_json_schema(), indent=2))  # noqa: T201 - the output
         return EXIT_OK
     if args.command == "check-config":
-        return _check_config(args.file)
+        return _check_config(args.file, environment=not args.no_environment)
     if args.command == "files":
         from gateway.share import files_command
 
@@ -385,11 +394,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     configure_logging("info")
     try:
         if args.command == "run":
-            config = load_config(args.config, check_sink=check_sink)
+            node = NodeCheck(environment=True)
+            warnings: list[ConfigIssue] = []
+            config = load_config(args.config, check_sink=check_sink, extra=node, warnings=warnings)
             configure_logging(config.gateway.log_level)
+            for warning in warnings:
+                log.warning("config_warning", warning=str(warning))
             soft, _hard = raise_open_files_limit()
             log.info("open_files_limit", soft=soft)
-            gateway = Gateway(config, source=str(args.config))
+            gateway = Gateway(config, sinks=node.sinks, source=str(args.config))
             _run_async(partial(_serve, config_path=args.config), gateway, None)
             return EXIT_OK
         if args.command == "demo":

@@ -7,7 +7,9 @@ the config: options that need one take a path to a file or a systemd credential 
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
+from ipaddress import ip_address
 from pathlib import Path
 from typing import Annotated, Any, Literal
 from urllib.parse import parse_qsl, urlsplit
@@ -89,8 +91,11 @@ def parse_endpoint(value: object) -> Endpoint:
         if unknown:
             raise ValueError(f"expected only 'baud' as a serial parameter, found {sorted(unknown)}")
         baud_text = params.get("baud", "57600")
-        if not baud_text.isdigit() or not 50 <= int(baud_text) <= 4_000_000:
-            raise ValueError(f"expected baud between 50 and 4000000, found {baud_text!r}")
+        if not baud_text.isdigit() or int(baud_text) not in SERIAL_BAUDS:
+            raise ValueError(
+                f"expected a standard baud rate ({', '.join(map(str, SERIAL_BAUDS))}), "
+                f"found {baud_text!r}"
+            )
         return Endpoint("serial", "connect", device=device, baud=int(baud_text), text=value)
     if scheme not in _MODES:
         raise ValueError(f"expected udp://, tcp:// or serial://, found {value!r}")
@@ -108,9 +113,34 @@ def parse_endpoint(value: object) -> Endpoint:
         ) from exc
     if not host or port is None or parts.path not in ("", "/"):
         raise ValueError(f"expected {scheme}://HOST:PORT, found {value!r}")
+    if not _is_host(host):
+        raise ValueError(f"expected an IP address or a host name, found {host!r} in {value!r}")
     if port == 0 and mode == "connect":
         raise ValueError(f"expected a port to connect to (1-65535), found {value!r}")
     return Endpoint(scheme, mode, host=host, port=port, text=value)  # type: ignore[arg-type]
+
+
+#: The rates a Linux serial port can be set to (termios B-constants).
+SERIAL_BAUDS = (
+    50, 75, 110, 134, 150, 200, 300, 600, 1200, 1800, 2400, 4800, 9600, 19200, 38400, 57600,
+    115200, 230400, 460800, 500000, 576000, 921600, 1000000, 1152000, 1500000, 2000000, 2500000,
+    3000000, 3500000, 4000000,
+)  # fmt: skip
+_HOST_LABEL = re.compile(r"(?!-)[A-Za-z0-9-]{1,63}(?<!-)")
+
+
+def _is_host(host: str) -> bool:
+    """An IPv4 or IPv6 literal, or a DNS name (RFC 1123) that is not a malformed IPv4."""
+    try:
+        ip_address(host)
+    except ValueError:
+        pass
+    else:
+        return True
+    labels = host.rstrip(".").split(".")
+    if all(label.isdigit() for label in labels):
+        return False  # looks like IPv4 but did not parse: 192.0.2.300
+    return len(host) <= 253 and all(_HOST_LABEL.fullmatch(label) for label in labels)
 
 
 EndpointField = Annotated[

@@ -15,13 +15,14 @@ a non-finite number (``.inf``, ``.nan``) are errors, not 1 and "never".
 
 from __future__ import annotations
 
+import difflib
 import math
 import os
 import stat
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from types import UnionType
-from typing import Annotated, Any, Union, get_args, get_origin
+from typing import Annotated, Any, Literal, Union, get_args, get_origin
 
 import yaml
 from pydantic import BaseModel, ValidationError
@@ -34,6 +35,8 @@ __all__ = [
     "MAX_CONFIG_BYTES",
     "MAX_DEPTH",
     "MAX_NODES",
+    "ExtraCheck",
+    "Loc",
     "SinkChecker",
     "format_loc",
     "is_loopback_host",
@@ -154,7 +157,48 @@ def _found(value: object) -> str:
     return text if len(text) <= 60 else text[:57] + "..."
 
 
-def _issues_from_validation(exc: ValidationError, prefix: Loc) -> Iterator[tuple[Loc, str]]:
+def _model_at(model: type[BaseModel], loc: Loc) -> type[BaseModel] | None:
+    """The model class that validates the mapping at ``loc`` below ``model``, if one does."""
+    annotation: object = model
+    for part in loc:
+        annotation = _child_type(annotation, part)
+    alternatives = _unwrap(annotation)
+    if len(alternatives) == 1 and isinstance(alternatives[0], type):
+        kind = alternatives[0]
+        if issubclass(kind, BaseModel):
+            return kind
+    return None
+
+
+def _unknown_key(key: str, parent: type[BaseModel] | None) -> str:
+    if parent is None:
+        return f"unknown key '{key}' (a typo?); expected one of the documented keys"
+    known = sorted(parent.model_fields)
+    close = difflib.get_close_matches(key, known, n=1, cutoff=0.6)
+    hint = f"did you mean '{close[0]}'?" if close else f"expected one of: {', '.join(known)}"
+    return f"unknown key '{key}'; {hint}"
+
+
+def _missing_key(key: str, parent: type[BaseModel] | None) -> str:
+    field = parent.model_fields.get(key) if parent is not None else None
+    message = f"missing required key '{key}'"
+    if field is not None:
+        choices = [
+            str(arg)
+            for alt in _unwrap(field.annotation)
+            if get_origin(alt) is Literal
+            for arg in get_args(alt)
+        ]
+        if choices:
+            message += f": one of {', '.join(choices)}"
+        if field.description:
+            message += f" ({field.description.rstrip('.')})"
+    return message
+
+
+def _issues_from_validation(
+    exc: ValidationError, prefix: Loc, model: type[BaseModel] | None = None
+) -> Iterator[tuple[Loc, str]]:
     errors = exc.errors()
     inner = {tuple(e["loc"][:n]) for e in errors for n in range(len(e["loc"]))}
     for error in errors:
@@ -163,15 +207,24 @@ def _issues_from_validation(exc: ValidationError, prefix: Loc) -> Iterator[tuple
             continue
         loc: Loc = (*prefix, *error["loc"])
         message = error["msg"].removeprefix("Value error, ")
+        parent = _model_at(model, error["loc"][:-1]) if model is not None else None
         if error["type"] == "extra_forbidden":
-            message = f"unknown key '{loc[-1]}' (a typo?); expected one of the documented keys"
-        elif error["type"] != "missing" and "found" not in message:
+            message = _unknown_key(str(loc[-1]), parent)
+        elif error["type"] == "missing":
+            message = _missing_key(str(loc[-1]), parent)
+        elif "found" not in message:
             message = f"{message}, found {_found(error.get('input'))}"
         yield loc, message
 
 
 def _cross_check(data: dict[str, Any]) -> Iterator[tuple[Loc, str]]:
     """Checks across items, made on the raw data so they report even if other items fail."""
+    if not data.get("airframes") and not data.get("sources"):
+        yield (
+            (),
+            "nothing to do: no airframes and no sources are configured "
+            "(config/example.yaml shows both)",
+        )
     airframes = data.get("airframes")
     ids: dict[object, int] = {}
     sysids: dict[object, int] = {}
@@ -302,13 +355,24 @@ def _sink_issues(data: dict[str, Any], check_sink: SinkChecker) -> Iterator[tupl
             yield ("sinks", i, "type"), str(exc)
 
 
+ExtraCheck = Callable[[dict[str, Any], Config | None], Iterable[tuple[Loc, str, bool]]]
+"""More checks on the raw data and the model (None if it failed): ``(loc, message, is_error)``."""
+
+
 def load_config_text(
-    text: str, source: str = "<config>", *, check_sink: SinkChecker | None = None
+    text: str,
+    source: str = "<config>",
+    *,
+    check_sink: SinkChecker | None = None,
+    extra: ExtraCheck | None = None,
+    warnings: list[ConfigIssue] | None = None,
 ) -> Config:
     """Parse and validate YAML ``text``; raise ``ConfigError`` listing every problem.
 
     ``check_sink``, when given, also validates each sink's type and options (the plugin
-    loader provides it), so those problems are reported with their lines too.
+    loader provides it), so those problems are reported with their lines too. ``extra``
+    adds checks (``gateway.configcheck``: key files, devices, sink construction); what it
+    reports as not an error goes, with its line, to ``warnings``.
     """
     if len(text) > MAX_CONFIG_BYTES:
         message = f"{len(text)} characters; a config file is at most {MAX_CONFIG_BYTES}"
@@ -344,7 +408,7 @@ def load_config_text(
     try:
         config = Config.model_validate(data)
     except ValidationError as exc:
-        found.extend(_issues_from_validation(exc, ()))
+        found.extend(_issues_from_validation(exc, (), Config))
     reported = {loc for loc, _ in found}
     found.extend(issue for issue in _number_checks(data, Config, ()) if issue[0] not in reported)
     found.extend(_cross_check(data))
@@ -352,6 +416,12 @@ def load_config_text(
     found.extend(_bind_checks(data))
     if check_sink is not None:
         found.extend(_sink_issues(data, check_sink))
+    if extra is not None:
+        for loc, message, is_error in extra(data, None if found else config):
+            if is_error:
+                found.append((loc, message))
+            elif warnings is not None:
+                warnings.append(ConfigIssue(source, lines.line(loc), format_loc(loc), message))
     if found or config is None:
         dup_lines = dict(lines.duplicates)
         issues = [
@@ -363,10 +433,17 @@ def load_config_text(
     return config
 
 
-def load_config(path: Path, *, check_sink: SinkChecker | None = None) -> Config:
+def load_config(
+    path: Path,
+    *,
+    check_sink: SinkChecker | None = None,
+    extra: ExtraCheck | None = None,
+    warnings: list[ConfigIssue] | None = None,
+) -> Config:
     """Read and validate the config file at ``path``; raise ``ConfigError`` naming its lines.
 
     Refuses anything but a regular file of at most ``MAX_CONFIG_BYTES`` before reading it.
+    ``check_sink``, ``extra`` and ``warnings`` are as for ``load_config_text``.
     """
     source = str(path)
     try:
@@ -389,7 +466,7 @@ def load_config(path: Path, *, check_sink: SinkChecker | None = None) -> Config:
     except UnicodeDecodeError as exc:
         message = f"not UTF-8 text (byte {exc.start})"
         raise ConfigError([ConfigIssue(source, None, "(file)", message)]) from exc
-    return load_config_text(text, source, check_sink=check_sink)
+    return load_config_text(text, source, check_sink=check_sink, extra=extra, warnings=warnings)
 
 
 def _number_checks(raw: object, expected: object, loc: Loc) -> Iterator[tuple[Loc, str]]:

@@ -216,7 +216,8 @@ def test_check_config_warns_about_a_dem_source_it_cannot_use(tmp_path: Path) -> 
     )
     result = cli("check-config", str(config))
     assert result.returncode == 0, result.stderr
-    assert f"{config}: warning: terrain.sources[0]: source 'lm':" in result.stderr
+    assert f"{config}:7 terrain.sources[0]: source 'lm':" in result.stderr
+    assert "(warning)" in result.stderr
     assert "is not a directory" in result.stderr
 
 

@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from gateway.cli import main
-from gateway.config import Config, parse_endpoint
+from gateway.config import parse_endpoint
 from gateway.configfile import load_config, load_config_text
 from gateway.errors import ConfigError
 from gateway.plugins import check_sink
@@ -92,8 +92,41 @@ class TestLoad:
         with pytest.raises(ValueError, match="frozen"):
             config.gateway.node_id = "x"  # type: ignore[misc]
 
-    def test_empty_file_gives_defaults(self) -> None:
-        assert load_config_text("") == Config()
+    def test_empty_file_is_an_error_not_an_idle_daemon(self) -> None:
+        """An empty file would bind the health port and do nothing: say so instead."""
+        with pytest.raises(ConfigError, match="nothing to do: no airframes and no sources"):
+            load_config_text("")
+
+    def test_unknown_keys_get_a_did_you_mean(self) -> None:
+        text = "airframes:\n  - {id: A, sysid: 1, link_timout_s: 3, links: []}\nhealht: {}\n"
+        with pytest.raises(ConfigError) as info:
+            load_config_text(text, "t.yaml")
+        messages = {issue.key_path: issue.message for issue in info.value.issues}
+        assert "did you mean 'link_timeout_s'?" in messages["airframes[0].link_timout_s"]
+        assert "did you mean 'health'?" in messages["healht"]
+
+    def test_a_missing_security_names_the_choices(self) -> None:
+        text = "airframes:\n  - {id: A, sysid: 1, links: [{uri: 'udp://127.0.0.1:1'}]}\n"
+        with pytest.raises(ConfigError) as info:
+            load_config_text(text, "t.yaml")
+        (issue,) = info.value.issues
+        assert issue.key_path == "airframes[0].links[0].security"
+        assert "one of tunnel, signed, unsecured" in issue.message
+
+    @pytest.mark.parametrize(
+        ("uri", "message"),
+        [
+            ("tcp://192.0.2.300:5760", "expected an IP address or a host name"),
+            ("tcp://bad_host!:5760", "expected an IP address or a host name"),
+            ("serial:///dev/ttyUSB0?baud=57601", "expected a standard baud rate"),
+        ],
+    )
+    def test_uris_that_could_never_open_are_config_errors(self, uri: str, message: str) -> None:
+        text = (
+            f"airframes:\n  - {{id: A, sysid: 1, links: [{{uri: '{uri}', security: unsecured}}]}}\n"
+        )
+        with pytest.raises(ConfigError, match=message):
+            load_config_text(text, "t.yaml")
 
 
 class TestErrors:
@@ -136,7 +169,10 @@ class TestErrors:
 
     def test_duplicate_yaml_key_is_an_error(self) -> None:
         with pytest.raises(ConfigError) as info:
-            load_config_text("gateway:\n  node_id: a\n  node_id: b\n", "d.yaml")
+            load_config_text(
+                "gateway:\n  node_id: a\n  node_id: b\nsources: [{name: s, uri: 'udp://239.2.3.1:6969'}]\n",
+                "d.yaml",
+            )
         (issue,) = info.value.issues
         assert (issue.line, issue.key_path) == (3, "gateway.node_id")
 

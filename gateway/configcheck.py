@@ -1,0 +1,179 @@
+"""Checks of a config against the node it runs on, reported in the same pass as the schema's.
+
+``NodeCheck`` is the ``extra`` check of ``load_config``: with ``environment=True`` (``run``,
+and ``check-config`` by default) it reads every key file and credential the config names,
+looks for serial devices and DEM directories, builds every sink (so a sink whose files are
+missing, whose constructor is wrong, or whose ``kinds`` are not ``EventKind`` members is a
+config error with its line, not a traceback at start) and checks each route's kinds against
+the sinks it names. With ``environment=False`` (``check-config --no-environment``, for a
+config checked away from the node) none of that is touched. What the daemon survives (a
+serial device not plugged in yet, a DEM directory not there) is a warning, not an error.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Generator, Iterator, Mapping
+from pathlib import Path
+from typing import Any
+
+from pydantic import ValidationError
+
+from gateway.app import dem_sources
+from gateway.config import Config
+from gateway.configfile import Loc
+from gateway.domain.terrain import check_sources
+from gateway.errors import ConfigError, SinkLoadError
+from gateway.events import EventKind
+from gateway.keys import read_credential, read_key_file
+from gateway.plugins import load_plugin
+from gateway.sink import Sink
+
+__all__ = ["NodeCheck"]
+
+Finding = tuple[Loc, str, bool]
+_KINDS = frozenset(kind.value for kind in EventKind)
+
+
+class NodeCheck:
+    """The node-side checks of one config load; keeps the sinks it built for ``Gateway``."""
+
+    def __init__(self, *, environment: bool, env: Mapping[str, str] | None = None) -> None:
+        self.environment = environment
+        self.env = os.environ if env is None else env
+        self.sinks: dict[str, Sink] = {}
+
+    def __call__(self, data: dict[str, Any], config: Config | None) -> Iterator[Finding]:
+        if not self.environment:
+            return
+        yield from self._keys(data)
+        yield from self._devices(data)
+        if config is not None:
+            for index, problem in check_sources(dem_sources(config)):
+                yield ("terrain", "sources", index), problem, False
+        kinds = yield from self._sinks(data)
+        yield from self._routes(data, kinds)
+
+    def _keys(self, data: dict[str, Any]) -> Iterator[Finding]:
+        tunnel = _mapping(data.get("tunnel"))
+        key_file = tunnel.get("master_key_file")
+        if isinstance(key_file, str):
+            yield from _key_problem(("tunnel", "master_key_file"), Path(key_file), exact=False)
+        credential = tunnel.get("master_key_credential")
+        if isinstance(credential, str):
+            loc: Loc = ("tunnel", "master_key_credential")
+            if not self.env.get("CREDENTIALS_DIRECTORY"):
+                yield (
+                    loc,
+                    f"credential {credential!r} not checked: CREDENTIALS_DIRECTORY is not set "
+                    "(it exists only under systemd, with LoadCredential=)",
+                    False,
+                )
+            else:
+                try:
+                    read_credential(credential, self.env)
+                except ConfigError as exc:
+                    yield loc, "; ".join(issue.message for issue in exc.issues), True
+        for i, airframe in enumerate(_items(data.get("airframes"))):
+            signing = _mapping(airframe.get("signing"))
+            key_file = signing.get("key_file")
+            if isinstance(key_file, str):
+                loc = ("airframes", i, "signing", "key_file")
+                yield from _key_problem(loc, Path(key_file), exact=True)
+
+    def _devices(self, data: dict[str, Any]) -> Iterator[Finding]:
+        for i, airframe in enumerate(_items(data.get("airframes"))):
+            for j, link in enumerate(_items(airframe.get("links"))):
+                uri = link.get("uri")
+                if isinstance(uri, str) and uri.startswith("serial://"):
+                    device = uri.removeprefix("serial://").split("?", 1)[0]
+                    if not os.path.exists(device):
+                        yield (
+                            ("airframes", i, "links", j, "uri"),
+                            f"{device} does not exist now; the link will wait for it",
+                            False,
+                        )
+
+    def _sinks(
+        self, data: dict[str, Any]
+    ) -> Generator[Finding, None, dict[str, frozenset[EventKind]]]:
+        """Build every sink whose type and options are valid; return each one's kinds."""
+        kinds: dict[str, frozenset[EventKind]] = {}
+        for i, entry in enumerate(_items(data.get("sinks"))):
+            name, type_name = entry.get("name"), entry.get("type")
+            options = entry.get("options") or {}
+            if not (isinstance(name, str) and isinstance(type_name, str)):
+                continue
+            if not isinstance(options, dict):
+                continue
+            try:
+                plugin = load_plugin(type_name)
+                config = plugin.factory.config_model.model_validate(options)
+            except (ValidationError, SinkLoadError):
+                continue  # reported by the schema pass, with the option's own line
+            where = f"sink type {type_name!r} from {plugin.distribution} {plugin.version}"
+            try:
+                sink = plugin.factory(name, config)
+            except TypeError as exc:
+                yield (
+                    ("sinks", i, "type"),
+                    f"{where} cannot be built as factory(name, config): {exc}",
+                    True,
+                )
+                continue
+            except (OSError, ValueError) as exc:
+                yield ("sinks", i, "options"), f"{where} cannot be built: {exc}", True
+                continue
+            sink_kinds = getattr(sink, "kinds", None)
+            if not isinstance(sink_kinds, set | frozenset) or not all(
+                isinstance(kind, EventKind) for kind in sink_kinds
+            ):
+                yield (
+                    ("sinks", i, "type"),
+                    f"{where}: its 'kinds' must be a set of EventKind members, found "
+                    f"{sink_kinds!r:.80}",
+                    True,
+                )
+                continue
+            self.sinks[name] = sink
+            kinds[name] = frozenset(sink_kinds)
+        return kinds
+
+    def _routes(
+        self, data: dict[str, Any], kinds: Mapping[str, frozenset[EventKind]]
+    ) -> Iterator[Finding]:
+        for i, route in enumerate(_items(data.get("routes"))):
+            wanted = route.get("kinds")
+            if not isinstance(wanted, list):
+                continue
+            for name in route.get("sinks") or ():
+                accepted = kinds.get(name) if isinstance(name, str) else None
+                if accepted is None:
+                    continue
+                for j, kind in enumerate(wanted):
+                    if isinstance(kind, str) and kind in _KINDS and EventKind(kind) not in accepted:
+                        yield (
+                            ("routes", i, "kinds", j),
+                            f"sink {name!r} does not accept {kind!r}; it accepts "
+                            f"{sorted(k.value for k in accepted)}",
+                            True,
+                        )
+
+
+def _key_problem(loc: Loc, path: Path, *, exact: bool) -> Iterator[Finding]:
+    try:
+        read_key_file(path, exact=exact)
+    except ConfigError as exc:
+        yield loc, f"{path}: " + "; ".join(issue.message for issue in exc.issues), True
+
+
+def _mapping(value: object) -> dict[str, Any]:
+    return value if isinstance(value, dict) else {}
+
+
+def _items(value: object) -> list[dict[str, Any]]:
+    return (
+        [item if isinstance(item, dict) else {} for item in value]
+        if isinstance(value, list)
+        else []
+    )
