@@ -33,7 +33,7 @@ from gateway.errors import TransientSinkError
 from gateway.events import Event, EventKind, Track
 from gateway.sink import SinkConfig
 from sinks._cot_codec import Encoded
-from sinks._cot_event import CotOptions, build
+from sinks._cot_event import CotOptions, StaleTimes, build
 from sinks._cot_geoid import GeoidGrid, bundled_geoid
 from sinks._cot_tls import TlsFiles
 from sinks._cot_transport import Endpoint, StreamConnection, UdpSender
@@ -224,11 +224,7 @@ class CotSink:
         self.options = CotOptions(
             uid_prefix=config.uid_prefix,
             callsign_prefix=config.callsign_prefix,
-            stale_s={
-                "telemetry": stale.telemetry_s,
-                "detection": stale.detection_s,
-                "track": stale.track_s,
-            },
+            stale=StaleTimes(stale.telemetry_s, stale.detection_s, stale.track_s),
             loitering_munition=config.loitering_munition,
             detection_hostility=config.detection_hostility,
             geoid=geoid.undulation,
