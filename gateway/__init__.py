@@ -20,6 +20,7 @@ if TYPE_CHECKING:
     from gateway.errors import TransientSinkError as TransientSinkError
     from gateway.events import Event as Event
     from gateway.events import EventKind as EventKind
+    from gateway.sink import LifetimeSink as LifetimeSink
     from gateway.sink import Sink as Sink
     from gateway.sink import SinkConfig as SinkConfig
 
@@ -29,6 +30,7 @@ __all__ = [
     "EventKind",
     "Gateway",
     "GatewayError",
+    "LifetimeSink",
     "PermanentSinkError",
     "Sink",
     "SinkConfig",
@@ -42,6 +44,7 @@ _HOME = {
     "EventKind": "gateway.events",
     "Gateway": "gateway.app",
     "GatewayError": "gateway.errors",
+    "LifetimeSink": "gateway.sink",
     "PermanentSinkError": "gateway.errors",
     "Sink": "gateway.sink",
     "SinkConfig": "gateway.sink",

@@ -122,7 +122,9 @@ class Gateway:
                         max_chunk_bytes=link_cfg.max_frame_bytes,
                     )
                 )
-        self.sources = [CotListener(source, self.bus.publish) for source in config.sources]
+        self.sources = [
+            CotListener(source, self.bus.publish, clock=clock) for source in config.sources
+        ]
         self.passthroughs: dict[str, Passthrough] = {}
         for airframe in config.airframes:
             if airframe.passthrough is not None:
@@ -298,7 +300,12 @@ class Gateway:
             ],
             "passthroughs": [p.status() for p in self.passthroughs.values()],
             "sources": [
-                {"source": s.config.name, "uri": s.config.uri, "counts": dict(s.counts)}
+                {
+                    "source": s.config.name,
+                    "uri": s.config.uri,
+                    "counts": dict(s.counts),
+                    "connections": dict(s.connections),
+                }
                 for s in self.sources
             ],
             "unknown_sysids": sorted(self.ingest.unknown_sysids),

@@ -7,18 +7,24 @@ protobuf, which ATAK switches to when all the peers it knows speak it) or on TCP
 through our validator (``sinks._cot_validate``: defusedxml, no DTDs, entities or network).
 
 A friendly position within 0.01° of 0,0 is an ATAK device without a GPS fix (real ATAK-CIV
-captures sit at -0.0043,-0.0077): it is rejected as ``no_fix``, never published. Nothing here
+captures sit at -0.0043,-0.0077): it is rejected as ``no_fix``, never published. An event whose
+``stale`` has passed (a replayed capture, a relay's backlog) is not a current position:
+``stale``. Per uid only the newest ``time`` is published: an older event is ``older``, the same
+one again ``duplicate`` (the newest times of at most ``max_uids`` uids are kept). Nothing here
 raises on bad input; every event is counted by outcome in ``counts`` (``accepted``,
-``no_fix``, ``not_friendly``, ``invalid``, ``oversize``), invalid ones also by ``problems``,
-and logged rate-limited without the payload.
+``no_fix``, ``not_friendly``, ``stale``, ``older``, ``duplicate``, ``control`` for a mesh
+``TakControl`` without an event, ``invalid``, ``oversize``, ``fragment`` for stream bytes that
+were not an event), invalid ones also by ``problems``, and logged rate-limited without the
+payload. The TCP side and its bounds are in ``gateway.cot_stream``.
 """
 
 from __future__ import annotations
 
 import socket
 import struct
-from collections import Counter
+from collections import Counter, OrderedDict
 from collections.abc import Callable
+from datetime import UTC, datetime
 from ipaddress import ip_address
 from typing import Literal
 from urllib.parse import urlsplit
@@ -28,6 +34,7 @@ import anyio.abc
 import structlog
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from gateway.cot_stream import CotStreamServer
 from gateway.events import BlueForce, Event, Position
 from gateway.logsetup import RateLimit
 from sinks._cot_validate import CotError, ParsedCot, is_unknown, parse_cot
@@ -38,7 +45,6 @@ log = structlog.get_logger(__name__)
 
 #: Friendly positions closer than this to 0,0 (in both latitude and longitude) have no fix.
 NO_FIX_DEG = 0.01
-_END = b"</event>"
 _SCHEMES = ("udp", "udp+multicast", "tcp")
 
 
@@ -60,6 +66,12 @@ class CotSourceConfig(BaseModel):
     )
     max_event_bytes: int = Field(default=16384, ge=512, le=65536)
     max_clients: int = Field(default=32, ge=1, description="TCP connections served at once.")
+    idle_timeout_s: float = Field(
+        default=300.0, gt=0, description="Close a TCP connection silent for this long."
+    )
+    max_uids: int = Field(
+        default=10_000, ge=1, description="Units whose newest time is remembered (order check)."
+    )
 
     @field_validator("uri")
     @classmethod
@@ -83,30 +95,67 @@ def _is_multicast(host: str) -> bool:
         return False
 
 
-class CotListener:
-    """Receives CoT and publishes a ``BlueForce`` for each friendly position with a fix."""
+def _utc_now() -> datetime:
+    return datetime.now(UTC)
 
-    def __init__(self, config: CotSourceConfig, publish: Callable[[Event], None]) -> None:
+
+class CotListener:
+    """Receives CoT and publishes a ``BlueForce`` for each current friendly position."""
+
+    def __init__(
+        self,
+        config: CotSourceConfig,
+        publish: Callable[[Event], None],
+        *,
+        clock: Callable[[], datetime] = _utc_now,
+    ) -> None:
         self.config = config
         self._publish = publish
+        self._clock = clock
         parts = urlsplit(config.uri)
         self.host, self.port = str(parts.hostname), int(parts.port or 0)
         self.is_udp = parts.scheme.startswith("udp")
-        #: Events by outcome: accepted, no_fix, not_friendly, invalid, oversize.
+        #: Events by outcome (see the module docstring).
         self.counts: Counter[str] = Counter()
         #: Invalid events by the validator's problem code (xml, time, position, ...).
         self.problems: Counter[str] = Counter()
-        #: TCP connections closed at once because ``max_clients`` were being served.
-        self.refused_clients = 0
-        self.local_port = 0
+        self._newest: OrderedDict[str, datetime] = OrderedDict()
         self._log_limit = RateLimit(interval_s=10.0)
-        self._clients = anyio.CapacityLimiter(config.max_clients)
         self.log = log.bind(source=config.name)
+        self._stream = CotStreamServer(
+            self.host,
+            self.port,
+            self.handle,
+            self._reject,
+            max_clients=config.max_clients,
+            max_event_bytes=config.max_event_bytes,
+            idle_timeout_s=config.idle_timeout_s,
+            name=config.name,
+        )
+        self._udp_port = 0
+
+    @property
+    def local_port(self) -> int:
+        """The bound port (after ``run`` has started)."""
+        return self._udp_port if self.is_udp else self._stream.local_port
+
+    @property
+    def connections(self) -> Counter[str]:
+        """TCP connection outcomes: accept_failed, refused, idle_closed."""
+        return self._stream.counts
+
+    @property
+    def refused_clients(self) -> int:
+        """TCP connections closed at once because ``max_clients`` were being served."""
+        return self._stream.counts["refused"]
 
     @property
     def parsed(self) -> int:
         """Events that passed validation, published or not."""
-        return self.counts["accepted"] + self.counts["no_fix"] + self.counts["not_friendly"]
+        return sum(
+            self.counts[k]
+            for k in ("accepted", "no_fix", "not_friendly", "stale", "older", "duplicate")
+        )
 
     def _reject(self, outcome: str, **fields: object) -> None:
         self.counts[outcome] += 1
@@ -121,17 +170,34 @@ class CotListener:
         try:
             cot = parse_cot(data)
         except CotError as exc:
+            if exc.problem == "not_event":
+                self.counts["control"] += 1  # a mesh peer's TakControl: not an error
+                return
             self.problems[exc.problem] += 1
             self._reject("invalid", problem=exc.problem)
             return
         if not cot.type.startswith("a-f-"):
             self.counts["not_friendly"] += 1
             return
+        if cot.stale <= self._clock():
+            self._reject("stale", uid=cot.uid, stale=cot.stale.isoformat())
+            return
         if abs(cot.lat) < NO_FIX_DEG and abs(cot.lon) < NO_FIX_DEG:
             self._reject("no_fix", uid=cot.uid)
             return
+        newest = self._newest.get(cot.uid)
+        if newest is not None and cot.time <= newest:
+            self._reject("older" if cot.time < newest else "duplicate", uid=cot.uid)
+            return
+        self._remember(cot.uid, cot.time)
         self.counts["accepted"] += 1
         self._publish(_blue_force(cot))
+
+    def _remember(self, uid: str, time: datetime) -> None:
+        self._newest[uid] = time
+        self._newest.move_to_end(uid)
+        while len(self._newest) > self.config.max_uids:
+            self._newest.popitem(last=False)  # the unit heard from longest ago
 
     async def run(
         self, *, task_status: anyio.abc.TaskStatus[None] = anyio.TASK_STATUS_IGNORED
@@ -140,7 +206,7 @@ class CotListener:
         if self.is_udp:
             await self._run_udp(task_status)
         else:
-            await self._run_tcp(task_status)
+            await self._stream.run(task_status=task_status)
 
     def _udp_socket(self) -> socket.socket:
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -163,7 +229,7 @@ class CotListener:
     async def _run_udp(self, task_status: anyio.abc.TaskStatus[None]) -> None:
         sock = self._udp_socket()
         with sock:
-            self.local_port = int(sock.getsockname()[1])
+            self._udp_port = int(sock.getsockname()[1])
             task_status.started()
             while True:
                 await anyio.wait_readable(sock)
@@ -172,42 +238,10 @@ class CotListener:
                 except (BlockingIOError, InterruptedError):
                     continue
                 except OSError as exc:  # e.g. ICMP errors surfacing on the socket
-                    self.log.warning("cot_receive_failed", error=str(exc))
+                    if self._log_limit.allow("receive"):
+                        self.log.warning("cot_receive_failed", error=str(exc))
                     continue
                 self.handle(data)
-
-    async def _run_tcp(self, task_status: anyio.abc.TaskStatus[None]) -> None:
-        listener = await anyio.create_tcp_listener(local_host=self.host, local_port=self.port)
-        self.local_port = int(listener.extra(anyio.abc.SocketAttribute.local_port))
-        task_status.started()
-        async with listener:
-            await listener.serve(self._serve)
-
-    async def _serve(self, stream: anyio.abc.SocketStream) -> None:
-        async with stream:
-            if self._clients.available_tokens < 1:
-                self.refused_clients += 1
-                if self._log_limit.allow("refused"):
-                    self.log.warning("cot_client_refused", max_clients=self.config.max_clients)
-                return
-            async with self._clients:
-                await self._read_stream(stream)
-
-    async def _read_stream(self, stream: anyio.abc.SocketStream) -> None:
-        buffer = bytearray()
-        limit = self.config.max_event_bytes
-        try:
-            async for chunk in stream:
-                buffer += chunk
-                while (end := buffer.find(_END)) >= 0:
-                    self.handle(bytes(buffer[: end + len(_END)]).strip())
-                    del buffer[: end + len(_END)]
-                if len(buffer) > limit:
-                    # No </event> within the limit: a stream we cannot follow; hang up.
-                    self._reject("oversize", size=len(buffer))
-                    return
-        except (anyio.BrokenResourceError, OSError):
-            return
 
 
 def _blue_force(cot: ParsedCot) -> BlueForce:

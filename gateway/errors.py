@@ -15,7 +15,7 @@ translated once, at the boundary where they enter, with ``raise ... from exc``::
     │   └── Replayed                 a frame already seen, or too old
     ├── SinkError                    an output sink could not take events
     │   ├── TransientSinkError       try again later (the SinkRunner retries with backoff)
-    │   ├── PermanentSinkError       this event will never be accepted (dead-lettered)
+    │   ├── PermanentSinkError       these events will never be accepted (dead-lettered)
     │   └── SinkLoadError            the sink named in config cannot be loaded or configured
     └── OrderRejected                an order failed its acceptance checks
 
@@ -25,6 +25,7 @@ so a log line can bind them instead of parsing the message.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 __all__ = [
@@ -144,7 +145,17 @@ class TransientSinkError(SinkError):
 
 
 class PermanentSinkError(SinkError):
-    """Raised by a sink that will never accept these events; they are dead-lettered."""
+    """Raised by a sink that will never accept some events; they are dead-lettered.
+
+    Without ``event_ids`` the whole batch is refused. With them, only the events of the batch
+    whose ``event_id`` is listed are refused, and the sink has delivered every other one.
+    """
+
+    def __init__(
+        self, message: str, *, sink: str | None = None, event_ids: Iterable[str] = ()
+    ) -> None:
+        self.event_ids = frozenset(event_ids)
+        super().__init__(message, sink=sink)
 
 
 class SinkLoadError(SinkError):

@@ -65,7 +65,7 @@ class Instruments:
         )
         self.sink_dropped = r.counter(
             "fg_sink_events_dropped_total",
-            "Events a sink will never get, by reason (overflow, rejected).",
+            "Events a sink will never get, by reason (overflow, rejected, error).",
             ("sink", "reason"),
         )
         self.sink_superseded = r.counter(

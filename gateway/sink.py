@@ -5,10 +5,22 @@ constructed with its name and its own validated pydantic config, and it only enc
 sends: the ``SinkRunner`` gives every sink the same queueing, retry, backoff, dead-lettering
 and metrics, so a sink holds none of its own.
 
+Lifetime, in the runner's one task: ``open()`` under the send deadline; then, if the sink
+has one, its ``run(task_status=...)`` lifetime is started in the *runner's* task group
+(``await tg.start(sink.run)``) for the background work a sink needs (a periodic announcement,
+reading what a server sends); ``send(batch)`` calls, one at a time; then the lifetime is
+cancelled and ``aclose()`` is called. A sink never holds a task group or a cancel scope across
+``open``/``aclose``: each call returns with everything it entered exited, so the runner's
+deadlines nest. If ``run`` raises, the runner closes the sink and opens it again with backoff.
+
 ``send`` raises ``TransientSinkError`` for a failure worth retrying (the peer is down, a
 timeout) and ``PermanentSinkError`` for events that will never be accepted (they are
-dead-lettered). Any other exception is a bug in the sink; the runner treats it as transient
-and logs it with its traceback.
+dead-lettered). A ``PermanentSinkError`` with ``event_ids`` rejects only those events: the
+sink has delivered every other event of the batch before raising. Any other exception is a bug
+in the sink: the runner counts it, logs it (rate-limited, with its traceback), retries the
+batch a bounded number of times (``sinkrunner.ERROR_ATTEMPTS``), then sends the batch's events
+one by one and dead-letters only those that still fail, so one poisoned event cannot block the
+queue behind it.
 """
 
 from __future__ import annotations
@@ -16,12 +28,14 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any, ClassVar, Protocol, runtime_checkable
 
+import anyio
+import anyio.abc
 from pydantic import BaseModel, ConfigDict
 
 if TYPE_CHECKING:
     from gateway.events import Event, EventKind
 
-__all__ = ["Sink", "SinkClass", "SinkConfig"]
+__all__ = ["LifetimeSink", "Sink", "SinkClass", "SinkConfig"]
 
 
 class SinkConfig(BaseModel):
@@ -34,8 +48,8 @@ class SinkConfig(BaseModel):
 class Sink(Protocol):
     """An output system that takes batches of events.
 
-    ``open`` and ``aclose`` are called once each by the runner; ``send`` is only called
-    between them, never concurrently with itself, under the configured send deadline.
+    ``open`` and ``aclose`` are called once per connection cycle by the runner; ``send`` is
+    only called between them, never concurrently with itself, under the send deadline.
     """
 
     name: str
@@ -50,11 +64,31 @@ class Sink(Protocol):
         ...
 
     async def send(self, batch: Sequence[Event]) -> None:
-        """Deliver every event of ``batch`` or raise; a partial success must raise too."""
+        """Deliver every event of ``batch`` or raise; a partial success must raise too.
+
+        ``PermanentSinkError(event_ids=...)`` names the events refused for good, after the
+        others were delivered.
+        """
         ...
 
     async def aclose(self) -> None:
         """Release what ``open`` acquired. Must be safe to call after a failed ``open``."""
+        ...
+
+
+@runtime_checkable
+class LifetimeSink(Sink, Protocol):
+    """A sink with background work, which it does in tasks its runner owns.
+
+    ``run`` is started with ``await task_group.start(sink.run)`` after a successful ``open``
+    and cancelled before ``aclose``; it calls ``task_status.started()`` once ready and then
+    works until cancelled. It may run concurrently with ``send``.
+    """
+
+    async def run(
+        self, *, task_status: anyio.abc.TaskStatus[None] = anyio.TASK_STATUS_IGNORED
+    ) -> None:
+        """Do the sink's background work until cancelled; raise to have the sink reopened."""
         ...
 
 

@@ -15,7 +15,7 @@ from xml.sax.saxutils import quoteattr
 from sinks._cot_event import CotEvent, xml_safe
 from sinks._cot_proto import double, mesh_frame, message, stream_frame, string, uint
 
-__all__ = ["Encoded", "Encoding", "cot_time", "decimal", "to_proto", "to_xml"]
+__all__ = ["Encoded", "Encoding", "cot_time", "decimal", "tak_control", "to_proto", "to_xml"]
 
 Encoding = Literal["xml", "mesh", "stream"]
 
@@ -124,6 +124,15 @@ def to_proto(event: CotEvent) -> bytes:
     return message(2, cot)
 
 
+def tak_control(min_version: int = 1, max_version: int = 1, contact_uid: str = "") -> bytes:
+    """``TakMessage`` field 1, a ``TakControl``: the protocol versions this sender speaks.
+
+    On its own it is a control-only ``TakMessage``; put before a message's cotEvent field it
+    rides along with that event (protobuf fields concatenate).
+    """
+    return message(1, uint(1, min_version) + uint(2, max_version) + string(3, contact_uid))
+
+
 class Encoded:
     """One event and its encodings, each made on first request and then reused."""
 
@@ -134,6 +143,16 @@ class Encoded:
         self._cache: dict[Encoding, bytes] = {}
         self._proto: bytes | None = None
 
+    def proto(self) -> bytes:
+        """The serialized ``TakMessage``, unframed (made once)."""
+        if self._proto is None:
+            self._proto = to_proto(self.event)
+        return self._proto
+
+    def mesh_with(self, prefix: bytes) -> bytes:
+        """A mesh datagram whose ``TakMessage`` starts with ``prefix`` (a ``tak_control``)."""
+        return mesh_frame(prefix + self.proto())
+
     def get(self, encoding: Encoding) -> bytes:
         """The event as XML, as a mesh datagram or as a stream frame."""
         data = self._cache.get(encoding)
@@ -141,8 +160,7 @@ class Encoded:
             if encoding == "xml":
                 data = to_xml(self.event)
             else:
-                if self._proto is None:
-                    self._proto = to_proto(self.event)
-                data = mesh_frame(self._proto) if encoding == "mesh" else stream_frame(self._proto)
+                proto = self.proto()
+                data = mesh_frame(proto) if encoding == "mesh" else stream_frame(proto)
             self._cache[encoding] = data
         return data

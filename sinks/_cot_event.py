@@ -25,7 +25,7 @@ from gateway.events import Detection, Event, Position, Telemetry, Track
 from sinks._cot_symbols import LoiteringMunition, Symbol, object_symbol, own_symbol
 from sinks._cot_validate import UNKNOWN
 
-__all__ = ["CotEvent", "CotOptions", "Geoid", "build", "xml_safe"]
+__all__ = ["CotEvent", "CotOptions", "Geoid", "StaleTimes", "build", "how_and_source", "xml_safe"]
 
 Geoid = Callable[[float, float], float | None]
 """Geoid undulation N in metres at (lat, lon), or None where unknown."""
@@ -40,15 +40,22 @@ def xml_safe(text: str) -> str:
     return _NOT_IN_XML.sub("\ufffd", text)
 
 
+@dataclass(frozen=True, slots=True)
+class StaleTimes:
+    """How long each kind stays valid on the receivers' maps, in seconds; every kind has one."""
+
+    telemetry_s: float = 15.0
+    detection_s: float = 120.0
+    track_s: float = 300.0
+
+
 @dataclass(frozen=True)
 class CotOptions:
     """How gateway events become CoT: uids, callsigns, stale times, symbology."""
 
     uid_prefix: str = "fischer-"
     callsign_prefix: str = "FISCHER "
-    stale_s: Mapping[str, float] = field(
-        default_factory=lambda: {"telemetry": 15.0, "detection": 120.0, "track": 300.0}
-    )
+    stale: StaleTimes = field(default_factory=StaleTimes)
     loitering_munition: LoiteringMunition = "uav_attack"
     detection_hostility: Hostility = "hostile"
     geoid: Geoid | None = None
@@ -130,6 +137,28 @@ def _hae(position: Position, geoid: Geoid | None) -> tuple[float, str]:
     return UNKNOWN, "???"
 
 
+#: GPS_RAW_INT fix types from a 3-D fix up, and the precisionlocation source each is.
+_GPS_SOURCES = {3: "GPS", 4: "DGPS", 5: "RTK", 6: "RTK", 8: "GPS"}  # 8 is PPP
+
+
+def how_and_source(fix_type: int | None) -> tuple[str, str | None]:
+    """CoT ``how`` and ``geopointsrc`` for an own position with GPS ``fix_type``.
+
+    ``m-g``/GPS only with a 3-D fix (cot.md section 5). With fix type 0 (no GPS), 1 (no fix)
+    or 2 (2-D) the autopilot's position is its estimator's dead reckoning: ``m-p`` (predicted)
+    and ``ESTIMATED``, never GPS. Fix type 7 (static) is a configured position (``m-c``,
+    ``USER``). Unknown (no GPS_RAW_INT seen) is ``m-g`` with the source left unknown (``???``):
+    the autopilot's navigation solution, with no claim about what fed it.
+    """
+    if fix_type is None:
+        return "m-g", "???"
+    if fix_type in _GPS_SOURCES:
+        return "m-g", _GPS_SOURCES[fix_type]
+    if fix_type == 7:
+        return "m-c", "USER"
+    return "m-p", "ESTIMATED"
+
+
 def _course(north: float, east: float) -> float:
     # Rounded before the modulo so 359.999 does not print as "360.00" (course must be < 360).
     return round(math.degrees(math.atan2(east, north)), 2) % 360.0
@@ -152,6 +181,7 @@ def _telemetry(event: Telemetry, opts: CotOptions, own: Symbol) -> CotEvent | No
         course, speed = _course(north, east), math.hypot(north, east)
     elif event.heading_deg is not None and event.groundspeed_mps is not None:
         course, speed = round(event.heading_deg, 2) % 360.0, event.groundspeed_mps
+    how, geopointsrc = how_and_source(event.gps_fix_type)
     remarks = [f"link {event.active_link or '-'}"]
     if event.ew_mode:
         remarks.append(f"EW {event.ew_mode}")
@@ -162,10 +192,10 @@ def _telemetry(event: Telemetry, opts: CotOptions, own: Symbol) -> CotEvent | No
     return CotEvent(
         uid=_uid(opts.uid_prefix, event.airframe),
         type=own.cot_type,
-        how="m-g",
+        how=how,
         time=event.time,
         start=event.time,
-        stale=event.time + timedelta(seconds=opts.stale_s["telemetry"]),
+        stale=event.time + timedelta(seconds=opts.stale.telemetry_s),
         lat=pos.lat_deg,
         lon=pos.lon_deg,
         hae=_num(hae),
@@ -175,7 +205,7 @@ def _telemetry(event: Telemetry, opts: CotOptions, own: Symbol) -> CotEvent | No
         course_deg=course,
         speed_mps=speed,
         battery_pct=None if event.battery_pct is None else round(event.battery_pct),
-        geopointsrc="GPS",
+        geopointsrc=geopointsrc,
         altsrc=altsrc,
         takv=("Fischer 26E", "fischer-gateway", "linux", opts.version),
         xml_detail=_element("uid", Droid=callsign)
@@ -201,7 +231,7 @@ def _detection(event: Detection, opts: CotOptions, own_types: Mapping[str, str])
         how="m-i",
         time=event.time,
         start=event.time,
-        stale=event.time + timedelta(seconds=opts.stale_s["detection"]),
+        stale=event.time + timedelta(seconds=opts.stale.detection_s),
         lat=event.position.lat_deg,
         lon=event.position.lon_deg,
         hae=_num(hae),
@@ -232,7 +262,7 @@ def _track(event: Track, opts: CotOptions, own_types: Mapping[str, str]) -> CotE
         how="m-f",
         time=event.time,
         start=event.time,
-        stale=event.time + timedelta(seconds=opts.stale_s["track"]),
+        stale=event.time + timedelta(seconds=opts.stale.track_s),
         lat=event.position.lat_deg,
         lon=event.position.lon_deg,
         hae=_num(hae),

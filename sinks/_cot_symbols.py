@@ -1,9 +1,10 @@
 """Symbols for CoT: the CoT type and the 2525C/2525D codes of own airframes and of objects.
 
 Both tables are data. Own airframes come from ``gateway/data/cot_types.yaml`` by MAVLink
-``MAV_TYPE``; detected object classes from ``gateway/domain/sidc.yaml`` (the project's class
-table, with the configurable loitering-munition choice), and a class neither table knows is
-drawn as an unspecified ground object of its affiliation. A track that already carries a 2525C
+``MAV_TYPE`` (air, ground, sea surface or subsurface, and the kind of vehicle); detected
+object classes from ``gateway/domain/sidc.yaml`` (the project's class table, with the
+configurable loitering-munition choice), and a class neither table knows is drawn as an
+unspecified ground object of its affiliation. A track that already carries a 2525C
 letter SIDC is drawn from that SIDC.
 """
 
@@ -60,25 +61,33 @@ def _symbol(row: object) -> Symbol:
 
 
 @cache
-def _own_by_mav_type() -> tuple[dict[int, Symbol], Symbol]:
+def _own_by_mav_type() -> tuple[dict[int, Symbol], Symbol, Symbol]:
     groups = _table()["own_airframes"]
     if not isinstance(groups, dict) or not groups:
         raise TypeError("cot_types.yaml: own_airframes must be a non-empty mapping")
     by_type: dict[int, Symbol] = {}
     default: Symbol | None = None
-    for row in groups.values():
+    for name, row in groups.items():
         symbol = _symbol(row)
         default = default or symbol
         for mav_type in row["mav_types"]:
+            if int(mav_type) in by_type:
+                raise TypeError(f"cot_types.yaml: MAV_TYPE {mav_type} is in two groups ({name})")
             by_type[int(mav_type)] = symbol
     assert default is not None  # noqa: S101 - the mapping is non-empty (checked above)
-    return by_type, default
+    return by_type, default, _symbol(_table()["own_unlisted"])
 
 
 def own_symbol(mav_type: int | None) -> Symbol:
-    """The friendly symbol of an own airframe from its ``MAV_TYPE`` (fixed-wing if unknown)."""
-    by_type, default = _own_by_mav_type()
-    return by_type.get(mav_type, default) if mav_type is not None else default
+    """The friendly symbol of an own airframe from its ``MAV_TYPE``.
+
+    None (no HEARTBEAT yet) is the fleet's own kind, the table's first group (fixed wing); a
+    MAV_TYPE the table does not list is a friendly air track of unspecified kind.
+    """
+    by_type, default, unlisted = _own_by_mav_type()
+    if mav_type is None:
+        return default
+    return by_type.get(mav_type, unlisted)
 
 
 def _with_affiliation(symbol: Symbol, letter: str) -> Symbol:

@@ -1,9 +1,11 @@
 """Where CoT goes: UDP (mesh, multicast or unicast) and TAK server streams (TCP and TLS).
 
-Both transports are driven only from the sink's own calls (``open``, ``send``, ``aclose``):
-no background task, so no task group outlives a call and the SinkRunner's deadlines and
-cancel scopes nest as they should. Sockets are non-blocking and every wait goes through
-``anyio.wait_readable``/``wait_writable``; the caller's deadline bounds each call.
+Both transports are driven from the sink's calls (``open``, ``send``, ``aclose``) and, for the
+mesh announcements, from the sink's ``run`` lifetime, which the SinkRunner starts in its own
+task group: nothing here starts a task, so no task group outlives a call and the runner's
+deadlines and cancel scopes nest as they should. Sockets are non-blocking and every wait goes
+through ``anyio.wait_readable``/``wait_writable``; the caller's deadline bounds each call.
+UDP is in ``sinks._cot_udp``.
 
 A stream reads what the server sent at the start of every call: that is how it notices a
 server that hung up (EOF leads to one immediate reconnect), drains the events a TAK server
@@ -22,11 +24,9 @@ import errno
 import os
 import socket
 import ssl
-import struct
 from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
-from ipaddress import ip_address
 from typing import Literal
 
 import anyio
@@ -37,14 +37,13 @@ from sinks._cot_codec import Encoded, Encoding, cot_time
 from sinks._cot_tls import TlsFiles, describe_tls_error, tls_context
 from sinks._cot_validate import TakControl, scan_control
 
-__all__ = ["Endpoint", "StreamConnection", "UdpSender"]
+__all__ = ["Endpoint", "StreamConnection"]
 
 log = structlog.get_logger(__name__)
 
 Protocol = Literal["xml", "protobuf", "negotiate"]
 _END = b"</event>"
 _MAX_INBOX = 1 << 20
-_MAX_DATAGRAM = 65_000
 _READ_CHUNK = 65_536
 
 
@@ -65,71 +64,6 @@ class Endpoint:
 
 class _PeerClosed(Exception):
     """The server closed the stream."""
-
-
-def _interface_request(interface: str) -> bytes:
-    """``IP_MULTICAST_IF`` argument for an interface address or name (Linux ``ip_mreqn``)."""
-    try:
-        return socket.inet_aton(str(ip_address(interface)))
-    except ValueError:
-        index = socket.if_nametoindex(interface)
-        return struct.pack("=4s4si", b"\0" * 4, b"\0" * 4, index)
-
-
-class UdpSender:
-    """Datagrams to a unicast address or a multicast group: one event per datagram."""
-
-    def __init__(self, endpoint: Endpoint, sink: str) -> None:
-        self.endpoint = endpoint
-        self.sink = sink
-        self.encoding: Encoding = "mesh" if endpoint.protocol == "protobuf" else "xml"
-        self._sock: socket.socket | None = None
-        self._address: tuple[str, int] | None = None
-
-    async def open(self) -> None:
-        """Create the socket (resolving the host once); ``OSError`` if that fails."""
-        if self._sock is not None:
-            return
-        infos = await anyio.getaddrinfo(
-            self.endpoint.host, self.endpoint.port, family=socket.AF_INET, type=socket.SOCK_DGRAM
-        )
-        address = infos[0][4]
-        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        try:
-            sock.setblocking(False)
-            if ip_address(address[0]).is_multicast:
-                sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, self.endpoint.ttl)
-                sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_LOOP, 1)
-                if self.endpoint.interface:
-                    request = _interface_request(self.endpoint.interface)
-                    sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, request)
-        except OSError:
-            sock.close()
-            raise
-        self._sock, self._address = sock, (str(address[0]), int(address[1]))
-
-    async def send(self, events: Sequence[Encoded]) -> None:
-        """Send each event as one datagram; ``OSError`` if the network refuses."""
-        await self.open()
-        assert self._sock is not None  # noqa: S101 - opened above
-        assert self._address is not None  # noqa: S101 - opened above
-        for event in events:
-            data = event.get(self.encoding)
-            if len(data) > _MAX_DATAGRAM:
-                log.warning("cot_datagram_skipped", destination=self.endpoint.uri, size=len(data))
-                continue
-            while True:
-                try:
-                    self._sock.sendto(data, self._address)
-                    break
-                except BlockingIOError:
-                    await anyio.wait_writable(self._sock)
-
-    async def aclose(self) -> None:
-        """Close the socket."""
-        if self._sock is not None:
-            self._sock.close()
-        self._sock = None
 
 
 class StreamConnection:

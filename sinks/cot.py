@@ -7,6 +7,10 @@ stream; TLS with a client certificate, the CA pinned and the hostname always ver
 encoding is ``xml``, ``protobuf`` (TAK protocol v1: mesh framing on UDP, stream framing on TCP)
 or ``negotiate`` (streams: XML until the server offers v1 and accepts our request; UDP: XML).
 Each event is built once and encoded at most once per encoding, whatever the destinations.
+Mesh protobuf destinations advertise TAK protocol v1 (``TakControl``) at least every
+``takcontrol_interval_s`` from the sink's ``run`` lifetime, which its SinkRunner starts.
+``contact`` carries no ``endpoint``: ``*:-1:stcp`` is only right on a TAK server stream, and
+an event is built once for every destination, so it is left out everywhere (``cot.md`` §5).
 
 Tracks are sent on change: a track whose CoT content is unchanged since it was last delivered
 is not re-sent until ``track_refresh_s`` (default half its stale time) has passed. Beyond that
@@ -26,17 +30,21 @@ from pathlib import Path
 from typing import Any, Literal
 from urllib.parse import parse_qs, urlsplit
 
+import anyio
+import anyio.abc
 import structlog
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from gateway.errors import TransientSinkError
+from gateway.errors import PermanentSinkError, TransientSinkError
 from gateway.events import Event, EventKind, Track
+from gateway.logsetup import RateLimit
 from gateway.sink import SinkConfig
 from sinks._cot_codec import Encoded
-from sinks._cot_event import CotOptions, build
+from sinks._cot_event import CotOptions, StaleTimes, build
 from sinks._cot_geoid import GeoidGrid, bundled_geoid
 from sinks._cot_tls import TlsFiles
-from sinks._cot_transport import Endpoint, StreamConnection, UdpSender
+from sinks._cot_transport import Endpoint, StreamConnection
+from sinks._cot_udp import UdpSender
 
 __all__ = ["CotDestination", "CotSink", "CotSinkConfig", "CotStale", "CotTls"]
 
@@ -195,6 +203,12 @@ class CotSinkConfig(SinkConfig):
     response_wait_s: float = Field(
         default=60.0, gt=0, description="Wait this long for the TakResponse (spec: ≥ 60 s)."
     )
+    takcontrol_interval_s: float = Field(
+        default=30.0,
+        gt=0,
+        le=60,
+        description="Mesh protobuf: advertise TAK protocol v1 this often (spec: ≤ 60 s).",
+    )
 
     @field_validator("kinds")
     @classmethod
@@ -224,11 +238,7 @@ class CotSink:
         self.options = CotOptions(
             uid_prefix=config.uid_prefix,
             callsign_prefix=config.callsign_prefix,
-            stale_s={
-                "telemetry": stale.telemetry_s,
-                "detection": stale.detection_s,
-                "track": stale.track_s,
-            },
+            stale=StaleTimes(stale.telemetry_s, stale.detection_s, stale.track_s),
             loitering_munition=config.loitering_munition,
             detection_hostility=config.detection_hostility,
             geoid=geoid.undulation,
@@ -240,7 +250,8 @@ class CotSink:
         for dest in config.destinations:
             endpoint = dest.endpoint(config.protocol)
             if endpoint.scheme.startswith("udp"):
-                self._transports.append(UdpSender(endpoint, name))
+                sender = UdpSender(endpoint, name, announce_every_s=config.takcontrol_interval_s)
+                self._transports.append(sender)
             else:
                 self._transports.append(
                     StreamConnection(
@@ -252,6 +263,9 @@ class CotSink:
                     )
                 )
         self._own_types: dict[str, str] = {}
+        #: Mesh TakControl announcements the network refused.
+        self.announce_failures = 0
+        self._log_limit = RateLimit(interval_s=30.0)
         # Per track uid: its CoT content when last delivered, and that event's time.
         self._delivered: dict[str, tuple[tuple[object, ...], datetime]] = {}
 
@@ -264,6 +278,36 @@ class CotSink:
         """Open every destination; ``TransientSinkError`` (retried) if one cannot be reached."""
         for transport in self._transports:
             await self._call(transport, None)
+
+    async def run(
+        self, *, task_status: anyio.abc.TaskStatus[None] = anyio.TASK_STATUS_IGNORED
+    ) -> None:
+        """The sink's lifetime (started by its SinkRunner): keep the mesh told we speak v1.
+
+        Every mesh protobuf destination gets a ``TakControl`` at least every
+        ``takcontrol_interval_s``, riding on an event or, when none went out, on its own.
+        A network error here is counted and logged (rate-limited); ``send`` reports it.
+        """
+        mesh = [t for t in self._transports if isinstance(t, UdpSender) and t.encoding == "mesh"]
+        task_status.started()
+        if not mesh:
+            return
+        while True:
+            for sender in mesh:
+                try:
+                    await sender.announce()
+                except OSError as exc:
+                    self.announce_failures += 1
+                    if self._log_limit.allow(sender.endpoint.uri):
+                        log.warning(
+                            "cot_announcement_failed",
+                            sink=self.name,
+                            destination=sender.endpoint.uri,
+                            error=str(exc),
+                            failures=self.announce_failures,
+                        )
+            # Never sooner than 50 ms: a failing sender is retried, not spun on.
+            await anyio.sleep(max(0.05, min(s.announce_due_in_s() for s in mesh)))
 
     async def _call(
         self, transport: UdpSender | StreamConnection, events: list[Encoded] | None
@@ -284,8 +328,13 @@ class CotSink:
         return last is None or last[0] != content or not time - last[1] < self._refresh
 
     async def send(self, batch: Sequence[Event]) -> None:
-        """Build each event once and deliver it to every destination, or raise."""
+        """Build each event once and deliver it to every destination, or raise.
+
+        An event too large for one UDP datagram is sent where it fits and refused by id
+        (``PermanentSinkError(event_ids=...)``) after the rest of the batch was delivered.
+        """
         events: list[Encoded] = []
+        ids: dict[int, str] = {}
         tracks: dict[str, tuple[tuple[object, ...], datetime]] = {}
         for event in batch:
             cot = build(event, self.options, self._own_types)
@@ -296,14 +345,25 @@ class CotSink:
                 if not self._is_news(cot.uid, content, event.time):
                     continue
                 tracks[cot.uid] = (content, event.time)
-            events.append(Encoded(cot))
+            encoded = Encoded(cot)
+            ids[id(encoded)] = event.event_id
+            events.append(encoded)
         if not events:
             return
+        oversize: set[str] = set()
         for transport in self._transports:
+            if isinstance(transport, UdpSender):
+                oversize.update(ids[id(e)] for e in transport.oversize(events))
             await self._call(transport, events)
         # Only now: a failed batch is retried whole, its tracks included.
         self._delivered.update(tracks)
         self._forget_old_tracks(max(e.event.time for e in events))
+        if oversize:
+            raise PermanentSinkError(
+                f"sink {self.name}: {len(oversize)} event(s) larger than one UDP datagram",
+                sink=self.name,
+                event_ids=oversize,
+            )
 
     def _forget_old_tracks(self, now: datetime) -> None:
         horizon = now - timedelta(seconds=self.config.stale.track_s)

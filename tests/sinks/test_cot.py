@@ -21,7 +21,7 @@ from pydantic import ValidationError
 from test_cot_event import DETECTION, EVENTS, TELEMETRY, TRACK
 
 from gateway.config import SinkEntry
-from gateway.errors import TransientSinkError
+from gateway.errors import PermanentSinkError, TransientSinkError
 from gateway.events import Position
 from gateway.instruments import Instruments
 from gateway.sinkrunner import SinkRunner
@@ -555,3 +555,114 @@ class TestConfig:
         assert CotSinkConfig.model_validate({"destinations": ["udp://h:1"], "kinds": kinds})
         with pytest.raises(ValidationError, match="not"):
             CotSinkConfig.model_validate({"destinations": ["udp://h:1"], "kinds": ["blue_force"]})
+
+    def test_a_partial_stale_table_is_completed_at_load(self) -> None:
+        """Issue 10: a partial stale table must not reach ``send`` as a KeyError."""
+        with pytest.raises(ValidationError, match="Extra inputs"):
+            CotSinkConfig.model_validate(
+                {"destinations": ["udp://h:1"], "stale": {"telemetry": 10}}
+            )
+        cot = sink("udp://h:1", stale={"telemetry_s": 10})
+        assert (cot.options.stale.telemetry_s, cot.options.stale.detection_s) == (10.0, 120.0)
+        assert cot.options.stale.track_s == 300.0
+
+
+def udp_receiver() -> socket.socket:
+    receiver = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    receiver.bind(("127.0.0.1", 0))
+    receiver.setblocking(False)
+    return receiver
+
+
+async def datagrams(receiver: socket.socket, count: int) -> list[bytes]:
+    """The next ``count`` datagrams; the caller sets the deadline."""
+    received = []
+    while len(received) < count:
+        await anyio.wait_readable(receiver)
+        received.append(receiver.recv(65536))
+    return received
+
+
+class TestMeshAnnouncements:
+    """Mesh protobuf advertises TAK protocol v1 at least every interval (``cot.md`` §7)."""
+
+    @pytest.mark.anyio
+    async def test_an_idle_mesh_still_gets_takcontrol_from_the_sinks_lifetime(self) -> None:
+        with udp_receiver() as mesh, udp_receiver() as xml:
+            cot = sink(
+                {"uri": f"udp://127.0.0.1:{mesh.getsockname()[1]}", "protocol": "protobuf"},
+                f"udp://127.0.0.1:{xml.getsockname()[1]}",
+                takcontrol_interval_s=0.2,
+            )
+            runner = SinkRunner(SinkEntry(name="cot", type="cot"), cot, Instruments())
+            with anyio.fail_after(10):
+                async with anyio.create_task_group() as tg:
+                    await tg.start(runner.run)
+                    idle = await datagrams(mesh, 3)  # no events at all: control on its own
+                    runner.offer(TELEMETRY, 0.0)
+                    (with_event,) = await datagrams(xml, 1)
+                    tg.cancel_scope.cancel()
+        for data in idle:
+            message = takproto.parse_proto(bytearray(data))
+            assert message.HasField("takControl")
+            assert not message.HasField("cotEvent")
+            assert (message.takControl.minProtoVersion, message.takControl.maxProtoVersion) == (
+                1,
+                1,
+            )
+        assert b"TakControl" not in with_event  # XML destinations get no protobuf control
+
+    @pytest.mark.anyio
+    async def test_takcontrol_rides_on_an_event_when_due(self) -> None:
+        with udp_receiver() as mesh:
+            port = mesh.getsockname()[1]
+            cot = sink({"uri": f"udp://127.0.0.1:{port}", "protocol": "protobuf"})
+            with anyio.fail_after(10):
+                await cot.open()
+                await cot.send([TELEMETRY, DETECTION])
+                first, second = await datagrams(mesh, 2)
+                await cot.aclose()
+        carried = takproto.parse_proto(bytearray(first))
+        assert carried.takControl.maxProtoVersion == 1
+        assert carried.cotEvent.uid == UIDS[0]
+        plain = takproto.parse_proto(bytearray(second))
+        assert not plain.HasField("takControl")  # once per interval, not on every event
+        assert plain.cotEvent.uid == UIDS[1]
+
+    @pytest.mark.anyio
+    async def test_udp_contact_has_no_stream_endpoint(self) -> None:
+        """``*:-1:stcp`` means "reach me via the TAK server": wrong on the mesh."""
+        with udp_receiver() as xml, udp_receiver() as mesh:
+            cot = sink(
+                f"udp://127.0.0.1:{xml.getsockname()[1]}",
+                {"uri": f"udp://127.0.0.1:{mesh.getsockname()[1]}", "protocol": "protobuf"},
+            )
+            with anyio.fail_after(10):
+                await cot.open()
+                await cot.send([TELEMETRY])
+                (as_xml,) = await datagrams(xml, 1)
+                (as_proto,) = await datagrams(mesh, 1)
+                await cot.aclose()
+        assert b"<contact callsign=" in as_xml
+        assert b"endpoint" not in as_xml
+        message = takproto.parse_proto(bytearray(as_proto))
+        assert message.cotEvent.detail.contact.callsign == "FISCHER F26E-007"
+        assert message.cotEvent.detail.contact.endpoint == ""
+
+
+class TestRefusals:
+    """An event that cannot be delivered is refused by id; the rest of the batch goes."""
+
+    @pytest.mark.anyio
+    async def test_an_event_too_large_for_a_datagram_is_refused_alone(self) -> None:
+        huge = DETECTION.model_copy(update={"event_id": "big", "subtype": "x" * 70_000})
+        with udp_receiver() as receiver:
+            cot = sink(f"udp://127.0.0.1:{receiver.getsockname()[1]}")
+            with anyio.fail_after(10):
+                await cot.open()
+                with pytest.raises(PermanentSinkError) as caught:
+                    await cot.send([TELEMETRY, huge, TRACK])
+                received = await datagrams(receiver, 2)
+                await cot.aclose()
+        assert caught.value.event_ids == frozenset({"big"})
+        assert [parse_cot(d).uid for d in received] == [UIDS[0], UIDS[2]]

@@ -10,7 +10,8 @@ import pytest
 import yaml
 
 from gateway.events import Detection, LinkState, Position, Sensor, Telemetry, Track, Velocity
-from sinks._cot_event import CotOptions, build
+from sinks._cot_codec import to_xml
+from sinks._cot_event import CotOptions, StaleTimes, build
 from sinks._cot_geoid import GeoidGrid, bundled_geoid
 from sinks._cot_symbols import cot_type_from_sidc, object_symbol, own_symbol
 from sinks._cot_validate import UNKNOWN
@@ -29,6 +30,7 @@ TELEMETRY = Telemetry(
     groundspeed_mps=23.0,
     battery_pct=76.4,
     h_acc_m=4.5,
+    gps_fix_type=3,
     mav_type=1,
     active_link="sdr",
 )
@@ -76,9 +78,16 @@ class TestTypes:
         [
             (1, "a-f-A-M-F-Q", "10030100001103000000"),
             (2, "a-f-A-M-H-Q", "10030100001104000000"),
-            (21, "a-f-A-M-F-Q", "10030100001103000000"),
-            (None, "a-f-A-M-F-Q", "10030100001103000000"),
-            (999, "a-f-A-M-F-Q", "10030100001103000000"),
+            (21, "a-f-A-M-F-Q", "10030100001104000000"),  # VTOL: cruises as a plane
+            (43, "a-f-A-M-H-Q", "10030100001104000000"),  # generic multirotor
+            (7, "a-f-A-M-L", "10030100001105000000"),  # airship
+            (8, "a-f-A-M-L", "10030100001105000000"),  # free balloon
+            (10, "a-f-G-E-V", "10031500001200000000"),  # ground rover
+            (11, "a-f-S", "10033000000000000000"),  # surface boat
+            (12, "a-f-U", "10033500000000000000"),  # submarine (ArduSub)
+            (None, "a-f-A-M-F-Q", "10030100001103000000"),  # no HEARTBEAT yet: the fleet's
+            (0, "a-f-A", "10030100000000000000"),  # GENERIC: air, kind unknown
+            (999, "a-f-A", "10030100000000000000"),
         ],
     )
     def test_own_airframe_type_follows_mav_type(
@@ -140,6 +149,7 @@ class TestTypes:
         milsymbol = pytest.importorskip("milsymbol")
         table = yaml.safe_load((DATA / "cot_types.yaml").read_text())
         symbols = [own_symbol(t) for g in table["own_airframes"].values() for t in g["mav_types"]]
+        symbols.append(own_symbol(999))
         for hostility in ("hostile", "suspect", "unknown", "neutral", "friend"):
             for cls in ("tank", "armour", "uav", "infantry_platoon", "loitering_munition", "x"):
                 for lm in ("uav_attack", "missile"):
@@ -201,7 +211,7 @@ class TestPositionAndTimes:
         assert trk.ce == pytest.approx(20.0 / 1.1774, rel=1e-4)
 
     def test_times_come_from_the_event_and_stale_per_kind(self) -> None:
-        opts = options(stale_s={"telemetry": 5.0, "detection": 60.0, "track": 600.0})
+        opts = options(stale=StaleTimes(telemetry_s=5.0, detection_s=60.0, track_s=600.0))
         own, det, trk = (build(e, opts) for e in EVENTS)
         assert own is not None
         assert det is not None
@@ -210,6 +220,51 @@ class TestPositionAndTimes:
         assert [e.stale - T0 for e in (own, det, trk)] == [
             timedelta(seconds=5), timedelta(seconds=60), timedelta(seconds=600),
         ]  # fmt: skip
+
+    def test_partial_stale_times_take_the_defaults_for_the_rest(self) -> None:
+        """Issue 10: a partial stale table made every detection raise KeyError, forever."""
+        opts = options(stale=StaleTimes(telemetry_s=10.0))
+        own, det, trk = (build(e, opts) for e in EVENTS)
+        assert own is not None
+        assert det is not None
+        assert trk is not None
+        assert [e.stale - T0 for e in (own, det, trk)] == [
+            timedelta(seconds=10), timedelta(seconds=120), timedelta(seconds=300),
+        ]  # fmt: skip
+
+
+class TestFixQuality:
+    """``m-g`` and a GPS label only with a 3-D fix; an estimated position says so."""
+
+    @pytest.mark.parametrize(
+        ("fix_type", "how", "source"),
+        [
+            (0, "m-p", "ESTIMATED"),  # no GPS: the estimator dead-reckons
+            (1, "m-p", "ESTIMATED"),  # GPS, no fix
+            (2, "m-p", "ESTIMATED"),  # 2-D only: not trusted as GPS (cot.md section 5)
+            (3, "m-g", "GPS"),
+            (4, "m-g", "DGPS"),
+            (6, "m-g", "RTK"),
+            (7, "m-c", "USER"),  # static: a configured position
+            (None, "m-g", "???"),  # no GPS_RAW_INT seen: no claim about the source
+        ],
+    )
+    def test_how_and_geopointsrc_follow_the_fix_type(
+        self, fix_type: int | None, how: str, source: str
+    ) -> None:
+        event = build(TELEMETRY.model_copy(update={"gps_fix_type": fix_type}), options())
+        assert event is not None
+        assert (event.how, event.geopointsrc) == (how, source)
+
+    def test_no_fix_position_carries_no_gps_label_on_the_wire(self) -> None:
+        position = Position(lat_deg=58.41, lon_deg=15.62, alt_msl_m=583.0)
+        telemetry = TELEMETRY.model_copy(update={"gps_fix_type": 1, "position": position})
+        event = build(telemetry, options())
+        assert event is not None
+        xml = to_xml(event)
+        assert b'how="m-p"' in xml
+        assert b"GPS" not in xml
+        assert b'geopointsrc="ESTIMATED" altsrc="CALC"' in xml
 
 
 class TestDetail:

@@ -1,0 +1,122 @@
+"""CoT over UDP: datagrams to a unicast address or a multicast group (ATAK's SA mesh).
+
+One event per datagram, XML or TAK protocol v1 mesh protobuf; never split across datagrams
+(``cot.md`` §6). Sockets are non-blocking; the caller's deadline bounds each call.
+"""
+
+from __future__ import annotations
+
+import socket
+import struct
+from collections.abc import Sequence
+from ipaddress import ip_address
+
+import anyio
+
+from sinks._cot_codec import Encoded, Encoding, tak_control
+from sinks._cot_proto import mesh_frame
+from sinks._cot_transport import Endpoint
+
+__all__ = ["UdpSender"]
+
+_MAX_DATAGRAM = 65_000
+
+
+def _interface_request(interface: str) -> bytes:
+    """``IP_MULTICAST_IF`` argument for an interface address or name (Linux ``ip_mreqn``)."""
+    try:
+        return socket.inet_aton(str(ip_address(interface)))
+    except ValueError:
+        index = socket.if_nametoindex(interface)
+        return struct.pack("=4s4si", b"\0" * 4, b"\0" * 4, index)
+
+
+class UdpSender:
+    """Datagrams to a unicast address or a multicast group: one event per datagram.
+
+    In mesh protobuf, the TAK protocol's mesh rule (``cot.md`` §7) wants every sender to
+    advertise its versions in a ``TakControl`` at least every 60 s: the control rides along
+    in the next event's ``TakMessage`` once ``announce_every_s`` has passed, and ``announce``
+    (called by the sink's lifetime task) sends it on its own when no event went out.
+    """
+
+    def __init__(self, endpoint: Endpoint, sink: str, *, announce_every_s: float = 30.0) -> None:
+        self.endpoint = endpoint
+        self.sink = sink
+        self.encoding: Encoding = "mesh" if endpoint.protocol == "protobuf" else "xml"
+        self.announce_every_s = announce_every_s
+        self._control = tak_control()
+        self._announced_at: float | None = None
+        self._sock: socket.socket | None = None
+        self._address: tuple[str, int] | None = None
+        self._opening = anyio.Lock()
+
+    def announce_due_in_s(self) -> float:
+        """Seconds until the next ``TakControl`` is due (0: now)."""
+        if self._announced_at is None:
+            return 0.0
+        return max(0.0, self._announced_at + self.announce_every_s - anyio.current_time())
+
+    async def announce(self) -> None:
+        """Send a control-only ``TakMessage`` if one is due; ``OSError`` if the network refuses."""
+        if self.encoding == "mesh" and self.announce_due_in_s() <= 0:
+            await self._send_datagram(mesh_frame(self._control))
+            self._announced_at = anyio.current_time()
+
+    async def open(self) -> None:
+        """Create the socket (resolving the host once); ``OSError`` if that fails."""
+        async with self._opening:
+            if self._sock is None:
+                await self._create()
+
+    async def _create(self) -> None:
+        infos = await anyio.getaddrinfo(
+            self.endpoint.host, self.endpoint.port, family=socket.AF_INET, type=socket.SOCK_DGRAM
+        )
+        address = infos[0][4]
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            sock.setblocking(False)
+            if ip_address(address[0]).is_multicast:
+                sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, self.endpoint.ttl)
+                sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_LOOP, 1)
+                if self.endpoint.interface:
+                    request = _interface_request(self.endpoint.interface)
+                    sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, request)
+        except OSError:
+            sock.close()
+            raise
+        self._sock, self._address = sock, (str(address[0]), int(address[1]))
+
+    def oversize(self, events: Sequence[Encoded]) -> list[Encoded]:
+        """The events too large for one datagram in this destination's encoding."""
+        return [e for e in events if len(e.get(self.encoding)) > _MAX_DATAGRAM]
+
+    async def send(self, events: Sequence[Encoded]) -> None:
+        """Send each event as one datagram, skipping ``oversize`` ones; ``OSError`` if refused."""
+        for event in events:
+            data = event.get(self.encoding)
+            if len(data) > _MAX_DATAGRAM:
+                continue  # the sink refuses these by id (PermanentSinkError)
+            if self.encoding == "mesh" and self.announce_due_in_s() <= 0:
+                await self._send_datagram(event.mesh_with(self._control))
+                self._announced_at = anyio.current_time()
+            else:
+                await self._send_datagram(data)
+
+    async def _send_datagram(self, data: bytes) -> None:
+        await self.open()
+        assert self._sock is not None  # noqa: S101 - opened above
+        assert self._address is not None  # noqa: S101 - opened above
+        while True:
+            try:
+                self._sock.sendto(data, self._address)
+                return
+            except BlockingIOError:
+                await anyio.wait_writable(self._sock)
+
+    async def aclose(self) -> None:
+        """Close the socket."""
+        if self._sock is not None:
+            self._sock.close()
+        self._sock = None

@@ -1,0 +1,447 @@
+"""The daemon as operators run it: every shipped sink, the CoT source and the simulator.
+
+One ``fischer-gateway run --config FILE`` subprocess (``python -m gateway``) carries every sink
+at once: jsonl, console, memory, null and the CoT sink over UDP unicast (XML), UDP unicast
+mesh protobuf, UDP multicast on loopback, TCP, TLS with a client certificate (trustme) and
+TCP with TAK protocol v1 negotiation, plus a UDP and a TCP CoT source. The simulator
+(``fischer-gateway simulate``) feeds it for more than ten seconds while every peer here decodes
+what it receives with takproto and /readyz is sampled; then SIGTERM must stop it cleanly.
+
+The run happens once (module fixture); each test checks one leg of it. Loopback only.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import signal
+import socket
+import ssl
+import struct
+import sys
+from collections.abc import AsyncIterator
+from dataclasses import dataclass, field
+from datetime import UTC, datetime, timedelta
+from pathlib import Path
+from typing import Any
+
+import anyio
+import anyio.abc
+import pytest
+import trustme
+from anyio.streams.tls import TLSListener
+
+from sinks._cot_proto import read_varint
+
+takproto = pytest.importorskip("takproto")
+
+RUN_S = 10.5
+GROUP = "239.2.3.9"
+
+
+def free_port(kind: int) -> int:
+    with socket.socket(socket.AF_INET, kind) as probe:
+        probe.bind(("127.0.0.1", 0))
+        return int(probe.getsockname()[1])
+
+
+def control(kind: str, detail: str) -> bytes:
+    now = datetime.now(UTC)
+    stamp = now.strftime("%Y-%m-%dT%H:%M:%S.000Z")
+    stale = (now + timedelta(minutes=1)).strftime("%Y-%m-%dT%H:%M:%S.000Z")
+    return (
+        '<?xml version="1.0" encoding="UTF-8"?>\n<event version="2.0" uid="takserver" '
+        f'type="t-x-takp-{kind}" how="m-g" time="{stamp}" start="{stamp}" stale="{stale}">'
+        '<point lat="0.0" lon="0.0" hae="0.0" ce="9999999.0" le="9999999.0"/>'
+        f"<detail><TakControl>{detail}</TakControl></detail></event>"
+    ).encode()
+
+
+def friend(uid: str) -> bytes:
+    """A current ATAK position report (stale in five minutes)."""
+    now = datetime.now(UTC)
+    stamp = now.strftime("%Y-%m-%dT%H:%M:%S.%f")[:-3] + "Z"
+    stale = (now + timedelta(minutes=5)).strftime("%Y-%m-%dT%H:%M:%S.000Z")
+    return (
+        f'<?xml version="1.0" encoding="UTF-8"?>\n<event version="2.0" uid="{uid}" '
+        f'type="a-f-G-U-C" how="m-g" time="{stamp}" start="{stamp}" stale="{stale}">'
+        '<point lat="65.82" lon="21.69" hae="9999999.0" ce="9999999.0" le="9999999.0"/>'
+        '<detail><contact callsign="3 PLUT"/></detail></event>'
+    ).encode()
+
+
+@dataclass
+class StreamPeer:
+    """What one TAK-server-like peer received: XML events, then protobuf stream frames."""
+
+    offer: bool = False
+    tls: ssl.SSLContext | None = None
+    port: int = 0
+    xml: list[bytes] = field(default_factory=list)
+    proto: bytearray = field(default_factory=bytearray)
+    connections: int = 0
+
+    async def run(self, *, task_status: anyio.abc.TaskStatus[None]) -> None:
+        tcp = await anyio.create_tcp_listener(local_host="127.0.0.1", local_port=0)
+        self.port = tcp.extra(anyio.abc.SocketAttribute.local_port)
+        listener: anyio.abc.Listener[Any] = tcp
+        if self.tls is not None:
+            listener = TLSListener(tcp, self.tls, standard_compatible=False)
+        task_status.started()
+        async with listener:
+            await listener.serve(self.handle)
+
+    async def handle(self, stream: anyio.abc.ByteStream) -> None:
+        self.connections += 1
+        buffer, switched = bytearray(), False
+        with contextlib.suppress(anyio.BrokenResourceError, ssl.SSLError, OSError):
+            async with stream:
+                if self.offer:
+                    await stream.send(control("v", '<TakProtocolSupport version="1"/>'))
+                async for chunk in stream:
+                    if switched:
+                        self.proto += chunk
+                        continue
+                    buffer += chunk
+                    while (end := buffer.find(b"</event>")) >= 0:
+                        event = bytes(buffer[: end + 8])
+                        del buffer[: end + 8]
+                        if b"t-x-takp-q" in event:
+                            await stream.send(control("r", '<TakResponse status="true"/>'))
+                            switched = True
+                            self.proto += buffer
+                            buffer.clear()
+                            break
+                        self.xml.append(event)
+
+    def frames(self) -> list[Any]:
+        """The protobuf stream frames received, decoded by takproto."""
+        data, pos, messages = bytes(self.proto), 0, []
+        while pos < len(data) and data[pos] == 0xBF:
+            length, start = read_varint(data, pos + 1)
+            if start + length > len(data):
+                break
+            messages.append(takproto.parse_proto(bytearray(data[pos : start + length])))
+            pos = start + length
+        return messages
+
+
+def udp_receiver(multicast: bool = False) -> socket.socket:
+    receiver = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        if multicast:
+            receiver.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            receiver.bind((GROUP, 0))
+            membership = struct.pack("4s4s", socket.inet_aton(GROUP), socket.inet_aton("127.0.0.1"))
+            receiver.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP, membership)
+        else:
+            receiver.bind(("127.0.0.1", 0))
+        receiver.setblocking(False)
+    except OSError:
+        receiver.close()
+        raise
+    return receiver
+
+
+async def collect(receiver: socket.socket, into: list[bytes]) -> None:
+    while True:
+        await anyio.wait_readable(receiver)
+        into.append(receiver.recv(65_536))
+
+
+async def http_get(port: int, path: str) -> tuple[int, bytes]:
+    async with await anyio.connect_tcp("127.0.0.1", port) as stream:
+        await stream.send(f"GET {path} HTTP/1.0\r\nHost: 127.0.0.1\r\n\r\n".encode())
+        response = bytearray()
+        with contextlib.suppress(anyio.EndOfStream, anyio.BrokenResourceError):
+            while True:
+                response += await stream.receive()
+    head, _, body = bytes(response).partition(b"\r\n\r\n")
+    return int(head.split()[1]), body
+
+
+@dataclass
+class MatrixRun:
+    """Everything the run left behind, for the tests to check."""
+
+    tmp: Path
+    multicast_error: str | None = None
+    datagrams: dict[str, list[bytes]] = field(default_factory=dict)
+    peers: dict[str, StreamPeer] = field(default_factory=dict)
+    ready_samples: list[int] = field(default_factory=list)
+    status: dict[str, Any] = field(default_factory=dict)
+    stdout: list[bytes] = field(default_factory=list)
+    returncode: int | None = None
+    stop_s: float = 0.0
+
+
+def write_config(run: MatrixRun, ports: dict[str, int], pki: dict[str, str]) -> Path:
+    def udp(name: str, uri: str, **extra: Any) -> dict[str, Any]:
+        return {"name": name, "type": "cot", "options": {"destinations": [{"uri": uri, **extra}]}}
+
+    cot = [
+        udp("cot_udp", f"udp://127.0.0.1:{ports['udp']}"),
+        udp("cot_mesh", f"udp://127.0.0.1:{ports['mesh']}", protocol="protobuf"),
+        udp("cot_tcp", f"tcp://127.0.0.1:{run.peers['tcp'].port}"),
+        udp("cot_tls", f"tls://127.0.0.1:{run.peers['tls'].port}", tls=pki),
+        udp("cot_nego", f"tcp://127.0.0.1:{run.peers['nego'].port}", protocol="negotiate"),
+    ]
+    cot[1]["options"]["takcontrol_interval_s"] = 2
+    if run.multicast_error is None:
+        cot.append(
+            udp("cot_mcast", f"udp+multicast://{GROUP}:{ports['mcast']}?ttl=1&iface=127.0.0.1")
+        )
+    config = {
+        "gateway": {"node_id": "e2e", "shutdown_deadline_s": 3},
+        "health": {"host": "127.0.0.1", "port": ports["health"]},
+        "airframes": [
+            {
+                "id": f"F26E-00{n}",
+                "sysid": n,
+                "links": [{"uri": f"udp://127.0.0.1:{ports['link']}", "security": "unsecured"}],
+            }
+            for n in (1, 2)
+        ],
+        "sources": [
+            {"name": "mesh_in", "uri": f"udp://127.0.0.1:{ports['source_udp']}"},
+            {"name": "stream_in", "uri": f"tcp://127.0.0.1:{ports['source_tcp']}"},
+        ],
+        "sinks": [
+            {"name": "archive", "type": "jsonl", "options": {"path": str(run.tmp / "a.jsonl")}},
+            {"name": "console", "type": "console", "options": {"format": "json"}},
+            {"name": "mem", "type": "memory"},
+            {"name": "null", "type": "null"},
+            *cot,
+        ],
+        "routes": [
+            {"sinks": ["archive", "mem", "null"]},
+            {"sinks": ["console"], "kinds": ["telemetry"], "max_rate_hz": 1},
+            {"sinks": [c["name"] for c in cot], "kinds": ["telemetry", "detection"]},
+        ],
+    }
+    path = run.tmp / "config.yaml"
+    path.write_text(json.dumps(config, indent=1))  # JSON is YAML
+    return path
+
+
+async def drain(stream: anyio.abc.ByteReceiveStream, into: list[bytes]) -> None:
+    buffer = b""
+    with contextlib.suppress(anyio.EndOfStream, anyio.BrokenResourceError):
+        async for chunk in stream:
+            buffer += chunk
+            *lines, buffer = buffer.split(b"\n")
+            into.extend(lines)
+
+
+async def feed_sources(ports: dict[str, int]) -> None:
+    """ATAK peers: a mesh protobuf report over UDP, an XML report over TCP."""
+    mesh = bytes(takproto.xml2proto(friend("ANDROID-MESH"), takproto.TAKProtoVer.MESH))
+    async with await anyio.create_connected_udp_socket(
+        remote_host="127.0.0.1", remote_port=ports["source_udp"]
+    ) as sock:
+        await sock.send(mesh)
+    async with await anyio.connect_tcp("127.0.0.1", ports["source_tcp"]) as stream:
+        await stream.send(b'<detail><contact callsign="X"/></detail>' + friend("ANDROID-TCP"))
+
+
+@contextlib.asynccontextmanager
+async def daemon(config: Path, run: MatrixRun) -> AsyncIterator[anyio.abc.Process]:
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    command = [sys.executable, "-m", "gateway", "run", "--config", str(config)]
+    async with await anyio.open_process(command, env=env, stderr=None) as process:
+        try:
+            yield process
+        finally:
+            if process.returncode is None:
+                process.kill()
+
+
+async def scenario(run: MatrixRun, pki_files: dict[str, str], server_tls: ssl.SSLContext) -> None:
+    run.peers = {"tcp": StreamPeer(), "tls": StreamPeer(tls=server_tls), "nego": StreamPeer(True)}
+    ports = {"health": free_port(socket.SOCK_STREAM), "link": free_port(socket.SOCK_DGRAM)}
+    ports |= {
+        "source_udp": free_port(socket.SOCK_DGRAM),
+        "source_tcp": free_port(socket.SOCK_STREAM),
+    }
+    with contextlib.ExitStack() as sockets:
+        receivers = {name: sockets.enter_context(udp_receiver()) for name in ("udp", "mesh")}
+        try:
+            receivers["mcast"] = sockets.enter_context(udp_receiver(multicast=True))
+        except OSError as exc:
+            run.multicast_error = f"this host cannot join {GROUP} on loopback: {exc}"
+        for name, receiver in receivers.items():
+            ports[name] = receiver.getsockname()[1]
+            run.datagrams[name] = []
+        async with anyio.create_task_group() as tg:
+            for peer in run.peers.values():
+                await tg.start(peer.run)
+            for name, receiver in receivers.items():
+                tg.start_soon(collect, receiver, run.datagrams[name])
+            config = write_config(run, ports, pki_files)
+            async with daemon(config, run) as process:
+                assert process.stdout is not None
+                tg.start_soon(drain, process.stdout, run.stdout)
+                with anyio.fail_after(20):
+                    while True:  # ready: every link bound, every sink open
+                        if process.returncode is not None:
+                            await anyio.sleep(0.1)  # let ``drain`` take the last lines
+                            tail = b"\n".join(run.stdout[-20:]).decode(errors="replace")
+                            pytest.fail(f"the daemon exited {process.returncode}:\n{tail}")
+                        with contextlib.suppress(OSError):
+                            if (await http_get(ports["health"], "/readyz"))[0] == 200:
+                                break
+                        await anyio.sleep(0.05)
+                target = f"udp://127.0.0.1:{ports['link']}"
+                simulate = [
+                    sys.executable, "-m", "gateway", "simulate",
+                    "--to", target, "--airframes", "2", "--duration", str(RUN_S),
+                ]  # fmt: skip
+                async with await anyio.open_process(simulate) as simulator:
+                    await feed_sources(ports)
+                    with anyio.fail_after(RUN_S + 10):
+                        while simulator.returncode is None:
+                            run.ready_samples.append(
+                                (await http_get(ports["health"], "/readyz"))[0]
+                            )
+                            with anyio.move_on_after(0.5):
+                                await simulator.wait()
+                    assert simulator.returncode == 0
+                run.status = json.loads((await http_get(ports["health"], "/status"))[1])
+                started = anyio.current_time()
+                process.send_signal(signal.SIGTERM)
+                with anyio.fail_after(10):
+                    run.returncode = await process.wait()
+                run.stop_s = anyio.current_time() - started
+            tg.cancel_scope.cancel()
+
+
+@pytest.fixture(scope="module")
+def matrix(tmp_path_factory: pytest.TempPathFactory) -> MatrixRun:
+    """Run the whole matrix once (about 13 s) and keep what every peer received."""
+    tmp = tmp_path_factory.mktemp("matrix")
+    ca = trustme.CA()
+    server = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
+    ca.issue_cert("127.0.0.1").configure_cert(server)
+    ca.configure_trust(server)
+    server.verify_mode = ssl.CERT_REQUIRED  # TAK servers demand a client certificate
+    ca.cert_pem.write_to_path(str(tmp / "ca.pem"))
+    ca.issue_cert("fischer-gateway").private_key_and_cert_chain_pem.write_to_path(
+        str(tmp / "client.pem")
+    )
+    run = MatrixRun(tmp)
+    pki = {"ca_file": str(tmp / "ca.pem"), "cert_file": str(tmp / "client.pem")}
+    anyio.run(scenario, run, pki, server, backend="asyncio")
+    return run
+
+
+def logs(run: MatrixRun) -> list[dict[str, Any]]:
+    lines = [json.loads(line) for line in run.stdout if line.startswith(b"{")]
+    return [line for line in lines if "level" in line]
+
+
+def sink_status(run: MatrixRun, name: str) -> dict[str, Any]:
+    (status,) = [s for s in run.status["sinks"] if s["sink"] == name]
+    return status  # type: ignore[no-any-return]
+
+
+def our_uids(messages: list[Any]) -> set[str]:
+    return {m.cotEvent.uid for m in messages if m.HasField("cotEvent")}
+
+
+class TestDaemon:
+    """The daemon stays ready for the whole run and stops cleanly on SIGTERM."""
+
+    def test_ready_throughout_and_a_clean_exit(self, matrix: MatrixRun) -> None:
+        assert len(matrix.ready_samples) >= 18  # sampled every 0.5 s for RUN_S
+        assert set(matrix.ready_samples) == {200}
+        assert matrix.returncode == 0
+        assert matrix.stop_s < 3 + 2  # the shutdown deadline, plus interpreter exit
+        events = [line["event"] for line in logs(matrix)]
+        assert events[-1] == "gateway_stopped"
+        failures = [e for e in logs(matrix) if e["level"] in ("error", "critical")]
+        assert failures == []
+
+    def test_every_sink_opened_and_delivered(self, matrix: MatrixRun) -> None:
+        names = ["archive", "console", "mem", "null", "cot_udp", "cot_mesh", "cot_tcp"]
+        names += ["cot_tls", "cot_nego"] + ([] if matrix.multicast_error else ["cot_mcast"])
+        for name in names:
+            status = sink_status(matrix, name)
+            assert (status["state"], status["open"]) == ("open", True), status
+            assert status["sent"] > 0, status
+            assert status["dead_letters"] == 0, status
+
+
+class TestPlainSinks:
+    """jsonl, console: what the operator reads."""
+
+    def test_jsonl_archive_has_telemetry_detections_and_blue_force(self, matrix: MatrixRun) -> None:
+        lines = [json.loads(line) for line in (matrix.tmp / "a.jsonl").read_text().splitlines()]
+        kinds = {line["kind"] for line in lines}
+        assert {"telemetry", "detection", "blue_force", "link_state"} <= kinds
+        assert {line["airframe"] for line in lines if line["kind"] == "telemetry"} == {
+            "F26E-001",
+            "F26E-002",
+        }
+
+    def test_console_prints_json_events(self, matrix: MatrixRun) -> None:
+        lines = [json.loads(line) for line in matrix.stdout if line.startswith(b"{")]
+        printed = [line for line in lines if line.get("kind") == "telemetry"]
+        assert len(printed) >= 2 * 8  # two airframes at most once a second for RUN_S
+
+
+class TestCotUdp:
+    """CoT to UDP peers: XML unicast, mesh protobuf unicast, multicast on loopback."""
+
+    def test_unicast_xml(self, matrix: MatrixRun) -> None:
+        messages = [takproto.parse_proto(bytearray(d)) for d in matrix.datagrams["udp"]]
+        assert {"fischer-F26E-001", "fischer-F26E-002"} <= our_uids(messages)
+        assert all(d.startswith(b"<?xml") for d in matrix.datagrams["udp"])
+
+    def test_unicast_mesh_protobuf_with_takcontrol(self, matrix: MatrixRun) -> None:
+        data = matrix.datagrams["mesh"]
+        assert all(d.startswith(b"\xbf\x01\xbf") for d in data)
+        messages = [takproto.parse_proto(bytearray(d)) for d in data]
+        assert {"fischer-F26E-001", "fischer-F26E-002"} <= our_uids(messages)
+        announced = [m for m in messages if m.HasField("takControl")]
+        assert len(announced) >= 4  # every 2 s for RUN_S
+        assert {m.takControl.maxProtoVersion for m in announced} == {1}
+
+    def test_multicast_on_loopback(self, matrix: MatrixRun) -> None:
+        if matrix.multicast_error:
+            pytest.skip(matrix.multicast_error)
+        messages = [takproto.parse_proto(bytearray(d)) for d in matrix.datagrams["mcast"]]
+        assert {"fischer-F26E-001", "fischer-F26E-002"} <= our_uids(messages)
+
+
+class TestCotStreams:
+    """CoT to TAK-server-like peers: TCP XML, TLS with a client certificate, negotiation."""
+
+    def test_tcp_xml(self, matrix: MatrixRun) -> None:
+        peer = matrix.peers["tcp"]
+        messages = [takproto.parse_proto(bytearray(e.strip())) for e in peer.xml]
+        assert {"fischer-F26E-001", "fischer-F26E-002"} <= our_uids(messages)
+        assert peer.connections == 1
+
+    def test_tls_with_client_certificate(self, matrix: MatrixRun) -> None:
+        peer = matrix.peers["tls"]
+        messages = [takproto.parse_proto(bytearray(e.strip())) for e in peer.xml]
+        assert {"fischer-F26E-001", "fischer-F26E-002"} <= our_uids(messages)
+        assert peer.connections == 1
+
+    def test_negotiated_protobuf(self, matrix: MatrixRun) -> None:
+        peer = matrix.peers["nego"]
+        assert peer.xml == []  # nothing but the request before the switch
+        assert {"fischer-F26E-001", "fischer-F26E-002"} <= our_uids(peer.frames())
+
+
+class TestCotSource:
+    """ATAK positions in: mesh protobuf over UDP, XML over TCP after a stray fragment."""
+
+    def test_both_sources_took_their_report(self, matrix: MatrixRun) -> None:
+        counts = {s["source"]: s["counts"] for s in matrix.status["sources"]}
+        assert counts["mesh_in"] == {"accepted": 1}
+        assert counts["stream_in"] == {"fragment": 1, "accepted": 1}
+        lines = [json.loads(line) for line in (matrix.tmp / "a.jsonl").read_text().splitlines()]
+        uids = {line["uid"] for line in lines if line["kind"] == "blue_force"}
+        assert uids == {"ANDROID-MESH", "ANDROID-TCP"}
