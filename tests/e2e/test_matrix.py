@@ -172,6 +172,9 @@ class MatrixRun:
     ready_samples: list[int] = field(default_factory=list)
     status: dict[str, Any] = field(default_factory=dict)
     stdout: list[bytes] = field(default_factory=list)
+    """What the console sink printed (stdout is for output)."""
+    stderr: list[bytes] = field(default_factory=list)
+    """The daemon's JSON log lines (logs go to stderr)."""
     returncode: int | None = None
     stop_s: float = 0.0
 
@@ -249,7 +252,7 @@ async def feed_sources(ports: dict[str, int]) -> None:
 async def daemon(config: Path, run: MatrixRun) -> AsyncIterator[anyio.abc.Process]:
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     command = [sys.executable, "-m", "gateway", "run", "--config", str(config)]
-    async with await anyio.open_process(command, env=env, stderr=None) as process:
+    async with await anyio.open_process(command, env=env) as process:
         try:
             yield process
         finally:
@@ -281,12 +284,14 @@ async def scenario(run: MatrixRun, pki_files: dict[str, str], server_tls: ssl.SS
             config = write_config(run, ports, pki_files)
             async with daemon(config, run) as process:
                 assert process.stdout is not None
+                assert process.stderr is not None
                 tg.start_soon(drain, process.stdout, run.stdout)
+                tg.start_soon(drain, process.stderr, run.stderr)
                 with anyio.fail_after(20):
                     while True:  # ready: every link bound, every sink open
                         if process.returncode is not None:
                             await anyio.sleep(0.1)  # let ``drain`` take the last lines
-                            tail = b"\n".join(run.stdout[-20:]).decode(errors="replace")
+                            tail = b"\n".join(run.stderr[-20:]).decode(errors="replace")
                             pytest.fail(f"the daemon exited {process.returncode}:\n{tail}")
                         with contextlib.suppress(OSError):
                             if (await http_get(ports["health"], "/readyz"))[0] == 200:
@@ -336,7 +341,7 @@ def matrix(tmp_path_factory: pytest.TempPathFactory) -> MatrixRun:
 
 
 def logs(run: MatrixRun) -> list[dict[str, Any]]:
-    lines = [json.loads(line) for line in run.stdout if line.startswith(b"{")]
+    lines = [json.loads(line) for line in run.stderr if line.startswith(b"{")]
     return [line for line in lines if "level" in line]
 
 
