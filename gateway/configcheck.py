@@ -21,7 +21,7 @@ from pydantic import ValidationError
 
 from gateway.app import dem_sources
 from gateway.config import Config
-from gateway.configfile import Loc
+from gateway.configfile import Loc, validation_issues
 from gateway.domain.terrain import check_sources
 from gateway.errors import ConfigError, SinkLoadError
 from gateway.events import EventKind
@@ -33,6 +33,8 @@ __all__ = ["NodeCheck"]
 
 Finding = tuple[Loc, str, bool]
 _KINDS = frozenset(kind.value for kind in EventKind)
+#: The validation context of sink options checked on the node itself.
+_ON_NODE = {"environment": True}
 
 
 class NodeCheck:
@@ -108,9 +110,17 @@ class NodeCheck:
                 continue
             try:
                 plugin = load_plugin(type_name)
-                config = plugin.factory.config_model.model_validate(options)
+                plugin.factory.config_model.model_validate(options)
             except (ValidationError, SinkLoadError):
                 continue  # reported by the schema pass, with the option's own line
+            try:
+                # Options validated again with the node at hand: a sink's validators may
+                # then check its files (``info.context["environment"]``).
+                config = plugin.factory.config_model.model_validate(options, context=_ON_NODE)
+            except ValidationError as exc:
+                for loc, message in validation_issues(exc, ("sinks", i, "options")):
+                    yield loc, message, True
+                continue
             where = f"sink type {type_name!r} from {plugin.distribution} {plugin.version}"
             try:
                 sink = plugin.factory(name, config)

@@ -42,6 +42,7 @@ __all__ = [
     "is_loopback_host",
     "load_config",
     "load_config_text",
+    "validation_issues",
 ]
 
 Loc = tuple[str | int, ...]
@@ -196,6 +197,13 @@ def _missing_key(key: str, parent: type[BaseModel] | None) -> str:
     return message
 
 
+def validation_issues(
+    exc: ValidationError, prefix: Loc, model: type[BaseModel] | None = None
+) -> Iterator[tuple[Loc, str]]:
+    """pydantic's errors as ``(loc, message)`` under ``prefix``, worded for operators."""
+    return _issues_from_validation(exc, prefix, model)
+
+
 def _issues_from_validation(
     exc: ValidationError, prefix: Loc, model: type[BaseModel] | None = None
 ) -> Iterator[tuple[Loc, str]]:
@@ -212,7 +220,8 @@ def _issues_from_validation(
             message = _unknown_key(str(loc[-1]), parent)
         elif error["type"] == "missing":
             message = _missing_key(str(loc[-1]), parent)
-        elif "found" not in message:
+        elif "found" not in message and not isinstance(error.get("input"), dict | list):
+            # A whole mapping or list is no help after the message; a scalar is.
             message = f"{message}, found {_found(error.get('input'))}"
         yield loc, message
 

@@ -22,6 +22,7 @@ backs off as a whole; give a flaky TAK server its own sink so the mesh does not 
 
 from __future__ import annotations
 
+import ssl
 from collections.abc import Sequence
 from datetime import datetime, timedelta
 from importlib.metadata import PackageNotFoundError, version
@@ -33,7 +34,14 @@ from urllib.parse import parse_qs, urlsplit
 import anyio
 import anyio.abc
 import structlog
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
 
 from gateway.errors import PermanentSinkError, TransientSinkError
 from gateway.events import Event, EventKind, Track
@@ -42,7 +50,7 @@ from gateway.sink import SinkConfig
 from sinks._cot_codec import Encoded
 from sinks._cot_event import CotOptions, StaleTimes, build
 from sinks._cot_geoid import GeoidGrid, bundled_geoid
-from sinks._cot_tls import TlsFiles
+from sinks._cot_tls import TlsFiles, tls_context
 from sinks._cot_transport import Endpoint, StreamConnection
 from sinks._cot_udp import UdpSender
 
@@ -75,11 +83,22 @@ class CotTls(BaseModel):
     )
 
     @model_validator(mode="after")
-    def _one_client_certificate(self) -> CotTls:
+    def _one_client_certificate(self, info: ValidationInfo) -> CotTls:
         if (self.cert_file is None) == (self.pkcs12_file is None):
             raise ValueError("give exactly one of cert_file (PEM) or pkcs12_file")
         if self.key_file is not None and self.cert_file is None:
             raise ValueError("key_file goes with cert_file")
+        if isinstance(info.context, dict) and info.context.get("environment"):
+            # On the node (run, check-config): load the files now, so a missing CA or a
+            # wrong PKCS#12 password is a config error with its line, not a retry loop.
+            files = TlsFiles(
+                self.ca_file, self.cert_file, self.key_file, self.pkcs12_file, self.password_file
+            )
+            try:
+                tls_context(files)
+            except (OSError, ssl.SSLError) as exc:
+                name = getattr(exc, "filename", None) or files.ca_file
+                raise ValueError(f"{name}: {getattr(exc, 'strerror', None) or exc}") from None
         return self
 
 

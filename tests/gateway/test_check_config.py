@@ -1,0 +1,215 @@
+"""``check-config`` as an operator runs it: every problem in one pass, with its line, exit 2.
+
+Each test runs ``python -m gateway check-config`` (or ``run``) in a child process, as the unit's
+``ExecStartPre=`` and an operator at a shell do.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def cli(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "gateway", *args],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+        env={**os.environ, **(env or {})},
+    )
+
+
+def key(path: Path, data: bytes = bytes(range(32))) -> Path:
+    path.write_text(data.hex())
+    path.chmod(0o600)
+    return path
+
+
+def test_the_readme_example_passes_away_from_the_node() -> None:
+    result = cli("check-config", "--no-environment", str(ROOT / "config" / "example.yaml"))
+    assert result.returncode == 0, result.stderr
+    assert "ok (2 airframes" in result.stdout
+
+
+def test_the_credential_is_a_warning_outside_systemd_and_an_error_when_missing_inside(
+    tmp_path: Path,
+) -> None:
+    config = tmp_path / "c.yaml"
+    config.write_text(
+        "tunnel: {master_key_credential: tunnel-master}\n"
+        "airframes:\n  - {id: A, sysid: 1, links: "
+        "[{uri: 'udp://127.0.0.1:14550', security: tunnel}]}\n"
+    )
+    outside = cli("check-config", str(config), env={"CREDENTIALS_DIRECTORY": ""})
+    assert outside.returncode == 0, outside.stderr
+    assert f"{config}:1 tunnel.master_key_credential:" in outside.stderr
+    assert "(warning)" in outside.stderr
+    (tmp_path / "creds").mkdir()
+    inside = cli(
+        "check-config", str(config), env={"CREDENTIALS_DIRECTORY": str(tmp_path / "creds")}
+    )
+    assert inside.returncode == 2
+    assert f"{config}:1 tunnel.master_key_credential:" in inside.stderr
+    key(tmp_path / "creds" / "tunnel-master")
+    assert (
+        cli(
+            "check-config", str(config), env={"CREDENTIALS_DIRECTORY": str(tmp_path / "creds")}
+        ).returncode
+        == 0
+    )
+
+
+def test_every_kind_of_problem_comes_in_one_pass_with_lines(tmp_path: Path) -> None:
+    """Schema, key files, sink files and routes: once, not in rounds."""
+    wide_open = key(tmp_path / "signing.key")
+    wide_open.chmod(0o644)
+    config = tmp_path / "c.yaml"
+    config.write_text(
+        f"""tunnel: {{master_key_file: '{tmp_path / "absent.key"}'}}
+airframes:
+  - id: A
+    sysid: 1
+    links: [{{uri: 'udp://127.0.0.1:14550', security: tunnel}}]
+  - id: B
+    sysid: 2
+    signing: {{key_file: '{wide_open}'}}
+    links: [{{uri: 'udp://127.0.0.1:14551', security: signed}}]
+    link_timout_s: 2
+sinks:
+  - name: tak
+    type: cot
+    options:
+      geoid_file: '{tmp_path / "egm96_15.gtx"}'
+      destinations: ['udp://127.0.0.1:6969']
+  - name: tak2
+    type: cot
+    options:
+      destinations:
+        - uri: 'tls://127.0.0.1:8089'
+          tls: {{ca_file: '{tmp_path / "ca.pem"}', cert_file: '{tmp_path / "client.pem"}'}}
+  - {{name: archive, type: jsonl, options: {{path: '{tmp_path / "a.jsonl"}', kinds: [telemetry]}}}}
+routes:
+  - {{sinks: [archive], kinds: [detection]}}
+"""
+    )
+    result = cli("check-config", str(config))
+    assert result.returncode == 2
+    lines = [line for line in result.stderr.splitlines() if line.startswith(str(config))]
+    expected = [
+        ":1 tunnel.master_key_file:",  # missing
+        ":8 airframes[1].signing.key_file:",  # mode 644
+        ":10 airframes[1].link_timout_s: unknown key 'link_timout_s'; did you mean",
+        ":14 sinks[0].options:",  # the geoid file
+        ":22 sinks[1].options.destinations[0].tls:",  # the CA
+        ":25 routes[0].kinds[0]: sink 'archive' does not accept 'detection'",
+    ]
+    for fragment in expected:
+        assert any(fragment in line for line in lines), (fragment, result.stderr)
+    assert "Traceback" not in result.stderr + result.stdout
+    assert "mode is 644" in result.stderr
+    assert "egm96_15.gtx" in result.stderr
+    assert "ca.pem" in result.stderr
+
+
+FAKE_SINKS = """
+from gateway.events import EventKind
+from gateway.sink import SinkConfig
+
+
+class NoName:
+    config_model = SinkConfig
+
+    def __init__(self) -> None:  # wrong: a sink is built as Sink(name, config)
+        pass
+
+    async def open(self) -> None: ...
+    async def send(self, batch) -> None: ...
+    async def aclose(self) -> None: ...
+
+
+class StringKinds:
+    config_model = SinkConfig
+
+    def __init__(self, name, config) -> None:
+        self.name = name
+        self.kinds = frozenset({"telemetry"})  # wrong: EventKind members
+
+    async def open(self) -> None: ...
+    async def send(self, batch) -> None: ...
+    async def aclose(self) -> None: ...
+"""
+
+
+def test_broken_third_party_sinks_are_config_errors_naming_the_sink(tmp_path: Path) -> None:
+    site = tmp_path / "site"
+    dist = site / "fake_sinks-0.1.dist-info"
+    dist.mkdir(parents=True)
+    (site / "fake_sinks.py").write_text(FAKE_SINKS)
+    (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: fake-sinks\nVersion: 0.1\n")
+    (dist / "entry_points.txt").write_text(
+        "[fischer_gateway.sinks]\nnoname = fake_sinks:NoName\nstrkinds = fake_sinks:StringKinds\n"
+    )
+    config = tmp_path / "c.yaml"
+    config.write_text(
+        "airframes:\n  - {id: A, sysid: 1, links: [{uri: 'udp://127.0.0.1:14550', "
+        "security: unsecured}]}\n"
+        "sinks:\n  - {name: one, type: noname}\n  - {name: two, type: strkinds}\n"
+        "routes:\n  - {sinks: [one, two]}\n"
+    )
+    env = {"PYTHONPATH": os.pathsep.join([str(site), os.environ.get("PYTHONPATH", "")])}
+    for command in (["check-config", str(config)], ["run", "--config", str(config)]):
+        result = cli(*command, env=env)
+        assert result.returncode == 2, result.stderr
+        assert f"{config}:4 sinks[0].type: sink type 'noname' from fake-sinks 0.1" in result.stderr
+        assert "factory(name, config)" in result.stderr
+        assert (
+            f"{config}:5 sinks[1].type: sink type 'strkinds' from fake-sinks 0.1" in result.stderr
+        )
+        assert "EventKind" in result.stderr
+        assert "Traceback" not in result.stderr
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("", "nothing to do"),
+        (
+            "airframes:\n  - {id: A, sysid: 1, links: [{uri: 'tcp://192.0.2.300:5760', "
+            "security: unsecured}]}\n",
+            "expected an IP address or a host name",
+        ),
+        (
+            "airframes:\n  - {id: A, sysid: 1, links: [{uri: 'serial:///dev/ttyUSB0?baud=57601', "
+            "security: unsecured}]}\n",
+            "expected a standard baud rate",
+        ),
+    ],
+)
+def test_configs_that_used_to_start_and_then_fail_are_refused(
+    tmp_path: Path, text: str, message: str
+) -> None:
+    config = tmp_path / "c.yaml"
+    config.write_text(text)
+    for command in (["check-config", str(config)], ["run", "--config", str(config)]):
+        result = cli(*command)
+        assert result.returncode == 2, result.stderr
+        assert message in result.stderr
+
+
+def test_a_serial_device_not_plugged_in_is_a_warning(tmp_path: Path) -> None:
+    config = tmp_path / "c.yaml"
+    config.write_text(
+        "airframes:\n  - {id: A, sysid: 1, links: "
+        f"[{{uri: 'serial://{tmp_path / 'radio'}?baud=57600', security: unsecured}}]}}\n"
+    )
+    result = cli("check-config", str(config))
+    assert result.returncode == 0, result.stderr
+    assert "does not exist now; the link will wait for it (warning)" in result.stderr
