@@ -369,7 +369,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``fischer-gateway`` console script."""
     args = _parser().parse_args(argv)
     if args.command == "config-schema":
-        print(json.dumps(Config.model_json_schema(), indent=2))  # noqa: T201 - the output
+        from gateway.configschema import config_schema
+
+        print(json.dumps(config_schema(), indent=2))  # noqa: T201 - the output
         return EXIT_OK
     if args.command == "check-config":
         return _check_config(args.file, environment=not args.no_environment)

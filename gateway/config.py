@@ -204,9 +204,15 @@ class LinkConfig(BaseModel):
     )
     name: str | None = Field(default=None, pattern=_ID, description="Defaults to the URI.")
     priority: int = Field(default=0, ge=0, le=100, description="Lower is preferred.")
-    max_frame_bytes: int = Field(default=2048, ge=64, le=65535)
-    reconnect_initial_s: float = Field(default=0.5, gt=0, le=3600)
-    reconnect_max_s: float = Field(default=30.0, gt=0, le=3600)
+    max_frame_bytes: int = Field(
+        default=2048, ge=64, le=65535, description="Largest datagram or tunnel frame accepted."
+    )
+    reconnect_initial_s: float = Field(
+        default=0.5, gt=0, le=3600, description="First wait before reconnecting or reopening."
+    )
+    reconnect_max_s: float = Field(
+        default=30.0, gt=0, le=3600, description="Longest wait between reconnect attempts."
+    )
     max_connections: int = Field(
         default=16, ge=1, le=4096, description="tcp ?mode=listen only: connections held at once."
     )
@@ -232,10 +238,14 @@ class AirframeConfig(BaseModel):
 
     model_config = _FROZEN
 
-    id: str = Field(pattern=_ID)
+    id: str = Field(pattern=_ID, description="The airframe's name in events, e.g. F26E-001.")
     sysid: int = Field(ge=1, le=255, description="MAVLink system id.")
-    links: tuple[LinkConfig, ...] = Field(min_length=1)
-    link_timeout_s: float = Field(default=3.0, gt=0, le=3600)
+    links: tuple[LinkConfig, ...] = Field(
+        min_length=1, description="Its transports; the only links that may speak for it."
+    )
+    link_timeout_s: float = Field(
+        default=3.0, gt=0, le=3600, description="A link not heard this long is down (failover)."
+    )
     failback_hold_s: float = Field(
         default=3.0,
         ge=0,
@@ -248,8 +258,12 @@ class AirframeConfig(BaseModel):
         lt=1.0,
         description="A frame seen again on another link within this window is delivered once.",
     )
-    signing: SigningConfig | None = None
-    energy: EnergyProfile = EnergyProfile()
+    signing: SigningConfig | None = Field(
+        default=None, description="MAVLink 2 signing key; required by a signed link."
+    )
+    energy: EnergyProfile = Field(
+        default=EnergyProfile(), description="Battery and power figures for predicted endurance."
+    )
     ew_mode: EwMode = Field(
         default=EwMode.ACTIVE, description="EW mode assumed for predicted endurance."
     )
@@ -271,8 +285,10 @@ class DemSourceConfig(BaseModel):
     model_config = _FROZEN
 
     name: str = Field(pattern=_ID, description="e.g. lantmateriet_2m, srtm_30m")
-    kind: Literal["hgt", "geotiff"]
-    directory: Path
+    kind: Literal["hgt", "geotiff"] = Field(
+        description="hgt: SRTM tiles (nothing extra); geotiff: needs the [terrain] extra."
+    )
+    directory: Path = Field(description="Where the tiles are.")
     sigma_m: float = Field(gt=0, description="The DEM's 1σ vertical error.")
 
 
@@ -281,7 +297,9 @@ class TerrainConfig(BaseModel):
 
     model_config = _FROZEN
 
-    sources: tuple[DemSourceConfig, ...] = ()
+    sources: tuple[DemSourceConfig, ...] = Field(
+        default=(), description="Tried in order; the first with data for a point answers."
+    )
     baro_sigma_m: float = Field(default=0.5, gt=0, description="Barometric altitude 1σ.")
 
 
@@ -290,14 +308,27 @@ class SinkEntry(BaseModel):
 
     model_config = _FROZEN
 
-    name: str = Field(pattern=_ID)
-    type: str = Field(pattern=r"^[a-z][a-z0-9_]*$")
-    options: dict[str, Any] = Field(default_factory=dict)
+    name: str = Field(pattern=_ID, description="Named by routes, metrics and /status.")
+    type: str = Field(
+        pattern=r"^[a-z][a-z0-9_]*$",
+        description="An installed sink type (entry point fischer_gateway.sinks): jsonl, cot ...",
+    )
+    options: dict[str, Any] = Field(
+        default_factory=dict, description="The sink type's own options (see its schema)."
+    )
     queue_max: int = Field(default=10_000, ge=1, description="Durable events held in memory.")
-    batch_max: int = Field(default=100, ge=1, le=10_000)
-    send_timeout_s: float = Field(default=5.0, gt=0)
-    retry_initial_s: float = Field(default=0.5, gt=0)
-    retry_max_s: float = Field(default=30.0, gt=0)
+    batch_max: int = Field(
+        default=100, ge=1, le=10_000, description="Events handed to one send call at most."
+    )
+    send_timeout_s: float = Field(
+        default=5.0, gt=0, le=3600, description="Deadline of one open or send call."
+    )
+    retry_initial_s: float = Field(
+        default=0.5, gt=0, le=3600, description="First backoff after a failed send."
+    )
+    retry_max_s: float = Field(
+        default=30.0, gt=0, le=86400, description="Longest backoff between attempts."
+    )
 
 
 class RouteConfig(BaseModel):
@@ -305,10 +336,16 @@ class RouteConfig(BaseModel):
 
     model_config = _FROZEN
 
-    sinks: tuple[str, ...] = Field(min_length=1)
-    kinds: tuple[EventKind, ...] | None = None
-    airframes: tuple[str, ...] | None = None
-    classes: tuple[str, ...] | None = None
+    sinks: tuple[str, ...] = Field(min_length=1, description="Names of configured sinks.")
+    kinds: tuple[EventKind, ...] | None = Field(
+        default=None, description="Event kinds routed (telemetry, detection ...); all if omitted."
+    )
+    airframes: tuple[str, ...] | None = Field(
+        default=None, description="Airframe ids routed; all if omitted."
+    )
+    classes: tuple[str, ...] | None = Field(
+        default=None, description="Detection/track classes routed; all if omitted."
+    )
     max_rate_hz: float | None = Field(
         default=None,
         gt=0,
@@ -321,15 +358,20 @@ class HealthConfig(BaseModel):
 
     model_config = _FROZEN
 
-    enabled: bool = True
-    host: str = "127.0.0.1"
-    port: int = Field(default=8765, ge=0, le=65535)
+    enabled: bool = Field(default=True, description="false: no health endpoint at all.")
+    host: str = Field(
+        default="127.0.0.1",
+        description="Address to bind; beyond loopback needs allow_non_loopback.",
+    )
+    port: int = Field(default=8765, ge=0, le=65535, description="0 picks a free port.")
     allow_non_loopback: bool = Field(
         default=False,
         description="/status and /metrics describe the fleet: binding beyond loopback must be "
         "stated here.",
     )
-    max_connections: int = Field(default=32, ge=1, le=1024)
+    max_connections: int = Field(
+        default=32, ge=1, le=1024, description="Connections held at once; more are closed."
+    )
 
 
 class GatewayConfig(BaseModel):
@@ -337,9 +379,18 @@ class GatewayConfig(BaseModel):
 
     model_config = _FROZEN
 
-    node_id: str = Field(default="fischer-gateway", pattern=_ID)
-    shutdown_deadline_s: float = Field(default=5.0, gt=0, le=300)
-    log_level: Literal["debug", "info", "warning", "error"] = "info"
+    node_id: str = Field(
+        default="fischer-gateway", pattern=_ID, description="This node's name in logs and /status."
+    )
+    shutdown_deadline_s: float = Field(
+        default=5.0,
+        gt=0,
+        le=300,
+        description="Drain and close within this on SIGTERM; keep TimeoutStopSec above it.",
+    )
+    log_level: Literal["debug", "info", "warning", "error"] = Field(
+        default="info", description="Lowest level logged."
+    )
 
 
 class Config(BaseModel):
@@ -347,13 +398,21 @@ class Config(BaseModel):
 
     model_config = _FROZEN
 
-    gateway: GatewayConfig = GatewayConfig()
-    health: HealthConfig = HealthConfig()
-    tunnel: TunnelConfig = TunnelConfig()
-    terrain: TerrainConfig = TerrainConfig()
+    gateway: GatewayConfig = Field(default=GatewayConfig(), description="The daemon itself.")
+    health: HealthConfig = Field(
+        default=HealthConfig(), description="/healthz, /readyz, /metrics and /status."
+    )
+    tunnel: TunnelConfig = Field(
+        default=TunnelConfig(), description="The master key and time windows of tunnel links."
+    )
+    terrain: TerrainConfig = Field(
+        default=TerrainConfig(), description="DEM sources for height above ground."
+    )
     sources: tuple[CotSourceConfig, ...] = Field(
         default=(), description="Inputs beyond the airframes: CoT from ATAK/WinTAK (blue force)."
     )
-    airframes: tuple[AirframeConfig, ...] = ()
-    sinks: tuple[SinkEntry, ...] = ()
-    routes: tuple[RouteConfig, ...] = ()
+    airframes: tuple[AirframeConfig, ...] = Field(default=(), description="The fleet.")
+    sinks: tuple[SinkEntry, ...] = Field(default=(), description="Where events go.")
+    routes: tuple[RouteConfig, ...] = Field(
+        default=(), description="Which events go to which sinks."
+    )

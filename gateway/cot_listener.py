@@ -57,14 +57,22 @@ class CotSourceConfig(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    type: Literal["cot"] = "cot"
-    name: str = Field(default="cot", pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
-    uri: str
+    type: Literal["cot"] = Field(default="cot", description="The source type (only cot today).")
+    name: str = Field(
+        default="cot",
+        pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$",
+        description="Named in metrics and /status.",
+    )
+    uri: str = Field(
+        description="udp://HOST:PORT, udp+multicast://GROUP:PORT or tcp://HOST:PORT to listen on."
+    )
     interface: str = Field(
         default="0.0.0.0",  # noqa: S104 - the multicast join's interface, not a bind address
         description="IPv4 address of the interface that joins the multicast group.",
     )
-    max_event_bytes: int = Field(default=16384, ge=512, le=65536)
+    max_event_bytes: int = Field(
+        default=16384, ge=512, le=65536, description="Largest CoT event read; more is refused."
+    )
     max_clients: int = Field(default=32, ge=1, description="TCP connections served at once.")
     idle_timeout_s: float = Field(
         default=300.0, gt=0, description="Close a TCP connection silent for this long."

@@ -6,6 +6,7 @@ import os
 from collections.abc import Callable, Sequence
 
 import anyio
+from pydantic import Field
 
 from gateway.errors import PermanentSinkError, TransientSinkError
 from gateway.events import Event, EventKind
@@ -24,10 +25,12 @@ __all__ = [
 class MemorySinkConfig(SinkConfig):
     """Options of the in-memory sink."""
 
-    kinds: frozenset[EventKind] = frozenset(EventKind)
-    fail_transient: bool = False
-    fail_permanent: bool = False
-    hang: bool = False
+    kinds: frozenset[EventKind] = Field(
+        default=frozenset(EventKind), description="Event kinds this sink takes."
+    )
+    fail_transient: bool = Field(default=False, description="Every send fails, retryably.")
+    fail_permanent: bool = Field(default=False, description="Every send is refused for good.")
+    hang: bool = Field(default=False, description="Every send waits until cancelled.")
 
 
 class MemorySink:
@@ -96,7 +99,9 @@ async def eventually(predicate: Callable[[], bool], *, interval_s: float = 0.005
 class NullSinkConfig(SinkConfig):
     """Options of the null sink."""
 
-    kinds: frozenset[EventKind] = frozenset(EventKind)
+    kinds: frozenset[EventKind] = Field(
+        default=frozenset(EventKind), description="Event kinds this sink takes."
+    )
 
 
 class NullSink:

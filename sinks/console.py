@@ -46,9 +46,15 @@ _KIND_WIDTH = max(len(kind.value) for kind in EventKind)
 class ConsoleSinkConfig(SinkConfig):
     """Options of the console sink."""
 
-    kinds: frozenset[EventKind] = Field(default=frozenset(EventKind), min_length=1)
-    format: Literal["text", "json"] = "text"
-    output: Literal["stdout", "stderr"] | Path = "stdout"
+    kinds: frozenset[EventKind] = Field(
+        default=frozenset(EventKind), min_length=1, description="Event kinds this sink takes."
+    )
+    format: Literal["text", "json"] = Field(
+        default="text", description="text: a line to read; json: one JSON object per line."
+    )
+    output: Literal["stdout", "stderr"] | Path = Field(
+        default="stdout", description="stdout, stderr, or a file path appended to."
+    )
     """Where the lines go: ``stdout``, ``stderr`` or a file appended to."""
 
 

@@ -107,11 +107,15 @@ class CotDestination(BaseModel):
 
     model_config = _FROZEN
 
-    uri: str
+    uri: str = Field(
+        description="udp://HOST:PORT (unicast or multicast), tcp://HOST:PORT or tls://HOST:PORT."
+    )
     protocol: CotProtocol | None = Field(default=None, description="Overrides the sink's.")
     ttl: int | None = Field(default=None, ge=1, le=255, description="Multicast TTL (1).")
     interface: str | None = Field(default=None, description="Multicast interface: IP or name.")
-    tls: CotTls | None = None
+    tls: CotTls | None = Field(
+        default=None, description="Client certificate and pinned CA; required for tls://."
+    )
 
     @model_validator(mode="before")
     @classmethod
@@ -187,35 +191,48 @@ class CotStale(BaseModel):
 
     model_config = _FROZEN
 
-    telemetry_s: float = Field(default=15.0, ge=1.0)
-    detection_s: float = Field(default=120.0, ge=1.0)
-    track_s: float = Field(default=300.0, ge=1.0)
+    telemetry_s: float = Field(default=15.0, ge=1.0, description="Own airframes.")
+    detection_s: float = Field(default=120.0, ge=1.0, description="Single detections.")
+    track_s: float = Field(default=300.0, ge=1.0, description="Fused tracks.")
 
 
 class CotSinkConfig(SinkConfig):
     """Options of the CoT sink."""
 
-    destinations: tuple[CotDestination, ...] = Field(min_length=1)
-    protocol: CotProtocol = "xml"
-    kinds: frozenset[EventKind] = frozenset(
-        {EventKind.TELEMETRY, EventKind.DETECTION, EventKind.TRACK}
+    destinations: tuple[CotDestination, ...] = Field(
+        min_length=1, description="Where CoT goes; each a URI or a mapping with uri."
     )
-    stale: CotStale = CotStale()
+    protocol: CotProtocol = Field(
+        default="xml", description="xml, protobuf (TAK v1) or negotiate (TAK servers)."
+    )
+    kinds: frozenset[EventKind] = Field(
+        default=frozenset({EventKind.TELEMETRY, EventKind.DETECTION, EventKind.TRACK}),
+        description="Event kinds this sink takes.",
+    )
+    stale: CotStale = Field(default=CotStale(), description="Seconds each kind stays valid.")
     track_refresh_s: float | None = Field(
         default=None, gt=0, description="Re-send an unchanged track after this (stale / 2)."
     )
-    uid_prefix: str = Field(default="fischer-", pattern=r"^\S*$")
-    callsign_prefix: str = "FISCHER "
-    loitering_munition: Literal["uav_attack", "missile"] = "uav_attack"
-    detection_hostility: Literal["hostile", "suspect", "unknown"] = "hostile"
+    uid_prefix: str = Field(
+        default="fischer-", pattern=r"^\S*$", description="Start of every event uid we send."
+    )
+    callsign_prefix: str = Field(default="FISCHER ", description="Start of own callsigns.")
+    loitering_munition: Literal["uav_attack", "missile"] = Field(
+        default="uav_attack", description="How a loitering munition is drawn (2525 symbol)."
+    )
+    detection_hostility: Literal["hostile", "suspect", "unknown"] = Field(
+        default="hostile", description="Affiliation given to detected targets."
+    )
     group_name: str | None = Field(
         default=None, description="ATAK team colour for own airframes (e.g. Cyan); none if unset."
     )
-    group_role: str = "Team Member"
+    group_role: str = Field(default="Team Member", description="ATAK role of own airframes.")
     geoid_file: Path | None = Field(
         default=None, description="EGM96 .gtx grid for hae (default: the shipped 30' grid)."
     )
-    connect_timeout_s: float = Field(default=5.0, gt=0)
+    connect_timeout_s: float = Field(
+        default=5.0, gt=0, description="Deadline of a TCP/TLS connect."
+    )
     offer_wait_s: float = Field(
         default=2.0, ge=0, description="After connecting, wait this long for a v1 offer."
     )

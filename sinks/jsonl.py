@@ -52,7 +52,9 @@ class JsonlSinkConfig(SinkConfig):
     )
     keep: int = Field(default=30, ge=0, description="Rotated files kept; older are deleted.")
     fsync: bool = Field(default=False, description="fsync after every batch (slower, safer).")
-    kinds: frozenset[EventKind] = Field(default=frozenset(EventKind), min_length=1)
+    kinds: frozenset[EventKind] = Field(
+        default=frozenset(EventKind), min_length=1, description="Event kinds this sink takes."
+    )
 
 
 class JsonlSink:
