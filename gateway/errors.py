@@ -45,6 +45,7 @@ __all__ = [
     "SinkError",
     "SinkLoadError",
     "TransientSinkError",
+    "os_reason",
 ]
 
 
@@ -168,3 +169,17 @@ class OrderRejected(GatewayError):
     def __init__(self, message: str, *, airframe: str | None = None) -> None:
         self.airframe = airframe
         super().__init__(message)
+
+
+def os_reason(exc: BaseException) -> str:
+    """The plain reason of an OS failure: the first ``strerror`` in ``exc``'s cause chain.
+
+    uvloop wraps a failed bind as ``OSError("could not bind to local_addr ...")`` without an
+    errno; the real "Address already in use" is only in its ``__cause__``.
+    """
+    seen: BaseException | None = exc
+    while seen is not None:
+        if isinstance(seen, OSError) and seen.strerror:
+            return seen.strerror
+        seen = seen.__cause__ or seen.__context__
+    return str(exc)

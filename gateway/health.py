@@ -20,7 +20,7 @@ import anyio
 import anyio.abc
 import structlog
 
-from gateway.errors import LinkUnavailable
+from gateway.errors import LinkUnavailable, os_reason
 from gateway.listener import ListenerStats, serve_tcp
 from gateway.logsetup import RateLimit
 from gateway.metrics import Registry
@@ -107,7 +107,7 @@ class HealthServer:
             listener = await anyio.create_tcp_listener(local_host=self.host, local_port=self.port)
         except OSError as exc:
             where = f"health endpoint {self.host}:{self.port}"
-            raise LinkUnavailable(where, f"cannot listen: {exc.strerror or exc}") from exc
+            raise LinkUnavailable(where, f"cannot listen: {os_reason(exc)}") from exc
         async with listener:
             port = int(listener.extra(anyio.abc.SocketAttribute.local_port))
             log.info("health_listening", host=self.host, port=port)

@@ -54,6 +54,7 @@ __all__ = ["Ingest", "LinkIntake"]
 log = structlog.get_logger(__name__)
 
 _SIGNED_V2 = 0xFD
+_MAV_AUTOPILOT_INVALID = 8  # a GCS, a companion or a peripheral: not the flight controller
 _DEDUP_PRUNE_EVERY = 1024
 #: Seconds between two log lines for the same link and rejection reason.
 REJECT_LOG_INTERVAL_S = 10.0
@@ -268,6 +269,8 @@ class Ingest:
         if airframe.passthrough is not None:
             airframe.passthrough(bytes(buf))
         name = msg.get_type()
+        if name == "HEARTBEAT" and msg.autopilot != _MAV_AUTOPILOT_INVALID:
+            airframe.health.autopilot_compid = msg.get_srcComponent()
         if name == "FISCHER_DETECTION":
             self._detection(label, airframe, msg)
             return

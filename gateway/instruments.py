@@ -41,7 +41,8 @@ class Instruments:
         )
         self.link_loss = r.gauge(
             "fg_link_loss_ratio",
-            "Frames lost to MAVLink sequence gaps over frames expected, per airframe and link.",
+            "Autopilot-component frames lost to MAVLink sequence gaps over those expected, "
+            "per airframe and link.",
             ("airframe", "link"),
         )
         self.link_last_heard_age = r.gauge(

@@ -27,7 +27,7 @@ import anyio.abc
 import structlog
 
 from gateway.config import Endpoint, LinkConfig
-from gateway.errors import LinkClosed, LinkUnavailable
+from gateway.errors import LinkClosed, LinkUnavailable, os_reason
 from gateway.listener import serve_tcp
 from gateway.logsetup import RateLimit
 
@@ -158,7 +158,7 @@ class UdpLink(Link):
                     lambda: _DatagramProtocol(self), remote_addr=(ep.host, ep.port)
                 )
         except OSError as exc:
-            raise LinkUnavailable(self.label, f"cannot open {ep}: {exc.strerror or exc}") from exc
+            raise LinkUnavailable(self.label, f"cannot open {ep}: {os_reason(exc)}") from exc
         self._transport = transport
         sock = transport.get_extra_info("socket")
         # A burst of frames after a radio fade must not overflow the kernel's default buffer.
@@ -317,9 +317,7 @@ class TcpServerLink(_StreamLink):
         try:
             listener = await anyio.create_tcp_listener(local_host=ep.host, local_port=ep.port)
         except OSError as exc:
-            raise LinkUnavailable(
-                self.label, f"cannot listen on {ep}: {exc.strerror or exc}"
-            ) from exc
+            raise LinkUnavailable(self.label, f"cannot listen on {ep}: {os_reason(exc)}") from exc
         self.local_port = int(listener.extra(anyio.abc.SocketAttribute.local_port))
         self.is_bound, self.state = True, "listening"
         self.log.info("link_bound", uri=str(ep), port=self.local_port)
@@ -382,7 +380,7 @@ class SerialLink(Link):
             try:
                 fd = self._open(ep.device, ep.baud)
             except OSError as exc:
-                reason = f"cannot open {ep.device}: {exc.strerror or exc}"
+                reason = f"cannot open {ep.device}: {os_reason(exc)}"
                 if self.reason != reason:
                     self.log.warning("link_device_unavailable", device=ep.device, error=reason)
                 self.state, self.reason = "waiting for device", reason

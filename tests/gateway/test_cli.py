@@ -136,6 +136,7 @@ class TestRunFailures:
         assert result.returncode == 1
         (failed,) = [r for r in records(result.stderr) if r["event"] == "gateway_failed"]
         assert (failed["errno"], failed["strerror"]) == (98, "Address already in use")
+        assert failed["error"].endswith("Address already in use")  # the message itself too
 
     def test_under_journald_lines_carry_their_priority(self, tmp_path: Path) -> None:
         log_path = tmp_path / "journal.txt"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import random
 import time
 from collections.abc import Iterator
 from datetime import UTC, datetime
@@ -223,3 +224,33 @@ def test_corpus_tlog_positions_equal_pymavlink_decode() -> None:
     assert len(expected) == 128
     assert got == deduped
     assert inst.link_ignored.labels("l", "unknown_sysid").value > 0  # the GCS, sysid 255
+
+
+@pytest.mark.corpus
+@pytest.mark.parametrize(
+    "name",
+    [
+        "arducopter_hw_ground_small.tlog",
+        "arducopter_hw_ground_companion.tlog",
+        "ardusub_real_dive_small.tlog",
+    ],
+)
+@pytest.mark.parametrize("drop", [0.0, 0.47])
+def test_loss_ratio_of_real_logs_is_the_loss_of_the_autopilot_frames(
+    name: str, drop: float
+) -> None:
+    """Real hardware logs mix components with unrelated sequences (companion, radio, camera).
+
+    Lossless, they read 70-80 % loss when every component's gaps were summed; with 47 % of
+    the datagrams really dropped the ratio must say about 0.47.
+    """
+    path = CORPUS / "mavlink" / name
+    if not path.exists():
+        pytest.skip("shared corpus absent")
+    ingest, _events, _inst = make_ingest(1)
+    rng = random.Random(7)
+    for record in read_tlog(path):
+        if rng.random() >= drop:
+            ingest.on_data("l", "tlog", record.frame)
+    (link,) = ingest.status()[0]["links"]  # type: ignore[misc]
+    assert link["loss_pct"] / 100 == pytest.approx(drop, abs=0.02)
