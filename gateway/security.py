@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 
 from gateway.config import Config
 from gateway.deframe import frame_for_stream
+from gateway.errors import ConfigError, ConfigIssue
 from gateway.keys import read_credential, read_key_file
 from gateway.mavlink import crc_extra, split_frames
 from gateway.normalise import Clock
@@ -40,9 +41,19 @@ class Security:
             tunnel = config.tunnel
             if tunnel.master_key_file is not None:
                 master = read_key_file(tunnel.master_key_file)
-            else:
-                assert tunnel.master_key_credential is not None  # noqa: S101 - config checked
+            elif tunnel.master_key_credential is not None:
                 master = read_credential(tunnel.master_key_credential)
+            else:
+                raise ConfigError(
+                    [
+                        ConfigIssue(
+                            "(config)",
+                            None,
+                            "tunnel",
+                            "a tunnel link needs master_key_file or master_key_credential",
+                        )
+                    ]
+                )
             keys = DayKeys(master=master)
             max_frame = max(link.max_frame_bytes for a in tunnelled for link in a.links)
             security.opener = TunnelOpener(
