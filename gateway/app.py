@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import time
 from collections.abc import Mapping
-from datetime import UTC, datetime
 from importlib.metadata import PackageNotFoundError, version
 from typing import Any
 
@@ -19,6 +18,7 @@ import anyio.abc
 import structlog
 
 from gateway.bus import Bus
+from gateway.clock import Clock, utc_now
 from gateway.config import Config
 from gateway.cot_listener import CotListener
 from gateway.domain.terrain import DemSource, TerrainModel
@@ -27,7 +27,6 @@ from gateway.health import HealthServer
 from gateway.ingest import Ingest, LinkIntake
 from gateway.instruments import Instruments
 from gateway.links import Link, make_link
-from gateway.normalise import Clock
 from gateway.passthrough import Passthrough
 from gateway.plugins import build_sink
 from gateway.sdnotify import SystemdNotifier
@@ -51,11 +50,6 @@ def terrain_model(config: Config) -> TerrainModel | None:
     """The config's terrain model, None without sources; a failing source is disabled."""
     sources = dem_sources(config)
     return TerrainModel(sources, strict=False) if sources else None
-
-
-def utc_now() -> datetime:
-    """The wall clock, UTC-aware: the default ``Clock``."""
-    return datetime.now(UTC)
 
 
 def _version() -> str:

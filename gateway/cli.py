@@ -24,7 +24,8 @@ from typing import Any, TextIO
 import anyio
 import structlog
 
-from gateway.app import Gateway, utc_now
+from gateway.app import Gateway
+from gateway.clock import utc_now
 from gateway.config import Config
 from gateway.configcheck import NodeCheck
 from gateway.configfile import load_config, load_config_text

@@ -35,7 +35,7 @@ import structlog
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from gateway.cot_stream import CotStreamServer
-from gateway.events import BlueForce, Event, Position
+from gateway.events import BlueForce, Event, Position, event_id
 from gateway.logsetup import RateLimit
 from sinks._cot_validate import CotError, ParsedCot, is_unknown, parse_cot
 
@@ -254,7 +254,7 @@ class CotListener:
 
 def _blue_force(cot: ParsedCot) -> BlueForce:
     return BlueForce(
-        event_id=f"cot-{cot.uid}-{int(cot.time.timestamp() * 1000)}",
+        event_id=event_id("cot", cot.uid, int(cot.time.timestamp() * 1000)),
         uid=cot.uid,
         time=cot.time,
         callsign=cot.callsign,

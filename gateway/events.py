@@ -10,6 +10,7 @@ same event twice (delivery is at-least-once for durable kinds) can de-duplicate 
 
 from __future__ import annotations
 
+import secrets
 from collections.abc import Callable
 from enum import StrEnum
 from typing import Annotated, Any, Literal
@@ -17,6 +18,7 @@ from typing import Annotated, Any, Literal
 from pydantic import AwareDatetime, BaseModel, ConfigDict, Field, TypeAdapter
 
 __all__ = [
+    "BOOT_ID",
     "DURABLE_KINDS",
     "LATEST_WINS_KINDS",
     "Attitude",
@@ -31,8 +33,21 @@ __all__ = [
     "Track",
     "Velocity",
     "event_adapter",
+    "event_id",
     "latest_key",
 ]
+
+BOOT_ID = secrets.token_hex(4)
+"""This process's identity in event ids that count from its start (one per process)."""
+
+
+def event_id(*parts: object) -> str:
+    """The stable id of an event from its parts: ``event_id("F26E-001", "det", 7, ts)``.
+
+    Receivers de-duplicate by it, so the same event always gets the same id; events numbered
+    by a counter of this process include ``BOOT_ID`` so a restart never repeats an id.
+    """
+    return "-".join(str(part) for part in parts)
 
 
 class EventKind(StrEnum):

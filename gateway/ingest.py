@@ -29,6 +29,7 @@ from dataclasses import asdict, dataclass, field
 
 import structlog
 
+from gateway.clock import Clock
 from gateway.config import AirframeConfig
 from gateway.deframe import StreamDeframer
 from gateway.domain.terrain import TerrainModel
@@ -42,7 +43,6 @@ from gateway.metrics import CounterChild
 from gateway.normalise import (
     NORMALISED_TYPES,
     AirframeState,
-    Clock,
     Enrichment,
     detection_from,
 )

@@ -8,20 +8,17 @@ Every change of a link's (up, active) pair is published as a LinkState event.
 
 from __future__ import annotations
 
-import secrets
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from datetime import timedelta
 
+from gateway.clock import Clock
 from gateway.config import AirframeConfig
-from gateway.events import Event, LinkState
+from gateway.events import BOOT_ID, Event, LinkState, event_id
 from gateway.instruments import Instruments
-from gateway.normalise import Clock
 
 __all__ = ["AirframeLink", "LinkHealth"]
-
-_BOOT_ID = secrets.token_hex(4)
 
 
 @dataclass(slots=True)
@@ -171,7 +168,7 @@ class LinkHealth:
             )
             self._publish(
                 LinkState(
-                    event_id=f"{self.config.id}-link-{_BOOT_ID}-{self._seq}",
+                    event_id=event_id(self.config.id, "link", BOOT_ID, self._seq),
                     airframe=self.config.id,
                     time=now,
                     link=link.label,

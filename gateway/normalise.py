@@ -8,22 +8,28 @@ of exactly 0,0 (an autopilot without a fix) becomes no position. After this, eve
 from __future__ import annotations
 
 import math
-import secrets
 from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import datetime, timedelta
 from typing import Any
 
+from gateway.clock import Clock
 from gateway.dialect import CLASS_NAMES, SENSOR_NAMES
 from gateway.domain.energy import EnergyProfile, EwMode, endurance_remaining_min
 from gateway.domain.terrain import TerrainModel, agl_from_msl, agl_sigma
-from gateway.events import Attitude, Detection, Position, Sensor, Telemetry, Velocity
+from gateway.events import (
+    BOOT_ID,
+    Attitude,
+    Detection,
+    Position,
+    Sensor,
+    Telemetry,
+    Velocity,
+    event_id,
+)
 from gateway.mavlink import MavMessage
 
-__all__ = ["NORMALISED_TYPES", "AirframeState", "Clock", "Enrichment", "detection_from"]
-
-Clock = Callable[[], datetime]
-"""Returns the current UTC-aware time; injected so tests control it."""
+__all__ = ["NORMALISED_TYPES", "AirframeState", "Enrichment", "detection_from"]
 
 
 @dataclass(frozen=True)
@@ -39,7 +45,6 @@ class Enrichment:
 _UINT16_MAX = 0xFFFF
 _MAV_AUTOPILOT_INVALID = 8
 _MAV_MODE_FLAG_SAFETY_ARMED = 128
-_BOOT_ID = secrets.token_hex(4)
 
 #: The MAVLink messages that change an airframe's Telemetry.
 NORMALISED_TYPES = frozenset(
@@ -102,7 +107,7 @@ class AirframeState:
         if self._enrichment is not None:
             derived = self._derive(self._enrichment)
         return Telemetry(
-            event_id=f"{self.airframe}-tel-{_BOOT_ID}-{self._seq}",
+            event_id=event_id(self.airframe, "tel", BOOT_ID, self._seq),
             airframe=self.airframe,
             time=self._clock(),
             active_link=self.active_link,
@@ -260,7 +265,7 @@ def detection_from(airframe: str, msg: MavMessage, now: datetime) -> Detection |
         observed = now + timedelta(microseconds=msg.time_usec - now_us)
     subtype = msg.subtype.decode("ascii", "replace") if isinstance(msg.subtype, bytes) else ""
     return Detection(
-        event_id=f"{airframe}-det-{msg.detection_id}-{msg.time_usec}",
+        event_id=event_id(airframe, "det", msg.detection_id, msg.time_usec),
         airframe=airframe,
         time=observed,
         sensor=Sensor(sensor),

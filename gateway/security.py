@@ -9,12 +9,12 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 
+from gateway.clock import Clock
 from gateway.config import Config
 from gateway.deframe import frame_for_stream
 from gateway.errors import ConfigError, ConfigIssue
 from gateway.keys import read_credential, read_key_file
 from gateway.mavlink import crc_extra, split_frames
-from gateway.normalise import Clock
 from gateway.signing import OutboundSigner, SigningVerifier
 from gateway.tunnel import DayKeys, Sealer, TunnelOpener
 

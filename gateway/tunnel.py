@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import os
 import struct
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from datetime import UTC, date, datetime, timedelta
 
@@ -37,6 +37,7 @@ from cryptography.hazmat.primitives import hashes
 from cryptography.hazmat.primitives.ciphers.aead import AESGCM
 from cryptography.hazmat.primitives.kdf.hkdf import HKDF
 
+from gateway.clock import Clock
 from gateway.errors import AuthenticationFailed, Malformed, Oversize, Replayed
 
 __all__ = [
@@ -61,8 +62,6 @@ _FIXED = struct.Struct(">2sBHB")
 _PLAIN_MAVLINK = (0xFD, 0xFE)  # MAVLink 2 and 1 start bytes  # magic, version, key_day, id_len
 #: Bytes a sealed frame adds to its payload, for an airframe id of 8 bytes.
 OVERHEAD_BYTES = _FIXED.size + 8 + 6 + _NONCE + _TAG
-
-Clock = Callable[[], datetime]
 
 
 def day_number(day: date) -> int:
