@@ -114,6 +114,8 @@ class Gateway:
                         link_cfg.security,
                         is_stream=link_cfg.uri.scheme != "udp",
                         max_chunk_bytes=link_cfg.max_frame_bytes,
+                        trust=link.trust,
+                        drop=link.drop,
                     )
                 )
         self.sources = [

@@ -40,10 +40,17 @@ class StreamDeframer:
         self._buf = bytearray()
         self.errors: dict[str, int] = {}
         self.skipped_bytes = 0
+        #: Frames that failed authentication since the last one that opened.
+        self.failed_in_a_row = 0
+        self._in_garbage = False
 
     def _skip(self, count: int) -> None:
         del self._buf[:count]
         self.skipped_bytes += count
+        if not self._in_garbage:
+            # A run of bytes that are not frames counts once, as one malformed frame.
+            self._in_garbage = True
+            self.errors["malformed"] = self.errors.get("malformed", 0) + 1
 
     def feed(self, data: bytes, open_frame: Callable[[bytes], T]) -> list[T]:
         """Add ``data`` and return the opened frames it completed."""
@@ -64,9 +71,14 @@ class StreamDeframer:
                 out.append(open_frame(frame))
             except FrameError as exc:
                 self.errors[exc.reason] = self.errors.get(exc.reason, 0) + 1
+                self.failed_in_a_row += 1
                 if exc.reason in ("malformed", "auth"):
                     # It may have been garbage that looked like a header: resync inside it.
+                    self._in_garbage = True  # counted just now
                     self._skip(1)
                     continue
+            else:
+                self.failed_in_a_row = 0
+            self._in_garbage = False
             del buf[: 2 + length]
         return out

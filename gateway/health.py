@@ -20,8 +20,7 @@ import anyio
 import anyio.abc
 import structlog
 
-from gateway.errors import LinkUnavailable, os_reason
-from gateway.listener import ListenerStats, serve_tcp
+from gateway.listener import Connection, TcpListener
 from gateway.logsetup import RateLimit
 from gateway.metrics import Registry
 
@@ -90,7 +89,10 @@ class HealthServer:
         self._registry = registry
         self._status = status
         self._is_ready = is_ready
-        self.stats = ListenerStats("health", max_connections)
+        self._listener = TcpListener(
+            host, port, name="health", what="health endpoint", max_connections=max_connections
+        )
+        self.stats = self._listener.stats
         self._log_limit = RateLimit(interval_s=_LOG_INTERVAL_S)
         self.rejected = 0
         """Requests refused with 400, 405 or 431, or that timed out."""
@@ -103,43 +105,30 @@ class HealthServer:
         Port 0 binds an ephemeral port. Raises ``LinkUnavailable`` if the address cannot be
         bound (in use, not local, no permission).
         """
-        try:
-            listener = await anyio.create_tcp_listener(local_host=self.host, local_port=self.port)
-        except OSError as exc:
-            where = f"health endpoint {self.host}:{self.port}"
-            raise LinkUnavailable(where, f"cannot listen: {os_reason(exc)}") from exc
-        async with listener:
-            port = int(listener.extra(anyio.abc.SocketAttribute.local_port))
-            log.info("health_listening", host=self.host, port=port)
-            task_status.started(port)
-            await serve_tcp(
-                listener,
-                self._handle,
-                name="health",
-                max_connections=self.stats.max_connections,
-                stats=self.stats,
-            )
+        port = self._listener.bind()
+        log.info("health_listening", host=self.host, port=port)
+        task_status.started(port)
+        await self._listener.run(self._handle)
 
     def _reject_logged(self, reason: str) -> bool:
         self.rejected += 1
         return self._log_limit.allow(reason)
 
-    async def _handle(self, stream: anyio.abc.SocketStream) -> None:
-        peer = _peer(stream)
-        async with stream:
-            try:
-                with anyio.fail_after(CONNECTION_DEADLINE_S):
-                    await self._serve_one(stream, peer)
-            except TimeoutError:
-                if self._reject_logged("timeout"):
-                    log.warning(
-                        "health_request_rejected", reason="timeout", peer=peer, total=self.rejected
-                    )
-            except (anyio.BrokenResourceError, anyio.ClosedResourceError, OSError):
-                # The client went away mid-exchange; there is nobody left to answer.
-                log.debug("health_connection_lost", peer=peer)
+    async def _handle(self, stream: Connection) -> None:
+        peer = f"{stream.peer[0]}:{stream.peer[1]}"
+        try:
+            with anyio.fail_after(CONNECTION_DEADLINE_S):
+                await self._serve_one(stream, peer)
+        except TimeoutError:
+            if self._reject_logged("timeout"):
+                log.warning(
+                    "health_request_rejected", reason="timeout", peer=peer, total=self.rejected
+                )
+        except (anyio.BrokenResourceError, anyio.ClosedResourceError, OSError):
+            # The client went away mid-exchange; there is nobody left to answer.
+            log.debug("health_connection_lost", peer=peer)
 
-    async def _serve_one(self, stream: anyio.abc.SocketStream, peer: str) -> None:
+    async def _serve_one(self, stream: Connection, peer: str) -> None:
         try:
             method, path = _parse_head(await _read_head(stream))
         except anyio.EndOfStream:
@@ -188,14 +177,7 @@ class HealthServer:
         return 404, b"not found\n", _TEXT
 
 
-def _peer(stream: anyio.abc.SocketStream) -> str:
-    address = stream.extra(anyio.abc.SocketAttribute.remote_address, None)
-    if isinstance(address, tuple):
-        return f"{address[0]}:{address[1]}"
-    return str(address)
-
-
-async def _read_head(stream: anyio.abc.SocketStream) -> bytes:
+async def _read_head(stream: Connection) -> bytes:
     """The request line and header lines, without the blank line that ends them."""
     data = bytearray()
     while len(data) < MAX_HEAD_BYTES:
@@ -242,7 +224,7 @@ def _parse_head(head: bytes) -> tuple[bytes, str]:
 
 
 async def _respond(
-    stream: anyio.abc.SocketStream,
+    stream: Connection,
     code: int,
     body: bytes,
     content_type: str,
@@ -259,7 +241,7 @@ async def _respond(
         + "Cache-Control: no-store\r\nConnection: close\r\n\r\n"
     ).encode("ascii")
     await stream.send(head if head_only else head + body)
-    await stream.send_eof()
+    stream.send_eof()
     drained = 0
     with anyio.move_on_after(LINGER_DEADLINE_S):
         while drained < LINGER_MAX_BYTES:

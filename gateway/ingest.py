@@ -58,6 +58,8 @@ _MAV_AUTOPILOT_INVALID = 8  # a GCS, a companion or a peripheral: not the flight
 _DEDUP_PRUNE_EVERY = 1024
 #: Seconds between two log lines for the same link and rejection reason.
 REJECT_LOG_INTERVAL_S = 10.0
+#: Tunnel frames in a row that fail authentication before a stream peer is hung up on.
+MAX_FAILED_IN_A_ROW = 64
 
 
 @dataclass(slots=True)
@@ -74,6 +76,10 @@ class LinkIntake:
     airframes: dict[int, _Airframe] = field(default_factory=dict)
     """The airframes configured on this link, by sysid: the only ones it may speak for."""
     datagram_parser: MavlinkParser | None = None
+    trust: Callable[[object], None] | None = None
+    """Told the first time a peer authenticates for an airframe (a listener keeps it)."""
+    drop: Callable[[object], None] | None = None
+    """Told to hang up on a stream peer that only sends frames that fail authentication."""
 
 
 @dataclass(slots=True)
@@ -180,6 +186,10 @@ class Ingest:
             for reason, count in deframer.errors.items():
                 if count != before.get(reason, 0):
                     self._rejected(label, reason, "tunnel frame", count - before.get(reason, 0))
+            if deframer.failed_in_a_row >= MAX_FAILED_IN_A_ROW and intake.drop is not None:
+                # Each try costs an AES-GCM open: a peer that never authenticates is cut off.
+                deframer.failed_in_a_row = 0
+                intake.drop(peer)
         else:
             try:
                 opened = [opener.open_frame(data, label)]
@@ -249,20 +259,27 @@ class Ingest:
             self._rejected(label, "auth", f"{sealed_by.config.id} sent frames as sysid {sysid}")
             return
         buf = msg.get_msgbuf()
+        authenticated = True
         if intake.security == "signed":
             verifier = airframe.verifier
             if verifier is None:
                 self._rejected(label, "auth", f"{airframe.config.id} has no signing key")
                 return
             try:
-                verifier.verify(bytes(buf))
+                # False: an unsigned frame the config accepts (accept_unsigned_msgids). It is
+                # used, but proves nothing: it neither names the peer nor keeps the link up.
+                authenticated = verifier.verify(bytes(buf))
             except FrameError as exc:
                 self._rejected(label, exc.reason, str(exc))
                 return
         intake.counters[2].value += 1  # type: ignore[index]
-        airframe.peers[label] = peer
         now_mono = time.monotonic()
-        airframe.health.heard(label, msg.get_srcComponent(), msg.get_seq(), now_mono)
+        if authenticated:
+            if airframe.peers.get(label) != peer:
+                airframe.peers[label] = peer
+                if intake.trust is not None:
+                    intake.trust(peer)
+            airframe.health.heard(label, msg.get_srcComponent(), msg.get_seq(), now_mono)
         if len(airframe.health.links) > 1 and self._duplicate(airframe, buf, now_mono):
             self._inst.link_ignored.labels(label, "duplicate").inc()
             return

@@ -16,6 +16,7 @@ jittered exponential backoff, one attempt at a time.
 from __future__ import annotations
 
 import asyncio
+import math
 import os
 import random
 import socket
@@ -28,7 +29,7 @@ import structlog
 
 from gateway.config import Endpoint, LinkConfig
 from gateway.errors import LinkClosed, LinkUnavailable, os_reason
-from gateway.listener import serve_tcp
+from gateway.listener import Connection, TcpListener, connect
 from gateway.logsetup import RateLimit
 
 __all__ = ["DataHandler", "Link", "make_link"]
@@ -73,6 +74,12 @@ class Link:
         Links with one peer (a client, a device) ignore ``peer``.
         """
         await self.send(data)
+
+    def trust(self, peer: object) -> None:
+        """``peer`` authenticated for an airframe (a listener keeps it over strangers)."""
+
+    def drop(self, peer: object) -> None:
+        """Hang up on ``peer`` (a stream peer that only fails authentication)."""
 
     def status(self) -> dict[str, object]:
         """The link's state for /status."""
@@ -220,29 +227,27 @@ class UdpLink(Link):
 
 
 class _StreamLink(Link):
-    """Shared read loop of TCP and serial streams."""
+    """Shared read loop of TCP streams: read bounded (``Connection``), hand bytes to ingest."""
 
-    async def _pump(
-        self,
-        stream: anyio.abc.ByteReceiveStream,
-        peer: object,
-        *,
-        idle_timeout_s: float = float("inf"),
-    ) -> None:
-        try:
-            while True:
-                try:
-                    with anyio.fail_after(idle_timeout_s):
-                        data = await stream.receive(_READ_CHUNK)
-                except TimeoutError as exc:
-                    raise LinkClosed(
-                        self.label, f"peer {peer} silent for {idle_timeout_s} s"
-                    ) from exc
-                except (anyio.EndOfStream, anyio.BrokenResourceError, OSError) as exc:
-                    raise LinkClosed(self.label, f"peer {peer} closed the stream") from exc
-                self.on_data(self.label, peer, data)
-        finally:
-            self.on_close(self.label, peer)
+    async def _pump(self, connection: Connection, *, idle_timeout_s: float = math.inf) -> None:
+        """Read until the peer closes (``LinkClosed``); an untrusted peer has one timeout."""
+        peer = connection.peer
+        auth_deadline = anyio.current_time() + idle_timeout_s
+        while True:
+            # Until it authenticates, a connection has one idle timeout in all to do so (a
+            # byte now and then does not keep a stranger's connection open).
+            timeout = idle_timeout_s
+            if not connection.trusted:
+                timeout = min(timeout, auth_deadline - anyio.current_time())
+            try:
+                with anyio.fail_after(max(timeout, 0.0)):
+                    data = await connection.receive(_READ_CHUNK)
+            except TimeoutError as exc:
+                silent = f"peer {peer} silent or unauthenticated for {idle_timeout_s} s"
+                raise LinkClosed(self.label, silent) from exc
+            except (anyio.EndOfStream, anyio.BrokenResourceError) as exc:
+                raise LinkClosed(self.label, f"peer {peer} closed the stream") from exc
+            self.on_data(self.label, peer, data)
 
 
 class TcpClientLink(_StreamLink):
@@ -250,7 +255,7 @@ class TcpClientLink(_StreamLink):
 
     def __init__(self, config: LinkConfig, on_data: DataHandler, on_close: CloseHandler) -> None:
         super().__init__(config, on_data, on_close)
-        self._stream: anyio.abc.SocketStream | None = None
+        self._connection: Connection | None = None
 
     async def run(
         self, *, task_status: anyio.abc.TaskStatus[None] = anyio.TASK_STATUS_IGNORED
@@ -262,10 +267,12 @@ class TcpClientLink(_StreamLink):
         while True:
             try:
                 with anyio.fail_after(max(delay, 5.0)):
-                    stream = await anyio.connect_tcp(ep.host, ep.port)
+                    connection = await connect(ep.host, ep.port)
             except (OSError, TimeoutError) as exc:
-                self.state, self.reason = "reconnecting", f"connect failed: {exc}"
-                self.log.warning("link_connect_failed", uri=str(ep), error=str(exc))
+                reason = f"connect failed: {os_reason(exc) or 'timed out'}"
+                if self.reason != reason:
+                    self.log.warning("link_connect_failed", uri=str(ep), error=reason)
+                self.state, self.reason = "reconnecting", reason
             else:
                 self.connects += 1
                 self.state, self.reason = "connected", ""
@@ -274,15 +281,17 @@ class TcpClientLink(_StreamLink):
                 if not started:
                     task_status.started()
                     started = True
-                self._stream = stream
+                connection.trusted = True  # the peer we chose to connect to
+                self._connection = connection
                 try:
-                    async with stream:
-                        await self._pump(stream, (ep.host, ep.port))
+                    with connection.sock:
+                        await self._pump(connection)
                 except LinkClosed as exc:
                     self.state, self.reason = "reconnecting", str(exc)
                     self.log.warning("link_closed", uri=str(ep))
                 finally:
-                    self._stream = None
+                    self._connection = None
+                    self.on_close(self.label, connection.peer)
             if not started:
                 task_status.started()
                 started = True
@@ -290,70 +299,113 @@ class TcpClientLink(_StreamLink):
             delay = min(delay * 2, self.config.reconnect_max_s)
 
     async def send(self, data: bytes) -> None:
-        if self._stream is None:
+        connection = self._connection
+        if connection is None:
             raise LinkUnavailable(self.label, "not connected")
-        await self._stream.send(data)
+        try:
+            await connection.send(data)
+        except anyio.BrokenResourceError as exc:
+            raise LinkUnavailable(self.label, f"send failed: {exc}") from exc
 
 
 class TcpServerLink(_StreamLink):
     """TCP server: each accepted connection is a peer with its own parser.
 
-    At most ``max_connections`` at once (more are closed on accept); a connection silent for
-    ``idle_timeout_s`` is closed, so half-open or hostile connections cannot pile up.
+    At most ``max_connections`` at once (``gateway.listener``: a new connection evicts one that
+    has not authenticated, else it is closed). A connection must authenticate a frame within
+    ``idle_timeout_s`` and then stay heard within it, or it is closed; one that sends only
+    frames failing authentication is hung up on by ingest (``drop``). Connects and closes of
+    peers that never authenticated are counted, not logged one by one.
     """
 
     def __init__(self, config: LinkConfig, on_data: DataHandler, on_close: CloseHandler) -> None:
         super().__init__(config, on_data, on_close)
-        self._streams: dict[object, anyio.abc.SocketStream] = {}
+        self._streams: dict[object, Connection] = {}
         self.local_port = 0
-        self.max_connections = config.max_connections
         self.idle_timeout_s = config.idle_timeout_s
-        self.refused = 0
+        self._listener = TcpListener(
+            config.uri.host,
+            config.uri.port,
+            name=self.label,
+            what=f"link {self.label}",
+            max_connections=config.max_connections,
+        )
+        self.stats = self._listener.stats
 
     async def run(
         self, *, task_status: anyio.abc.TaskStatus[None] = anyio.TASK_STATUS_IGNORED
     ) -> None:
-        ep = self.endpoint
-        try:
-            listener = await anyio.create_tcp_listener(local_host=ep.host, local_port=ep.port)
-        except OSError as exc:
-            raise LinkUnavailable(self.label, f"cannot listen on {ep}: {os_reason(exc)}") from exc
-        self.local_port = int(listener.extra(anyio.abc.SocketAttribute.local_port))
+        self.local_port = self._listener.bind()
         self.is_bound, self.state = True, "listening"
-        self.log.info("link_bound", uri=str(ep), port=self.local_port)
+        self.log.info("link_bound", uri=str(self.endpoint), port=self.local_port)
         task_status.started()
-        async with listener:
-            self.listener_stats = await serve_tcp(
-                listener,
-                self._serve,
-                name=self.label,
-                max_connections=self.max_connections,
-            )
-
-    async def _serve(self, stream: anyio.abc.SocketStream) -> None:
-        peer = stream.extra(anyio.abc.SocketAttribute.remote_address)
-        self.connects += 1
-        self._streams[peer] = stream
-        self.log.info("link_peer_connected", peer=str(peer))
         try:
-            async with stream:
-                await self._pump(stream, peer, idle_timeout_s=self.idle_timeout_s)
+            await self._listener.run(self._serve)
+        finally:
+            self.is_bound, self.state = False, "closed"
+
+    async def _serve(self, connection: Connection) -> None:
+        peer = connection.peer
+        self.connects += 1
+        self._streams[peer] = connection
+        try:
+            await self._pump(connection, idle_timeout_s=self.idle_timeout_s)
         except LinkClosed as exc:
-            self.log.info("link_peer_closed", peer=str(peer), reason=str(exc))
+            if connection.trusted:
+                self.log.info("link_peer_closed", peer=f"{peer[0]}:{peer[1]}", reason=str(exc))
         finally:
             self._streams.pop(peer, None)
+            self.on_close(self.label, peer)
+
+    async def _pump_connection(self, connection: Connection) -> None:
+        peer = connection.peer
+        auth_deadline = anyio.current_time() + self.idle_timeout_s
+        while True:
+            # Until it authenticates, a connection has one idle timeout in all to do so (a
+            # byte now and then does not keep a stranger's connection open).
+            timeout = self.idle_timeout_s
+            if not connection.trusted:
+                timeout = min(timeout, auth_deadline - anyio.current_time())
+            try:
+                with anyio.fail_after(max(timeout, 0.0)):
+                    data = await connection.receive(_READ_CHUNK)
+            except TimeoutError as exc:
+                silent = f"peer {peer} silent or unauthenticated for {self.idle_timeout_s} s"
+                raise LinkClosed(self.label, silent) from exc
+            except (anyio.EndOfStream, anyio.BrokenResourceError) as exc:
+                raise LinkClosed(self.label, f"peer {peer} closed the stream") from exc
+            self.on_data(self.label, peer, data)
+
+    def trust(self, peer: object) -> None:
+        connection = self._streams.get(peer)
+        if connection is not None and not connection.trusted:
+            connection.trusted = True
+            self.log.info(
+                "link_peer_authenticated", peer=f"{connection.peer[0]}:{connection.peer[1]}"
+            )
+
+    def drop(self, peer: object) -> None:
+        connection = self._streams.get(peer)
+        if connection is not None:
+            connection.close()
 
     async def send(self, data: bytes) -> None:
         if not self._streams:
             raise LinkUnavailable(self.label, "no peer connected")
-        for stream in list(self._streams.values()):
-            await stream.send(data)
+        for connection in list(self._streams.values()):
+            await connection.send(data)
 
     async def send_to(self, peer: object, data: bytes) -> None:
-        stream = self._streams.get(peer)
-        if stream is None:
+        connection = self._streams.get(peer)
+        if connection is None:
             raise LinkUnavailable(self.label, "the authenticated peer is no longer connected")
-        await stream.send(data)
+        try:
+            await connection.send(data)
+        except anyio.BrokenResourceError as exc:
+            raise LinkUnavailable(self.label, f"send failed: {exc}") from exc
+
+    def status(self) -> dict[str, object]:
+        return {**super().status(), "connections": self.stats.status()}
 
 
 class SerialLink(Link):

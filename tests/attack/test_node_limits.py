@@ -130,10 +130,11 @@ def test_2000_idle_health_connections_neither_stop_telemetry_nor_the_daemon(
         wait_until(lambda: _healthz(daemon) == 200, 15, "/healthz answering again")
         stats = daemon.status()["listeners"][0]
         assert stats["listener"] == "health"
-        assert stats["refused"] > 0
+        # Strangers over the cap push out the stalest stranger; nobody holds more than the cap.
+        assert stats["evicted"] + stats["refused"] > 0
         assert stats["active"] <= stats["max_connections"]
-        assert daemon.events("listener_connection_refused")  # said, once
-        assert len(daemon.events("listener_connection_refused")) <= 2
+        assert daemon.events("listener_full")  # said, and not once per connection
+        assert len(daemon.events("listener_full")) <= 4
     assert daemon.proc.returncode == 0
 
 
