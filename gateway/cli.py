@@ -11,6 +11,7 @@ import argparse
 import json
 import math
 import os
+import re
 import secrets
 import signal
 import sys
@@ -124,7 +125,7 @@ def _parser() -> argparse.ArgumentParser:
     new.add_argument("--out", type=Path, required=True)
     derive = keys_sub.add_parser("derive", help="an airframe's day keys, never the master")
     derive.add_argument("--master", type=Path, required=True, help="master key file")
-    derive.add_argument("--airframe", required=True)
+    derive.add_argument("--airframe", required=True, type=_airframe_id)
     derive.add_argument("--from", dest="first", type=date.fromisoformat, required=True)
     derive.add_argument("--days", type=int, default=30)
     derive.add_argument("--out", type=Path, required=True, help="directory for the day keys")
@@ -158,10 +159,36 @@ def _sealers(args: argparse.Namespace, count: int) -> list[Sealer | None]:
                 )
             ]
         )
-    return [
-        Sealer(airframe, DayKeys(keys=load_day_keys(args.key_dir, airframe)), utc_now)
-        for airframe in ids
-    ]
+    today = utc_now().date()
+    sealers: list[Sealer | None] = []
+    for airframe in ids:
+        keys = load_day_keys(args.key_dir, airframe)
+        if (airframe, today) not in keys:
+            days = sorted(day for _, day in keys)
+            held = f"{days[0]} .. {days[-1]}" if days else "none"
+            raise ConfigError(
+                [
+                    ConfigIssue(
+                        "(command line)",
+                        None,
+                        "--key-dir",
+                        f"no day key for {airframe} today ({today}) in {args.key_dir} (it "
+                        f"holds {held}); derive keys from today: fischer-gateway keys derive "
+                        f"--airframe {airframe} --from {today} ...",
+                    )
+                ]
+            )
+        sealers.append(Sealer(airframe, DayKeys(keys=keys), utc_now))
+    return sealers
+
+
+def _airframe_id(text: str) -> str:
+    """An airframe id as the config allows it (also a safe file-name part)."""
+    if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}", text):
+        raise argparse.ArgumentTypeError(
+            f"expected an airframe id as in the config (letters, digits, _ . -), found {text!r}"
+        )
+    return text
 
 
 def _keys(args: argparse.Namespace) -> int:
@@ -323,6 +350,10 @@ def _replay(args: argparse.Namespace) -> int:
     from gateway.tlog import ReplayStats, replay_udp
 
     host, port = _udp_target(args.to)
+    if not args.file.is_file():
+        raise ConfigError(
+            [ConfigIssue(str(args.file), None, "(file)", "no such .tlog file (or not a file)")]
+        )
     speed = None if args.fast else args.speed
     (sealer,) = _sealers(args, 1) if args.key_dir else (None,)
     seal = sealer.seal if sealer else None
@@ -392,6 +423,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             return EXIT_CONFIG
         except FileExistsError:
             print(f"{args.out} exists; not overwriting a key", file=sys.stderr)  # noqa: T201
+            return EXIT_CONFIG
+        except OSError as exc:
+            where = exc.filename or args.out
+            print(f"{where}: {exc.strerror or exc}", file=sys.stderr)  # noqa: T201
             return EXIT_CONFIG
     # Logs go to stderr for every command: stdout is for output (the console sink's events).
     configure_logging("info")

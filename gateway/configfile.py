@@ -28,7 +28,7 @@ import yaml
 from pydantic import BaseModel, ValidationError
 
 from gateway.config import Config
-from gateway.errors import ConfigError, ConfigIssue, SinkLoadError
+from gateway.errors import ConfigError, ConfigIssue, SinkLoadError, SinkOptionsInvalid
 
 __all__ = [
     "MAX_ALIASES",
@@ -226,6 +226,13 @@ def _issues_from_validation(
         yield loc, message
 
 
+def _not_one_of(what: str, name: object, known: Iterable[object]) -> str:
+    names = sorted(str(k) for k in known)
+    close = difflib.get_close_matches(str(name), names, n=1, cutoff=0.6)
+    hint = f"did you mean {close[0]!r}?" if close else f"configured: {', '.join(names) or 'none'}"
+    return f"no {what} named {name!r}; {hint}"
+
+
 def _cross_check(data: dict[str, Any]) -> Iterator[tuple[Loc, str]]:
     """Checks across items, made on the raw data so they report even if other items fail."""
     if not data.get("airframes") and not data.get("sources"):
@@ -274,16 +281,10 @@ def _cross_check(data: dict[str, Any]) -> Iterator[tuple[Loc, str]]:
                 continue
             for j, name in enumerate(route.get("sinks") or ()):
                 if name not in sink_names:
-                    yield (
-                        ("routes", i, "sinks", j),
-                        (f"expected the name of a configured sink, found {name!r}"),
-                    )
+                    yield ("routes", i, "sinks", j), _not_one_of("sink", name, sink_names)
             for j, name in enumerate(route.get("airframes") or ()):
                 if name != "*" and name not in ids:
-                    yield (
-                        ("routes", i, "airframes", j),
-                        (f"expected the id of a configured airframe, found {name!r}"),
-                    )
+                    yield ("routes", i, "airframes", j), _not_one_of("airframe", name, ids)
 
 
 def _link_checks(data: dict[str, Any]) -> Iterator[tuple[Loc, str]]:
@@ -343,7 +344,7 @@ def _link_checks(data: dict[str, Any]) -> Iterator[tuple[Loc, str]]:
 
 
 SinkChecker = Callable[[str, dict[str, Any]], None]
-"""Checks a sink's ``type`` and ``options``; raises ``ValidationError`` or ``SinkLoadError``."""
+"""Checks a sink's ``type`` and ``options``; raises ``SinkOptionsInvalid`` or ``SinkLoadError``."""
 
 
 def _sink_issues(data: dict[str, Any], check_sink: SinkChecker) -> Iterator[tuple[Loc, str]]:
@@ -360,6 +361,10 @@ def _sink_issues(data: dict[str, Any], check_sink: SinkChecker) -> Iterator[tupl
             check_sink(item["type"], options)
         except ValidationError as exc:
             yield from _issues_from_validation(exc, ("sinks", i, "options"))
+        except SinkOptionsInvalid as exc:
+            if isinstance(exc.validation, ValidationError):
+                model = exc.model if issubclass(exc.model, BaseModel) else None
+                yield from _issues_from_validation(exc.validation, ("sinks", i, "options"), model)
         except SinkLoadError as exc:
             yield ("sinks", i, "type"), str(exc)
 
@@ -460,16 +465,27 @@ def load_config(
     except OSError as exc:
         issue = ConfigIssue(source, None, "(file)", f"cannot read: {exc.strerror}")
         raise ConfigError([issue]) from exc
-    with os.fdopen(fd, "rb") as handle:
+    try:
         info = os.fstat(fd)
         problem = None
-        if not stat.S_ISREG(info.st_mode):
+        if stat.S_ISDIR(info.st_mode):
+            problem = "a directory, not a config file"
+        elif not stat.S_ISREG(info.st_mode):
             problem = "not a regular file"
         elif info.st_size > MAX_CONFIG_BYTES:
             problem = f"{info.st_size} bytes; a config file is at most {MAX_CONFIG_BYTES}"
         if problem is not None:
             raise ConfigError([ConfigIssue(source, None, "(file)", problem)])
-        raw = handle.read(MAX_CONFIG_BYTES + 1)
+        try:
+            raw = os.read(fd, MAX_CONFIG_BYTES + 1)
+        except OSError as exc:
+            issue = ConfigIssue(source, None, "(file)", f"cannot read: {exc.strerror}")
+            raise ConfigError([issue]) from exc
+    finally:
+        os.close(fd)
+    if len(raw) > MAX_CONFIG_BYTES:
+        message = f"more than {MAX_CONFIG_BYTES} bytes; a config file is at most that"
+        raise ConfigError([ConfigIssue(source, None, "(file)", message)])
     try:
         text = raw.decode("utf-8")
     except UnicodeDecodeError as exc:

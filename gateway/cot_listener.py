@@ -9,11 +9,13 @@ through our validator (``sinks._cot_validate``: defusedxml, no DTDs, entities or
 A friendly position within 0.01° of 0,0 is an ATAK device without a GPS fix (real ATAK-CIV
 captures sit at -0.0043,-0.0077): it is rejected as ``no_fix``, never published. An event whose
 ``stale`` has passed (a replayed capture, a relay's backlog) is not a current position:
-``stale``. Per uid only the newest ``time`` is published: an older event is ``older``, the same
-one again ``duplicate`` (the newest times of at most ``max_uids`` uids are kept). Nothing here
-raises on bad input; every event is counted by outcome in ``counts`` (``accepted``,
-``no_fix``, ``not_friendly``, ``stale``, ``older``, ``duplicate``, ``control`` for a mesh
-``TakControl`` without an event, ``invalid``, ``oversize``, ``fragment`` for stream bytes that
+``stale``; one whose ``time`` is more than ``FUTURE_TOLERANCE`` ahead of our clock would lock
+its uid out (every genuine report would look older): ``future``. Per uid only the newest
+``time`` is published: an older event is ``older``, the same one again ``duplicate`` (the
+newest times of at most ``max_uids`` uids are kept). Nothing here raises on bad input; every
+event is counted by outcome in ``counts`` (``accepted``, ``no_fix``, ``not_friendly``,
+``stale``, ``future``, ``older``, ``duplicate``, ``control`` for a mesh ``TakControl`` without
+an event, ``invalid``, ``oversize``, ``fragment`` for stream bytes that
 were not an event), invalid ones also by ``problems``, and logged rate-limited without the
 payload. The TCP side and its bounds are in ``gateway.cot_stream``.
 """
@@ -24,7 +26,7 @@ import socket
 import struct
 from collections import Counter, OrderedDict
 from collections.abc import Callable
-from datetime import UTC, datetime
+from datetime import UTC, datetime, timedelta
 from ipaddress import ip_address
 from typing import Literal
 from urllib.parse import urlsplit
@@ -39,12 +41,14 @@ from gateway.events import BlueForce, Event, Position, event_id
 from gateway.logsetup import RateLimit
 from sinks._cot_validate import CotError, ParsedCot, is_unknown, parse_cot
 
-__all__ = ["NO_FIX_DEG", "CotListener", "CotSourceConfig"]
+__all__ = ["FUTURE_TOLERANCE", "NO_FIX_DEG", "CotListener", "CotSourceConfig"]
 
 log = structlog.get_logger(__name__)
 
 #: Friendly positions closer than this to 0,0 (in both latitude and longitude) have no fix.
 NO_FIX_DEG = 0.01
+#: How far ahead of our clock an event's ``time`` may be (device clocks drift; GPS time is close).
+FUTURE_TOLERANCE = timedelta(seconds=60)
 _SCHEMES = ("udp", "udp+multicast", "tcp")
 
 
@@ -162,7 +166,15 @@ class CotListener:
         """Events that passed validation, published or not."""
         return sum(
             self.counts[k]
-            for k in ("accepted", "no_fix", "not_friendly", "stale", "older", "duplicate")
+            for k in (
+                "accepted",
+                "no_fix",
+                "not_friendly",
+                "stale",
+                "future",
+                "older",
+                "duplicate",
+            )
         )
 
     def _reject(self, outcome: str, **fields: object) -> None:
@@ -187,8 +199,13 @@ class CotListener:
         if not cot.type.startswith("a-f-"):
             self.counts["not_friendly"] += 1
             return
-        if cot.stale <= self._clock():
+        now = self._clock()
+        if cot.stale <= now:
             self._reject("stale", uid=cot.uid, stale=cot.stale.isoformat())
+            return
+        if cot.time > now + FUTURE_TOLERANCE:
+            # Accepted, a time in the future would make every genuine report "older" until it.
+            self._reject("future", uid=cot.uid, time=cot.time.isoformat())
             return
         if abs(cot.lat) < NO_FIX_DEG and abs(cot.lon) < NO_FIX_DEG:
             self._reject("no_fix", uid=cot.uid)

@@ -44,6 +44,7 @@ __all__ = [
     "Replayed",
     "SinkError",
     "SinkLoadError",
+    "SinkOptionsInvalid",
     "TransientSinkError",
     "os_reason",
 ]
@@ -81,9 +82,9 @@ class ConfigError(GatewayError, ValueError):
 class LinkError(GatewayError, OSError):
     """Raised when a transport to an airframe fails."""
 
-    def __init__(self, link: str, message: str) -> None:
+    def __init__(self, link: str, message: str, *, what: str = "link") -> None:
         self.link = link
-        super().__init__(f"link {link}: {message}")
+        super().__init__(f"{what} {link}: {message}" if what else f"{link}: {message}")
 
 
 class LinkClosed(LinkError):
@@ -161,6 +162,15 @@ class PermanentSinkError(SinkError):
 
 class SinkLoadError(SinkError):
     """Raised when a sink named in config cannot be found, imported or configured."""
+
+
+class SinkOptionsInvalid(SinkLoadError):
+    """Raised when a sink's ``options`` fail its options model; carries both, for messages."""
+
+    def __init__(self, sink: str, validation: Exception, model: type) -> None:
+        super().__init__(f"options of sink type {sink!r} are invalid", sink=sink)
+        self.validation = validation
+        self.model = model
 
 
 class OrderRejected(GatewayError):

@@ -170,6 +170,9 @@ class Ingest:
         counters[0].value += len(data)
         counters[1].value += 1
         if intake.security != "tunnel":
+            if not data:
+                self._rejected(label, "malformed", "empty datagram")
+                return
             for msg in self._parse(intake, peer, data):
                 self._frame(intake, peer, msg, None)
             return
@@ -233,7 +236,10 @@ class Ingest:
             self._rejected(label, "malformed", "bad MAVLink frame", count)
         elif parser.truncated != truncated:
             self._rejected(label, "truncated", "datagram ended inside a frame")
-        if parser.unknown != unknown:
+        if parser.unknown != unknown and (
+            (parser.bad == bad and parser.truncated == truncated) or intake.datagram_parser is None
+        ):
+            # In a datagram already counted as bad, an unknown id is part of the same garbage.
             self._inst.link_ignored.labels(label, "unknown_msgid").inc(parser.unknown - unknown)
         return messages
 

@@ -34,10 +34,11 @@ def _read_small_file(path: Path, what: str, *, check_mode: bool) -> bytes:
         fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
     except OSError as exc:
         raise _problem(path, f"cannot read {what}: {exc.strerror}") from exc
-    with os.fdopen(fd, "rb") as handle:
+    try:
         info = os.fstat(fd)
         if not stat.S_ISREG(info.st_mode):
-            raise _problem(path, f"{what} is not a regular file")
+            kind = "a directory" if stat.S_ISDIR(info.st_mode) else "not a regular file"
+            raise _problem(path, f"{what} is {kind}")
         if check_mode and info.st_mode & (stat.S_IRWXG | stat.S_IRWXO):
             mode = stat.S_IMODE(info.st_mode)
             raise _problem(path, f"{what} mode is {mode:o}; expected 600 or stricter")
@@ -46,9 +47,15 @@ def _read_small_file(path: Path, what: str, *, check_mode: bool) -> bytes:
                 path, f"{what} is {info.st_size} bytes; a key file is at most {MAX_KEY_FILE_BYTES}"
             )
         try:
-            return handle.read(MAX_KEY_FILE_BYTES + 1)
+            data = os.read(fd, MAX_KEY_FILE_BYTES + 1)
         except OSError as exc:
             raise _problem(path, f"cannot read {what}: {exc.strerror}") from exc
+        if len(data) != info.st_size:
+            # /proc and /sys files say "regular, 0 bytes" and then produce text.
+            raise _problem(path, f"{what} is not a regular file (its size changes as it is read)")
+        return data
+    finally:
+        os.close(fd)
 
 
 def read_key_file(path: Path, *, min_bytes: int = 32, exact: bool = False) -> bytes:

@@ -160,7 +160,7 @@ class TcpListener:
         except OSError as exc:
             sock.close()
             where = f"{self.what} {self.host}:{self.port}"
-            raise LinkUnavailable(where, f"cannot listen: {os_reason(exc)}") from exc
+            raise LinkUnavailable(where, f"cannot listen: {os_reason(exc)}", what="") from exc
         return sock
 
     def bind(self) -> int:

@@ -12,9 +12,9 @@ from dataclasses import dataclass
 from importlib.metadata import EntryPoint, entry_points
 from typing import Any, cast
 
-from pydantic import BaseModel
+from pydantic import BaseModel, ValidationError
 
-from gateway.errors import SinkLoadError
+from gateway.errors import SinkLoadError, SinkOptionsInvalid
 from gateway.sink import Sink, SinkClass
 
 __all__ = ["GROUP", "SinkPlugin", "available", "build_sink", "check_sink", "load_plugin"]
@@ -93,8 +93,16 @@ def load_plugin(type_name: str) -> SinkPlugin:
 
 
 def check_sink(type_name: str, options: dict[str, Any]) -> None:
-    """Load ``type_name`` and validate ``options``; the config loader's sink checker."""
-    load_plugin(type_name).factory.config_model.model_validate(options)
+    """Load ``type_name`` and validate ``options``; the config loader's sink checker.
+
+    Raises ``SinkLoadError`` for a type that cannot be loaded and ``SinkOptionsInvalid``
+    (with pydantic's error and the options model) for options that do not validate.
+    """
+    model = load_plugin(type_name).factory.config_model
+    try:
+        model.model_validate(options)
+    except ValidationError as exc:
+        raise SinkOptionsInvalid(type_name, exc, model) from None
 
 
 def build_sink(type_name: str, name: str, options: dict[str, Any]) -> Sink:

@@ -64,6 +64,8 @@ class Security:
                 skew_s=tunnel.skew_s,
                 freshness_s=tunnel.freshness_s,
                 max_frame_bytes=max_frame,
+                # Redundant copies on two links arrive within the de-duplication window.
+                cross_link_s=max(a.dedup_window_s for a in tunnelled),
             )
             security.sealers = {a.id: Sealer(a.id, keys, clock) for a in tunnelled}
         for airframe in config.airframes:

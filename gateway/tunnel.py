@@ -28,6 +28,8 @@ from __future__ import annotations
 
 import os
 import struct
+import time
+from collections import OrderedDict
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from datetime import UTC, date, datetime, timedelta
@@ -59,7 +61,9 @@ _EPOCH = date(1970, 1, 1)
 _TAG = 16
 _NONCE = 12
 _FIXED = struct.Struct(">2sBHB")
-_PLAIN_MAVLINK = (0xFD, 0xFE)  # MAVLink 2 and 1 start bytes  # magic, version, key_day, id_len
+_PLAIN_MAVLINK = (0xFD, 0xFE)  # MAVLink 2 and 1 start bytes
+#: Nonces remembered per airframe across links (about 25 min of frames at 50 Hz).
+_MAX_ACCEPTED = 65_536  # magic, version, key_day, id_len
 #: Bytes a sealed frame adds to its payload, for an airframe id of 8 bytes.
 OVERHEAD_BYTES = _FIXED.size + 8 + 6 + _NONCE + _TAG
 
@@ -206,7 +210,8 @@ class TunnelOpener:
     unknown airframe, key day outside the accepted range) or ``Replayed`` (seen before, or
     too old); it never returns unauthenticated data. Replay state is kept per ``stream``
     (the caller passes the link), so a frame duplicated on two links passes once per link
-    and link-level de-duplication decides.
+    and link-level de-duplication decides; but a frame that arrives on a second link more
+    than ``cross_link_s`` after it was accepted on the first is a replay there, refused.
     """
 
     def __init__(
@@ -219,6 +224,7 @@ class TunnelOpener:
         skew_s: float = 120.0,
         freshness_s: float = 30.0,
         max_frame_bytes: int = 2048,
+        cross_link_s: float = 1.0,
     ) -> None:
         self._keys = keys
         self._airframes = airframes
@@ -228,6 +234,8 @@ class TunnelOpener:
         self.freshness_s = freshness_s
         self.max_frame_bytes = max_frame_bytes
         self._streams: dict[tuple[object, str], _Sessions] = {}
+        self.cross_link_s = cross_link_s
+        self._accepted: dict[str, OrderedDict[bytes, tuple[float, object]]] = {}
         # The replay windows live in memory, so a frame sealed before this opener existed
         # could be a capture from before a restart: refuse it (docs/tunnel.md, "Restarts").
         self.started_ms = int(clock().timestamp() * 1000)
@@ -291,6 +299,7 @@ class TunnelOpener:
             raise Replayed("frame is older (or newer) than the freshness window")
         if sent_ms < self.started_ms:
             raise Replayed("frame sealed before the gateway started (a replay across a restart?)")
+        self._check_other_links(airframe, nonce, stream)
         if window is None:
             self._forget_idle(sessions, now_ms)
             window = ReplayWindow()
@@ -299,6 +308,25 @@ class TunnelOpener:
         window.last_seen_ms = now_ms
         sent = datetime.fromtimestamp(sent_ms / 1000, tz=UTC)
         return Opened(airframe, payload, day, sent)
+
+    def _check_other_links(self, airframe: str, nonce: bytes, stream: object) -> None:
+        """Refuse a frame first accepted on another link longer ago than ``cross_link_s``.
+
+        The same sealed frame arriving on two of an airframe's links at nearly the same time
+        is redundancy (ingest delivers it once); arriving on a second link seconds later is a
+        capture replayed there, which the per-link windows alone would accept.
+        """
+        now = time.monotonic()
+        seen = self._accepted.setdefault(airframe, OrderedDict())
+        first = seen.get(nonce)
+        if first is None:
+            seen[nonce] = (now, stream)
+            # Oldest first: forget what the freshness window refuses anyway, and cap the rest.
+            horizon = now - 2 * self.freshness_s
+            while seen and (len(seen) > _MAX_ACCEPTED or next(iter(seen.values()))[0] < horizon):
+                seen.popitem(last=False)
+        elif first[1] != stream and now - first[0] > self.cross_link_s:
+            raise Replayed("frame already accepted on another link (a replay there?)")
 
     def _forget_idle(self, sessions: _Sessions, now_ms: int) -> None:
         limit = self.freshness_s * 1000 * 2

@@ -46,6 +46,12 @@ def free_udp_port() -> int:
         return int(sock.getsockname()[1])
 
 
+def free_tcp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
 def write_key(path: Path, key: bytes) -> Path:
     path.write_text(key.hex() + "\n")
     path.chmod(0o600)

@@ -78,8 +78,9 @@ def _has_tifffile() -> bool:
 def check_sources(sources: Iterable[DemSource]) -> list[tuple[int, str]]:
     """Configuration problems of DEM sources, as (index in ``sources``, message).
 
-    Cheap (no tile is opened), for ``check-config``: a directory that does not exist, a
-    GeoTIFF source without ``tifffile`` installed, a directory with no tile of its kind.
+    Cheap (only tile headers are read), for ``check-config``: a directory that does not exist,
+    a GeoTIFF source without ``tifffile`` installed, a directory with no tile of its kind,
+    tiles whose headers cannot be read.
     The daemon runs without such a source (no AGL from it), so these are warnings.
     """
     problems: list[tuple[int, str]] = []
@@ -99,6 +100,15 @@ def check_sources(sources: Iterable[DemSource]) -> list[tuple[int, str]]:
         if not any(name.lower().endswith(suffixes) for name in names):
             wanted = " or ".join(suffixes)
             problems.append((index, f"{where}: no {wanted} tiles in {source.directory}"))
+            continue
+        # Reading each tile's header is cheap and finds tiles the daemon could never use.
+        unreadable: list[str] = []
+        if not _scan(source, unreadable) and unreadable:
+            problems.append((index, f"{where}: every tile is unreadable: {unreadable[0]}"))
+        elif unreadable:
+            problems.append(
+                (index, f"{where}: {len(unreadable)} unreadable tile(s): {unreadable[0]}")
+            )
     return problems
 
 
@@ -252,6 +262,8 @@ class TerrainModel:
         for problem in found:
             self._skipped[source.name] += 1
             self._failed(source.name, "unreadable", problem)
+        if found and not entries:
+            self._disable(source.name, "unreadable", f"every tile unreadable ({found[0]})")
         return entries
 
     def status(self) -> list[dict[str, object]]:

@@ -19,6 +19,7 @@ from daemon_support import (
     SIGNING_KEY,
     Airframe,
     archive_events,
+    free_tcp_port,
     free_udp_port,
     running,
     sealer,
@@ -26,6 +27,8 @@ from daemon_support import (
     write_key,
 )
 from pymavlink.dialects.v20 import ardupilotmega as mav
+
+from gateway.deframe import frame_for_stream
 
 pytestmark = pytest.mark.timeout(90)
 
@@ -186,8 +189,17 @@ def test_uplink_goes_sealed_to_the_authenticated_peer_only_and_never_in_plaintex
 def test_signed_link_uplink_is_signed(
     tmp_path: Path, udp_socket: Callable[[], socket.socket]
 ) -> None:
-    """A ground station's unsigned command leaves on a signed link signed with the key."""
+    """A ground station's unsigned command leaves on a signed link signed with the key.
+
+    The airframe accepts unsigned RADIO_STATUS (as config/example.yaml does): an attacker's
+    unsigned RADIO_STATUS from another port is used, but does not make it the uplink peer.
+    """
     config, ports, _archive = write_config(tmp_path)
+    config.write_text(
+        config.read_text().replace(
+            "signing: {key_file:", "signing: {accept_unsigned_msgids: [109], key_file:"
+        )
+    )
     gcs_port = free_udp_port()
     sig_link = (
         f"    links: [{{uri: 'udp://127.0.0.1:{ports['sig']}', security: signed, name: sig}}]"
@@ -196,7 +208,9 @@ def test_signed_link_uplink_is_signed(
     assert sig_link in text
     passthrough = f"    passthrough: 'udp://127.0.0.1:{gcs_port}'\n"
     config.write_text(text.replace(sig_link, passthrough + sig_link))
-    autopilot, gcs = udp_socket(), udp_socket()
+    autopilot, gcs, attacker = udp_socket(), udp_socket(), udp_socket()
+    fake = mav.MAVLink(None, srcSystem=2, srcComponent=68)
+    radio_status = bytes(fake.radio_status_encode(200, 190, 100, 10, 12, 0, 0).pack(fake))
     gcs_mav = mav.MAVLink(None, srcSystem=255, srcComponent=190)
     command = bytes(gcs_mav.command_long_encode(2, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0).pack(gcs_mav))
     with running(config) as daemon:
@@ -206,9 +220,12 @@ def test_signed_link_uplink_is_signed(
         wait_until(
             lambda: daemon.status()["airframes"][1]["active_link"] == "sig", 10, "signed link up"
         )
+        attacker.sendto(radio_status, ("127.0.0.1", ports["sig"]))
+        wait_until(lambda: daemon.metric("fg_link_frames_total", link="sig") == 2, 5, "accepted")
         gcs.sendto(command, ("127.0.0.1", gcs_port))
         wait_until(lambda: daemon.metric("fg_uplink_sends_total", airframe="SIG") == 1, 5, "sent")
         received = [frame for frame in drain(autopilot) if frame[0] == 0xFD and frame[7] == 76]
+        assert drain(attacker) == []
     checker = mav.MAVLink(None)
     checker.signing.secret_key = SIGNING_KEY
     msgs = [checker.parse_char(frame) for frame in received]
@@ -216,3 +233,51 @@ def test_signed_link_uplink_is_signed(
     assert msgs[0] is not None
     assert msgs[0].get_signed()
     assert checker.signing.badsig_count == 0
+
+
+def test_sealed_frames_replayed_on_another_link_are_refused_and_cannot_win_failover(
+    tmp_path: Path, udp_socket: Callable[[], socket.socket]
+) -> None:
+    """The attacker copies TUN's sealed frames from the radio link to the TCP link, late."""
+    config, ports, archive = write_config(tmp_path)
+    tcp_port = free_tcp_port()
+    text = config.read_text()
+    tun_link = (
+        f"    links: [{{uri: 'udp://127.0.0.1:{ports['tun']}', security: tunnel, name: tun}}]"
+    )
+    assert tun_link in text
+    config.write_text(
+        text.replace(
+            tun_link,
+            f"    links:\n      - {{uri: 'udp://127.0.0.1:{ports['tun']}', security: tunnel, "
+            "name: tun}\n"
+            f"      - {{uri: 'tcp://127.0.0.1:{tcp_port}?mode=listen', security: tunnel, "
+            "name: tcp, priority: 1}",
+        )
+    )
+    genuine = udp_socket()
+    seal, tun = sealer("TUN"), Airframe(1)
+    with running(config) as daemon:
+        captured = [seal.seal(tun.heartbeat()), seal.seal(tun.detection())]
+        for frame in captured:
+            genuine.sendto(frame, ("127.0.0.1", ports["tun"]))
+        wait_until(lambda: daemon.metric("fg_link_frames_total", link="tun") == 2, 5, "genuine")
+        time.sleep(1.2)  # later than any redundant copy, well inside the freshness window
+        with socket.create_connection(("127.0.0.1", tcp_port)) as attacker:
+            for frame in captured:
+                attacker.sendall(frame_for_stream(frame))
+            wait_until(
+                lambda: (
+                    daemon.metric("fg_link_frames_rejected_total", link="tcp", reason="replay") == 2
+                ),
+                5,
+                "the replays refused",
+            )
+            tun_status = daemon.status()["airframes"][0]
+            # The radio link has timed out (0.5 s) by now; the replayed link did not take over.
+            assert tun_status["active_link"] != "tcp"
+            tcp = next(link for link in tun_status["links"] if link["link"] == "tcp")
+            assert tcp["up"] is False
+        assert daemon.metric("fg_link_frames_total", link="tcp") == 0
+    detections = [e for e in archive_events(archive) if e.get("kind") == "detection"]
+    assert len(detections) == 1

@@ -19,6 +19,7 @@ from daemon_support import (
     Airframe,
     Daemon,
     archive_events,
+    free_tcp_port,
     free_udp_port,
     running,
     sealer,
@@ -27,6 +28,7 @@ from daemon_support import (
 )
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
+from gateway.deframe import frame_for_stream
 from gateway.ingest import REJECT_LOG_INTERVAL_S
 
 pytestmark = pytest.mark.timeout(180)
@@ -400,3 +402,65 @@ def test_a_key_file_that_is_a_device_is_refused_without_reading_it(tmp_path: Pat
     assert result.returncode == 2
     assert "/dev/zero" in result.stdout + result.stderr
     assert "not a regular file" in result.stdout + result.stderr
+
+
+def _rss_mb(pid: int) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    raise AssertionError("no VmRSS")
+
+
+def test_tcp_link_floods_and_squatters_neither_grow_memory_nor_lock_out_the_airframe(
+    tmp_path: Path, udp: Callable[[], socket.socket]
+) -> None:
+    """A flood on the TCP link stays in the kernel; strangers holding every slot are evicted."""
+    p = ports()
+    tcp_port = free_tcp_port()
+    config = node_config(tmp_path, p)
+    text = config.read_text()
+    tun_link = f"    links: [{{uri: 'udp://127.0.0.1:{p['tun']}', security: tunnel, name: tun}}]"
+    assert tun_link in text
+    config.write_text(
+        text.replace(
+            tun_link,
+            f"    links: [{{uri: 'tcp://127.0.0.1:{tcp_port}?mode=listen', security: tunnel, "
+            "name: tcp, max_connections: 4}]",
+        )
+    )
+    seal, tun = sealer("TUN"), Airframe(1)
+    with running(config) as daemon:
+        before = _rss_mb(daemon.proc.pid)
+        sent = 0
+        with socket.create_connection(("127.0.0.1", tcp_port)) as flood:
+            flood.settimeout(0.2)
+            blob = os.urandom(1 << 20)
+            deadline = time.monotonic() + 3.0
+            while time.monotonic() < deadline:
+                try:
+                    sent += flood.send(blob)
+                except (TimeoutError, BlockingIOError):
+                    continue  # the kernel's buffers are full: flow control at work
+                except OSError:
+                    break  # hung up on: garbage is not worth reading for ever
+        grown = _rss_mb(daemon.proc.pid) - before
+        assert grown < 50, f"RSS grew {grown:.0f} MB after {sent / 1e6:.0f} MB sent"
+        # Four strangers take every slot and trickle bytes; the airframe still gets in.
+        squatters = [socket.create_connection(("127.0.0.1", tcp_port)) for _ in range(4)]
+        try:
+            for squatter in squatters:
+                squatter.sendall(b"\x00")
+            time.sleep(0.2)
+            with socket.create_connection(("127.0.0.1", tcp_port)) as airframe:
+                airframe.sendall(frame_for_stream(seal.seal(tun.heartbeat())))
+                wait_until(
+                    lambda: daemon.metric("fg_link_frames_total", link="tcp") == 1,
+                    5,
+                    "the airframe heard despite the squatters",
+                )
+                link = next(s for s in daemon.status()["links"] if s["link"] == "tcp")
+                assert link["connections"]["evicted"] >= 1
+                assert link["connections"]["active"] <= 4
+        finally:
+            for squatter in squatters:
+                squatter.close()

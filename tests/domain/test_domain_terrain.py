@@ -375,6 +375,24 @@ class TestDegradedTerrain:
         states = {s["source"]: (s["state"], s["tiles_skipped"]) for s in model.status()}
         assert states == {"lantmateriet_2m": ("disabled", 1), "srtm_30m": ("up", 0)}
 
+    def test_a_source_whose_every_tile_is_unreadable_is_disabled_at_start(
+        self, tmp_path: Path
+    ) -> None:
+        (tmp_path / "lm").mkdir()
+        (tmp_path / "lm" / "x.tif").write_bytes(b"not a tiff at all")
+        write_hgt(tmp_path / "srtm")
+        with capture_logs() as logs:
+            model = TerrainModel(
+                [
+                    DemSource("lantmateriet_2m", tmp_path / "lm", "geotiff", 0.5),
+                    DemSource("srtm_30m", tmp_path / "srtm", "hgt", 5.0),
+                ],
+                strict=False,  # as the daemon builds it
+            )
+        assert "dem_source_disabled" in [e["event"] for e in logs]
+        states = {s["source"]: s["state"] for s in model.status()}
+        assert states == {"lantmateriet_2m": "disabled", "srtm_30m": "up"}
+
     def test_a_missing_directory_disables_only_that_source(self, tmp_path: Path) -> None:
         write_hgt(tmp_path / "srtm")
         with capture_logs() as logs:

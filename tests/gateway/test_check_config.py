@@ -213,3 +213,82 @@ def test_a_serial_device_not_plugged_in_is_a_warning(tmp_path: Path) -> None:
     result = cli("check-config", str(config))
     assert result.returncode == 0, result.stderr
     assert "does not exist now; the link will wait for it (warning)" in result.stderr
+
+
+def test_a_directory_where_a_file_belongs_is_exit_2_naming_it(tmp_path: Path) -> None:
+    """The unit's RestartPreventExitStatus=2 stops a restart loop only if this is exit 2."""
+    directory = tmp_path / "conf.d"
+    directory.mkdir()
+    result = cli("check-config", str(directory))
+    assert result.returncode == 2
+    assert f"{directory} (file): a directory" in result.stderr
+    config = tmp_path / "c.yaml"
+    config.write_text(
+        f"tunnel: {{master_key_file: '{directory}'}}\n"
+        "airframes:\n  - {id: A, sysid: 1, links: "
+        "[{uri: 'udp://127.0.0.1:14550', security: tunnel}]}\n"
+    )
+    for command in (["check-config", str(config)], ["run", "--config", str(config)]):
+        result = cli(*command)
+        assert result.returncode == 2, result.stderr
+        assert "key file is a directory" in result.stderr
+        assert "Traceback" not in result.stderr
+
+
+def test_a_proc_file_is_not_a_key(tmp_path: Path) -> None:
+    """/proc files say "regular, 0 bytes" and then produce text; none is a key."""
+    config = tmp_path / "c.yaml"
+    config.write_text(
+        "tunnel: {master_key_file: /proc/self/environ}\n"
+        "airframes:\n  - {id: A, sysid: 1, links: "
+        "[{uri: 'udp://127.0.0.1:14550', security: tunnel}]}\n"
+    )
+    result = cli("check-config", str(config))
+    assert result.returncode == 2
+    assert "not a regular file" in result.stderr
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["keys", "new", "--out", "/nonexistent/m.key"], "/nonexistent/m.key: No such file"),
+        (
+            ["keys", "derive", "--master", "m", "--airframe", "../evil", "--from", "2026-11-23",
+             "--out", "kd"],
+            "expected an airframe id",
+        ),
+        (["replay", "/nonexistent.tlog", "--to", "udp://127.0.0.1:9"], "no such .tlog file"),
+    ],
+)  # fmt: skip
+def test_command_line_mistakes_are_exit_2_without_a_traceback(
+    tmp_path: Path, args: list[str], message: str
+) -> None:
+    result = subprocess.run(
+        [sys.executable, "-m", "gateway", *args],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+        cwd=tmp_path,
+    )
+    assert result.returncode == 2, result.stderr
+    assert message in result.stderr
+    assert "Traceback" not in result.stderr
+    assert not (tmp_path.parent / "evil-2026-11-23.key").exists()
+
+
+def test_a_dem_source_whose_every_tile_is_unreadable_is_a_warning_and_disabled(
+    tmp_path: Path,
+) -> None:
+    dem = tmp_path / "dem"
+    dem.mkdir()
+    (dem / "x.tif").write_bytes(b"not a tiff at all")
+    config = tmp_path / "c.yaml"
+    config.write_text(
+        "airframes:\n  - {id: A, sysid: 1, links: "
+        "[{uri: 'udp://127.0.0.1:14550', security: unsecured}]}\n"
+        f"terrain:\n  sources:\n    - {{name: lm, kind: geotiff, sigma_m: 1, directory: '{dem}'}}\n"
+    )
+    result = cli("check-config", str(config))
+    assert result.returncode == 0
+    assert "every tile is unreadable" in result.stderr

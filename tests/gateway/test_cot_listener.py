@@ -297,6 +297,16 @@ class TestCurrency:
         assert [e.time.second for e in events] == [30, 40]
         assert source.counts == {"accepted": 2, "older": 1, "duplicate": 1}
 
+    def test_an_event_from_the_future_cannot_lock_its_unit_out(self) -> None:
+        """The clock is 10:01; an event at 23:00 would make every genuine report "older"."""
+        events: list[Event] = []
+        source = listener(events)
+        source.handle(at(FRIEND, "23:00:00"))
+        source.handle(at(FRIEND, "10:01:30"))  # within a minute ahead: clocks drift
+        source.handle(at(FRIEND, "10:01:40"))
+        assert [e.time.second for e in events] == [30, 40]  # type: ignore[union-attr]
+        assert source.counts == {"future": 1, "accepted": 2}
+
     def test_remembered_units_are_bounded(self) -> None:
         events: list[Event] = []
         source = listener(events, max_uids=2)
