@@ -1,10 +1,11 @@
 """The project's MAVLink dialect: FISCHER_DETECTION (61000), added to pymavlink at import.
 
-No upstream dialect has an object-detection message (specs/mavlink2.md §4), so the airframes
-send ours. It is defined here as pymavlink's generator would write it, and registered in the
-``ardupilotmega`` dialect's message map, so one parser reads common, ArduPilot and our
-messages. ``gateway/fischer_dialect.xml`` is the source of truth; the tests check this class against
-the module ``mavgen`` generates from that XML (same CRC_EXTRA, same bytes).
+No upstream dialect has an object-detection message (common.xml and ardupilotmega.xml have
+none), so the airframes send ours. It is defined here as pymavlink's generator would write
+it, and registered in the ``ardupilotmega`` dialect's message map, so one parser reads
+common, ArduPilot and our messages. ``gateway/fischer_dialect.xml`` is the source of truth;
+the tests check this class against the module ``mavgen`` generates from that XML (same
+CRC_EXTRA, same bytes).
 
 Wire order (sorted by size, then the extension): time_usec u64, detection_id u32, lat i32,
 lon i32 (degE7), alt_msl f32 (m), sigma_h f32 (m), class_id u16, sensor u8, confidence u8 (%),

@@ -4,8 +4,8 @@ For standard autopilots that cannot run the tunnel. The signature is the first 6
 SHA-256(secret_key ‖ frame up to the CRC ‖ link_id ‖ timestamp), the timestamp counting 10 µs
 units since 2015-01-01. pymavlink records a stream's timestamp *before* checking the
 signature, so one forged frame with a huge timestamp makes every later genuine frame look
-replayed (specs/mavlink2.md); this verifier checks the signature first and only then
-advances the stream, which is why the gateway does not use pymavlink's check.
+replayed (MAVLink 2 message signing, "timestamp"); this verifier checks the signature first
+and only then advances the stream, which is why the gateway does not use pymavlink's check.
 """
 
 from __future__ import annotations

@@ -196,11 +196,20 @@ class CotStale(BaseModel):
     track_s: float = Field(default=300.0, ge=1.0, description="Fused tracks.")
 
 
+def _uri_strings_too(schema: dict[str, Any]) -> None:
+    # A destination may be written as its URI alone (CotDestination's before-validator).
+    items = schema.get("items")
+    if isinstance(items, dict):
+        schema["items"] = {"anyOf": [{"type": "string"}, items]}
+
+
 class CotSinkConfig(SinkConfig):
     """Options of the CoT sink."""
 
     destinations: tuple[CotDestination, ...] = Field(
-        min_length=1, description="Where CoT goes; each a URI or a mapping with uri."
+        min_length=1,
+        description="Where CoT goes; each a URI or a mapping with uri.",
+        json_schema_extra=_uri_strings_too,
     )
     protocol: CotProtocol = Field(
         default="xml", description="xml, protobuf (TAK v1) or negotiate (TAK servers)."
