@@ -153,13 +153,23 @@ class CotListener:
 
     @property
     def connections(self) -> Counter[str]:
-        """TCP connection outcomes: accept_failed, refused, idle_closed."""
-        return self._stream.counts
+        """TCP connection outcomes: accept_failed, refused, evicted, idle_closed (non-zero)."""
+        stats = self._stream.stats
+        outcomes = Counter(
+            {
+                "accept_failed": stats.accept_errors,
+                "refused": stats.refused,
+                "evicted": stats.evicted,
+                **self._stream.counts,
+            }
+        )
+        return +outcomes  # only the outcomes that happened
 
     @property
     def refused_clients(self) -> int:
-        """TCP connections closed at once because ``max_clients`` were being served."""
-        return self._stream.counts["refused"]
+        """TCP connections closed because ``max_clients`` were held (refused or evicted)."""
+        stats = self._stream.stats
+        return stats.refused + stats.evicted
 
     @property
     def parsed(self) -> int:

@@ -5,18 +5,16 @@ splitter resynchronises on the last ``<event`` (with its ``<?xml`` declaration) 
 end, so a stray fragment (a bare ``<detail>``, half an event after a reconnect) costs only
 itself: it is counted, and the event after it still parses.
 
-The listener bounds what peers can hold: ``max_clients`` connections at once (more are closed
-at once and counted), ``idle_timeout_s`` of silence closes a connection, and each connection
-buffers at most ``max_event_bytes``. An accept error (EMFILE when the process is out of file
-descriptors, ENOBUFS, ECONNABORTED) is counted and logged rate-limited, and the listener waits
-``ACCEPT_RETRY_S`` and goes on: it degrades this one source, never the daemon.
+The listener (``gateway.listener``) bounds what peers can hold: ``max_clients`` connections at
+once (a new one evicts the stalest client that has not yet sent a whole event, else it is
+closed), ``idle_timeout_s`` of silence closes a connection, each connection buffers at most
+``max_event_bytes``, and an accept error (EMFILE, ENOBUFS, ECONNABORTED) degrades this one
+source, never the daemon.
 """
 
 from __future__ import annotations
 
-import errno
 import re
-import socket
 from collections import Counter
 from collections.abc import Callable
 
@@ -24,18 +22,16 @@ import anyio
 import anyio.abc
 import structlog
 
+from gateway.listener import Connection, TcpListener
 from gateway.logsetup import RateLimit
 
-__all__ = ["ACCEPT_RETRY_S", "CotStreamServer", "EventSplitter"]
+__all__ = ["CotStreamServer", "EventSplitter"]
 
 log = structlog.get_logger(__name__)
 
-#: After an accept error, wait this long before accepting again (the connection stays queued).
-ACCEPT_RETRY_S = 0.25
 _END = b"</event>"
 _EVENT_START = re.compile(rb"<event[\s>/]")
 _DECLARATION = re.compile(rb"<\?xml[^>]*\?>\s*\Z")
-_RESOURCE_ERRORS = frozenset({errno.EMFILE, errno.ENFILE, errno.ENOBUFS, errno.ENOMEM})
 
 
 class EventSplitter:
@@ -94,87 +90,58 @@ class CotStreamServer:
         self.max_clients = max_clients
         self.max_event_bytes = max_event_bytes
         self.idle_timeout_s = idle_timeout_s
-        #: Connection outcomes: accept_failed, refused, idle_closed.
+        #: Connection outcomes: idle_closed (accepts, refusals and evictions: ``stats``).
         self.counts: Counter[str] = Counter()
-        self.active = 0
-        self.local_port = 0
+        self._listener = TcpListener(
+            host, port, name=f"cot source {name}", max_connections=max_clients
+        )
+        self.stats = self._listener.stats
         self._log_limit = RateLimit(interval_s=10.0)
         self.log = log.bind(source=name)
 
-    def _listening_socket(self) -> socket.socket:
-        sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-        try:
-            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            sock.bind((self.host, self.port))
-            sock.listen(min(128, self.max_clients * 2))
-            sock.setblocking(False)
-        except BaseException:
-            sock.close()
-            raise
-        return sock
+    @property
+    def active(self) -> int:
+        """Connections held now."""
+        return self.stats.active
 
-    def _count(self, outcome: str, **fields: object) -> None:
-        self.counts[outcome] += 1
-        if self._log_limit.allow(outcome):
-            self.log.warning(
-                "cot_connection_dropped", outcome=outcome, count=self.counts[outcome], **fields
-            )
+    @property
+    def local_port(self) -> int:
+        """The bound port (useful when the config asked for port 0)."""
+        return self._listener.local_port
 
     async def run(
         self, *, task_status: anyio.abc.TaskStatus[None] = anyio.TASK_STATUS_IGNORED
     ) -> None:
         """Listen, report started, and serve until cancelled. Bind errors raise ``OSError``."""
-        listener = self._listening_socket()
-        with listener:
-            self.local_port = int(listener.getsockname()[1])
-            task_status.started()
-            async with anyio.create_task_group() as tg:
-                while True:
-                    await anyio.wait_readable(listener)
-                    try:
-                        conn, _ = listener.accept()
-                    except (BlockingIOError, InterruptedError):
-                        continue
-                    except OSError as exc:
-                        code = errno.errorcode.get(exc.errno or 0, str(exc.errno))
-                        self._count("accept_failed", error=code, retry_in_s=ACCEPT_RETRY_S)
-                        # The connection stays queued, so the socket stays readable: wait.
-                        await anyio.sleep(ACCEPT_RETRY_S)
-                        continue
-                    if self.active >= self.max_clients:
-                        conn.close()
-                        self._count("refused", max_clients=self.max_clients)
-                        continue
-                    self.active += 1
-                    tg.start_soon(self._serve, conn)
+        self._listener.bind()
+        task_status.started()
+        await self._listener.run(self._read)
 
-    async def _serve(self, conn: socket.socket) -> None:
-        try:
-            with conn:
-                conn.setblocking(False)
-                await self._read(conn)
-        finally:
-            self.active -= 1
-
-    async def _read(self, conn: socket.socket) -> None:
+    async def _read(self, connection: Connection) -> None:
         splitter = EventSplitter(self.max_event_bytes)
         while True:
-            with anyio.move_on_after(self.idle_timeout_s) as idle:
-                await anyio.wait_readable(conn)
-            if idle.cancelled_caught:
-                self._count("idle_closed", idle_timeout_s=self.idle_timeout_s)
-                return
             try:
-                chunk = conn.recv(65_536)
-            except (BlockingIOError, InterruptedError):
-                continue
-            except OSError:
-                return  # reset by the peer: nothing to count
-            if not chunk:
+                with anyio.fail_after(self.idle_timeout_s):
+                    chunk = await connection.receive(65_536)
+            except TimeoutError:
+                self.counts["idle_closed"] += 1
+                if self._log_limit.allow("idle_closed"):
+                    self.log.warning(
+                        "cot_connection_dropped",
+                        outcome="idle_closed",
+                        count=self.counts["idle_closed"],
+                        idle_timeout_s=self.idle_timeout_s,
+                    )
+                return
+            except (anyio.EndOfStream, anyio.BrokenResourceError):
                 return
             fragments = splitter.fragments
-            for event in splitter.feed(chunk):
+            events = splitter.feed(chunk)
+            for event in events:
                 self._handle(event)
+            if events:
+                # A client that sends whole events keeps its place over idle strangers.
+                connection.trusted = True
             for _ in range(splitter.fragments - fragments):
                 self._reject("fragment")
             if splitter.is_overflowing:

@@ -218,6 +218,7 @@ async def test_tcp_stream_without_an_end_is_cut_off() -> None:
 
 @pytest.mark.anyio
 async def test_tcp_clients_beyond_the_limit_are_refused() -> None:
+    """At the cap, a client that sent whole events keeps its place; the newcomer is closed."""
     events: list[Event] = []
     source = listener(events, "tcp://127.0.0.1:0", max_clients=1)
     with anyio.fail_after(10):
@@ -231,6 +232,28 @@ async def test_tcp_clients_beyond_the_limit_are_refused() -> None:
                         await second.receive()
             tg.cancel_scope.cancel()
     assert source.refused_clients == 1
+    assert source.connections["refused"] == 1
+
+
+@pytest.mark.anyio
+async def test_idle_strangers_holding_every_slot_do_not_lock_out_a_tak_client() -> None:
+    """Squatters that never send a whole event are evicted for a client that does."""
+    events: list[Event] = []
+    source = listener(events, "tcp://127.0.0.1:0", max_clients=3)
+    with anyio.fail_after(10):
+        async with anyio.create_task_group() as tg:
+            await tg.start(source.run)
+            squatters = [await anyio.connect_tcp("127.0.0.1", source.local_port) for _ in range(3)]
+            for squatter in squatters:
+                await squatter.send(b"<")
+            await eventually(lambda: source._stream.active == 3)
+            async with await anyio.connect_tcp("127.0.0.1", source.local_port) as client:
+                await client.send(FRIEND)
+                await eventually(lambda: bool(events))
+            for squatter in squatters:
+                await squatter.aclose()
+            tg.cancel_scope.cancel()
+    assert source.connections["evicted"] == 1
 
 
 @pytest.mark.parametrize(
