@@ -35,7 +35,7 @@ from pathlib import Path
 
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
-from gateway.tunnel import DayKeys, Sealer
+from gateway.fleet.security.tunnel import DayKeys, Sealer
 
 MASTER = bytes(range(32))
 GARBAGE = bytes(range(40, 80))  # no MAVLink start byte, no tunnel magic

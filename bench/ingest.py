@@ -40,10 +40,10 @@ from pymavlink.dialects.v20 import ardupilotmega as mav
 
 from gateway.app import Gateway
 from gateway.config import Config
-from gateway.logsetup import configure_logging
+from gateway.fleet.security.tunnel import DayKeys, Sealer
+from gateway.ops.logsetup import configure_logging
 from gateway.sim.airframe import SimProfile, SimulatedAirframe
 from gateway.testing import NullSink
-from gateway.tunnel import DayKeys, Sealer
 
 MASTER = bytes(range(32))
 SINKS = 5
@@ -110,7 +110,7 @@ def bare_pymavlink(datagrams: list[bytes], tunnel: bool) -> float:
     parser = mav.MAVLink(None)
     parser.robust_parsing = True
     if tunnel:
-        from gateway.tunnel import TunnelOpener
+        from gateway.fleet.security.tunnel import TunnelOpener
 
         opener = TunnelOpener(
             DayKeys(master=MASTER),
@@ -156,7 +156,7 @@ def gateway_pipeline(datagrams: list[bytes], airframes: int, tunnel: bool, key: 
             tg.cancel_scope.cancel()
         return elapsed
 
-    from gateway.ingest import LinkIntake
+    from gateway.fleet.ingest import LinkIntake
 
     gateway.ingest.register_link(
         LinkIntake("bench", "tunnel" if tunnel else "unsecured", is_stream=False)

@@ -13,6 +13,9 @@ from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from gateway.app import Gateway as Gateway
+    from gateway.c2.sink import LifetimeSink as LifetimeSink
+    from gateway.c2.sink import Sink as Sink
+    from gateway.c2.sink import SinkConfig as SinkConfig
     from gateway.config import Config as Config
     from gateway.configfile import load_config as load_config
     from gateway.errors import GatewayError as GatewayError
@@ -20,9 +23,6 @@ if TYPE_CHECKING:
     from gateway.errors import TransientSinkError as TransientSinkError
     from gateway.events import Event as Event
     from gateway.events import EventKind as EventKind
-    from gateway.sink import LifetimeSink as LifetimeSink
-    from gateway.sink import Sink as Sink
-    from gateway.sink import SinkConfig as SinkConfig
 
 __all__ = [
     "Config",
@@ -44,10 +44,10 @@ _HOME = {
     "EventKind": "gateway.events",
     "Gateway": "gateway.app",
     "GatewayError": "gateway.errors",
-    "LifetimeSink": "gateway.sink",
+    "LifetimeSink": "gateway.c2.sink",
     "PermanentSinkError": "gateway.errors",
-    "Sink": "gateway.sink",
-    "SinkConfig": "gateway.sink",
+    "Sink": "gateway.c2.sink",
+    "SinkConfig": "gateway.c2.sink",
     "TransientSinkError": "gateway.errors",
     "load_config": "gateway.configfile",
 }

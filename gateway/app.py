@@ -17,22 +17,22 @@ import anyio
 import anyio.abc
 import structlog
 
-from gateway.bus import Bus
+from gateway.c2.plugins import build_sink
+from gateway.c2.sink import Sink
+from gateway.c2.sinkrunner import SinkRunner
 from gateway.clock import Clock, utc_now
 from gateway.config import Config
-from gateway.cot_listener import CotListener
 from gateway.domain.terrain import DemSource, TerrainModel
 from gateway.errors import FrameError, LinkError, LinkUnavailable
-from gateway.health import HealthServer
-from gateway.ingest import Ingest, LinkIntake
-from gateway.instruments import Instruments
-from gateway.links import Link, make_link
-from gateway.passthrough import Passthrough
-from gateway.plugins import build_sink
-from gateway.sdnotify import SystemdNotifier
-from gateway.security import Security
-from gateway.sink import Sink
-from gateway.sinkrunner import SinkRunner
+from gateway.fleet.ingest import Ingest, LinkIntake
+from gateway.fleet.links import Link, make_link
+from gateway.fleet.passthrough import Passthrough
+from gateway.fleet.security.material import Security
+from gateway.flow.bus import Bus
+from gateway.ops.health import HealthServer
+from gateway.ops.instruments import Instruments
+from gateway.ops.sdnotify import SystemdNotifier
+from sources.cot import CotListener
 
 __all__ = ["Gateway", "utc_now"]
 

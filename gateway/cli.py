@@ -26,17 +26,17 @@ import anyio
 import structlog
 
 from gateway.app import Gateway
+from gateway.c2.plugins import check_sink, load_plugin
 from gateway.clock import utc_now
 from gateway.config import Config
 from gateway.configcheck import NodeCheck
 from gateway.configfile import load_config, load_config_text
 from gateway.errors import ConfigError, ConfigIssue, GatewayError
-from gateway.keys import load_day_keys, read_key_file, write_day_keys
-from gateway.listener import raise_open_files_limit
-from gateway.logsetup import configure_logging, install_loop_exception_handler
-from gateway.plugins import check_sink, load_plugin
-from gateway.tunnel import DayKeys, Sealer, derive_day_key
-from gateway.version import package_version
+from gateway.fleet.security.keys import load_day_keys, read_key_file, write_day_keys
+from gateway.fleet.security.tunnel import DayKeys, Sealer, derive_day_key
+from gateway.ops.logsetup import configure_logging, install_loop_exception_handler
+from gateway.ops.version import package_version
+from gateway.transports.listener import raise_open_files_limit
 
 __all__ = ["main"]
 
@@ -136,7 +136,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _udp_target(text: str) -> tuple[str, int]:
-    from gateway.tlog import parse_udp_target
+    from gateway.fleet.tlog import parse_udp_target
 
     try:
         return parse_udp_target(text)
@@ -247,7 +247,7 @@ async def _serve(
     extra: Callable[[], Coroutine[Any, Any, None]] | None = None,
     config_path: Path | None = None,
 ) -> None:
-    from gateway.reload import recheck_config
+    from gateway.ops.reload import recheck_config
 
     install_loop_exception_handler()
     # SIGHUP (systemctl reload) re-checks the config file; without one, its default stands.
@@ -347,7 +347,7 @@ def _demo(args: argparse.Namespace) -> int:
 
 
 def _replay(args: argparse.Namespace) -> int:
-    from gateway.tlog import ReplayStats, replay_udp
+    from gateway.fleet.tlog import ReplayStats, replay_udp
 
     host, port = _udp_target(args.to)
     if not args.file.is_file():
@@ -408,7 +408,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command == "check-config":
         return _check_config(args.file, environment=not args.no_environment)
     if args.command == "files":
-        from gateway.share import files_command
+        from gateway.ops.share import files_command
 
         return files_command(args.name, args.out, sys.stdout, sys.stderr)
     if args.command == "selftest":

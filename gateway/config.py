@@ -23,9 +23,9 @@ from pydantic import (
     WithJsonSchema,
 )
 
-from gateway.cot_listener import CotSourceConfig
 from gateway.domain.energy import EnergyProfile, EwMode
 from gateway.events import EventKind
+from sources.cot import CotSourceConfig
 
 __all__ = [
     "AirframeConfig",

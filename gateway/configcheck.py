@@ -20,14 +20,14 @@ from typing import Any
 from pydantic import ValidationError
 
 from gateway.app import dem_sources
+from gateway.c2.plugins import load_plugin
+from gateway.c2.sink import Sink
 from gateway.config import Config
 from gateway.configfile import Loc, validation_issues
 from gateway.domain.terrain import check_sources
 from gateway.errors import ConfigError, SinkLoadError
 from gateway.events import EventKind
-from gateway.keys import read_credential, read_key_file
-from gateway.plugins import load_plugin
-from gateway.sink import Sink
+from gateway.fleet.security.keys import read_credential, read_key_file
 
 __all__ = ["NodeCheck"]
 

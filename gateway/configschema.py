@@ -10,10 +10,10 @@ from __future__ import annotations
 
 from typing import Any
 
+from gateway.c2.plugins import available, load_plugin
 from gateway.config import Config
 from gateway.errors import SinkLoadError
-from gateway.plugins import available, load_plugin
-from gateway.version import package_version
+from gateway.ops.version import package_version
 
 __all__ = ["SCHEMA_ID", "config_schema"]
 

@@ -23,6 +23,7 @@ import anyio
 import anyio.lowlevel
 from pydantic import ValidationError
 
+from gateway.c2.sink import Sink, SinkConfig
 from gateway.events import (
     BlueForce,
     Detection,
@@ -34,7 +35,6 @@ from gateway.events import (
     Telemetry,
     Track,
 )
-from gateway.sink import Sink, SinkConfig
 
 __all__ = ["ContractViolation", "check_sink", "sample_events"]
 

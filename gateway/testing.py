@@ -8,9 +8,9 @@ from collections.abc import Callable, Sequence
 import anyio
 from pydantic import Field
 
+from gateway.c2.sink import SinkConfig
 from gateway.errors import PermanentSinkError, TransientSinkError
 from gateway.events import Event, EventKind
-from gateway.sink import SinkConfig
 
 __all__ = [
     "MemorySink",

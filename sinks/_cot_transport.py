@@ -32,10 +32,10 @@ from typing import Literal
 import anyio
 import structlog
 
+from gateway.codecs.cot.codec import Encoded, Encoding, cot_time
+from gateway.codecs.cot.validate import TakControl, scan_control
 from gateway.errors import TransientSinkError
-from sinks._cot_codec import Encoded, Encoding, cot_time
-from sinks._cot_tls import TlsFiles, describe_tls_error, tls_context
-from sinks._cot_validate import TakControl, scan_control
+from gateway.transports.tls import TlsFiles, describe_tls_error, tls_context
 
 __all__ = ["Endpoint", "StreamConnection"]
 

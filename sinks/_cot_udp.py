@@ -13,8 +13,8 @@ from ipaddress import ip_address
 
 import anyio
 
-from sinks._cot_codec import Encoded, Encoding, tak_control
-from sinks._cot_proto import mesh_frame
+from gateway.codecs.cot.codec import Encoded, Encoding, tak_control
+from gateway.codecs.cot.proto import mesh_frame
 from sinks._cot_transport import Endpoint
 
 __all__ = ["UdpSender"]

@@ -22,6 +22,7 @@ import anyio
 import structlog
 from pydantic import Field
 
+from gateway.c2.sink import SinkConfig
 from gateway.errors import TransientSinkError
 from gateway.events import (
     BlueForce,
@@ -33,7 +34,6 @@ from gateway.events import (
     Telemetry,
     Track,
 )
-from gateway.sink import SinkConfig
 
 __all__ = ["ConsoleSink", "ConsoleSinkConfig", "describe"]
 

@@ -43,14 +43,14 @@ from pydantic import (
     model_validator,
 )
 
+from gateway.c2.sink import SinkConfig
+from gateway.codecs.cot.codec import Encoded
+from gateway.codecs.cot.event import CotOptions, StaleTimes, build
+from gateway.domain.geoid import GeoidGrid, bundled_geoid
 from gateway.errors import PermanentSinkError, TransientSinkError
 from gateway.events import Event, EventKind, Track
-from gateway.logsetup import RateLimit
-from gateway.sink import SinkConfig
-from sinks._cot_codec import Encoded
-from sinks._cot_event import CotOptions, StaleTimes, build
-from sinks._cot_geoid import GeoidGrid, bundled_geoid
-from sinks._cot_tls import TlsFiles, tls_context
+from gateway.ops.logsetup import RateLimit
+from gateway.transports.tls import TlsFiles, tls_context
 from sinks._cot_transport import Endpoint, StreamConnection
 from sinks._cot_udp import UdpSender
 

@@ -26,9 +26,9 @@ import anyio
 import structlog
 from pydantic import Field
 
+from gateway.c2.sink import SinkConfig
 from gateway.errors import TransientSinkError
 from gateway.events import Event, EventKind
-from gateway.sink import SinkConfig
 
 __all__ = ["JsonlSink", "JsonlSinkConfig"]
 

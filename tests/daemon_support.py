@@ -28,9 +28,9 @@ from typing import Any
 from prometheus_client.parser import text_string_to_metric_families
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
-from gateway.dialect import fischer_detection
-from gateway.signing import mavlink_timestamp_now
-from gateway.tunnel import DayKeys, Sealer, derive_day_key
+from gateway.fleet.dialect import fischer_detection
+from gateway.fleet.security.signing import mavlink_timestamp_now
+from gateway.fleet.security.tunnel import DayKeys, Sealer, derive_day_key
 
 MASTER = hashlib.sha256(b"attack-test-master").digest()
 SIGNING_KEY = hashlib.sha256(b"attack-test-signing").digest()

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from gateway.share import DESCRIPTIONS
+from gateway.ops.share import DESCRIPTIONS
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = [ROOT / "README.md", ROOT / "deploy" / "INSTALL.md", *sorted((ROOT / "docs").glob("*.md"))]

@@ -43,7 +43,7 @@ from gateway.domain.dem import (
     read_geotiff_header,
 )
 from gateway.domain.projection import Geographic, TransverseMercator
-from gateway.logsetup import RateLimit
+from gateway.ops.logsetup import RateLimit
 
 __all__ = [
     "AglEstimate",

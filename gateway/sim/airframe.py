@@ -20,10 +20,10 @@ import anyio.abc
 import structlog
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
-from gateway.dialect import fischer_detection
+from gateway.fleet.dialect import fischer_detection
 
 if TYPE_CHECKING:
-    from gateway.tunnel import Sealer
+    from gateway.fleet.security.tunnel import Sealer
 
 __all__ = ["SentPosition", "SimProfile", "SimulatedAirframe", "build_demo_fleet", "run_fleet"]
 

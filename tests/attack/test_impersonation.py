@@ -28,7 +28,7 @@ from daemon_support import (
 )
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
-from gateway.deframe import frame_for_stream
+from gateway.fleet.deframe import frame_for_stream
 
 pytestmark = pytest.mark.timeout(90)
 

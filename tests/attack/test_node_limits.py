@@ -28,8 +28,8 @@ from daemon_support import (
 )
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
-from gateway.deframe import frame_for_stream
-from gateway.ingest import REJECT_LOG_INTERVAL_S
+from gateway.fleet.deframe import frame_for_stream
+from gateway.fleet.ingest import REJECT_LOG_INTERVAL_S
 
 pytestmark = pytest.mark.timeout(180)
 

@@ -12,8 +12,8 @@ from pymavlink.dialects.v20 import ardupilotmega as mav
 from gateway.config import AirframeConfig, LinkConfig
 from gateway.domain.terrain import DemSource, TerrainModel, agl_sigma
 from gateway.events import Event, Telemetry
-from gateway.ingest import Ingest, LinkIntake
-from gateway.instruments import Instruments
+from gateway.fleet.ingest import Ingest, LinkIntake
+from gateway.ops.instruments import Instruments
 
 
 def telemetry_after(tmp_path: Path, lat_e7: int, lon_e7: int) -> Telemetry:

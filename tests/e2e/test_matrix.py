@@ -32,7 +32,7 @@ import pytest
 import trustme
 from anyio.streams.tls import TLSListener
 
-from sinks._cot_proto import read_varint
+from gateway.codecs.cot.proto import read_varint
 
 takproto = pytest.importorskip("takproto")
 

@@ -11,9 +11,9 @@ import pytest
 from gateway.app import Gateway
 from gateway.config import Config
 from gateway.events import Detection, Position, Sensor, Telemetry
+from gateway.fleet.security.tunnel import DayKeys, Sealer, derive_day_key
 from gateway.sim.airframe import SimulatedAirframe
 from gateway.testing import MemorySink, eventually
-from gateway.tunnel import DayKeys, Sealer, derive_day_key
 
 MASTER = bytes(range(32))
 

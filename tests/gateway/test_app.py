@@ -16,9 +16,9 @@ import pytest
 from gateway.app import Gateway
 from gateway.config import Config
 from gateway.events import Telemetry, event_adapter
+from gateway.fleet.tlog import replay_udp
 from gateway.sim.airframe import SimulatedAirframe
 from gateway.testing import MemorySink, eventually
-from gateway.tlog import replay_udp
 
 CORPUS = Path(__file__).resolve().parents[2].parent / "shared" / "corpus"
 SMALL_TLOG = CORPUS / "mavlink" / "arducopter_hw_ground_small.tlog"

@@ -13,10 +13,10 @@ from prometheus_client.parser import text_string_to_metric_families
 
 from gateway.app import Gateway
 from gateway.config import Config
-from gateway.sdnotify import SystemdNotifier
+from gateway.ops.sdnotify import SystemdNotifier
+from gateway.ops.version import package_version
 from gateway.sim.airframe import SimulatedAirframe
 from gateway.testing import MemorySink
-from gateway.version import package_version
 
 
 def config(tmp_path: Path, **extra: Any) -> Config:

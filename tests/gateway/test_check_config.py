@@ -121,7 +121,7 @@ routes:
 
 FAKE_SINKS = """
 from gateway.events import EventKind
-from gateway.sink import SinkConfig
+from gateway.c2.sink import SinkConfig
 
 
 class NoName:

@@ -15,8 +15,8 @@ from typing import IO, Any
 
 import pytest
 
+from gateway.ops.version import package_version
 from gateway.sim.airframe import SimulatedAirframe
-from gateway.version import package_version
 
 ROOT = Path(__file__).resolve().parents[2]
 T0_US = 1_763_800_000_000_000  # 2025-11-22T08:26:40Z

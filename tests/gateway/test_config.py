@@ -10,11 +10,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from gateway.c2.plugins import check_sink
 from gateway.cli import main
 from gateway.config import parse_endpoint
 from gateway.configfile import load_config, load_config_text
 from gateway.errors import ConfigError
-from gateway.plugins import check_sink
 from gateway.testing import fuzz_examples
 
 GOOD = textwrap.dedent(

@@ -14,10 +14,10 @@ from typing import Any
 import pytest
 from pydantic import ConfigDict
 
+from gateway.c2.plugins import available, load_plugin
+from gateway.c2.sink import SinkConfig
 from gateway.contract import ContractViolation, check_sink, sample_events
 from gateway.events import Event, EventKind, event_adapter
-from gateway.plugins import available, load_plugin
-from gateway.sink import SinkConfig
 from gateway.testing import MemorySink, MemorySinkConfig
 from sinks.example import ExampleSink
 

@@ -16,12 +16,12 @@ from hypothesis import strategies as st
 from pydantic import ValidationError
 
 from gateway.app import Gateway
+from gateway.codecs.cot.validate import parse_cot
 from gateway.config import Config
-from gateway.cot_listener import NO_FIX_DEG, CotListener, CotSourceConfig
-from gateway.cot_stream import EventSplitter
 from gateway.events import BlueForce, Event
 from gateway.testing import MemorySink, eventually, fuzz_examples
-from sinks._cot_validate import parse_cot
+from sources._cot_stream import EventSplitter
+from sources.cot import NO_FIX_DEG, CotListener, CotSourceConfig
 
 CORPUS = Path(__file__).resolve().parents[2].parent / "shared" / "corpus" / "cot"
 METRICS = CORPUS / "freetakserver_example_metrics" / "cot"
@@ -341,8 +341,8 @@ class TestCurrency:
         assert source.counts == {"accepted": 6, "older": 1}
 
     def test_a_mesh_takcontrol_is_counted_as_control_not_invalid(self) -> None:
-        from sinks._cot_codec import tak_control
-        from sinks._cot_proto import mesh_frame
+        from gateway.codecs.cot.codec import tak_control
+        from gateway.codecs.cot.proto import mesh_frame
 
         events: list[Event] = []
         source = listener(events)

@@ -7,9 +7,9 @@ from datetime import UTC, datetime
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from gateway.deframe import StreamDeframer, frame_for_stream
+from gateway.fleet.deframe import StreamDeframer, frame_for_stream
+from gateway.fleet.security.tunnel import DayKeys, Opened, Sealer, TunnelOpener
 from gateway.testing import fuzz_examples
-from gateway.tunnel import DayKeys, Opened, Sealer, TunnelOpener
 
 NOW = datetime(2026, 11, 22, 12, tzinfo=UTC)
 KEYS = DayKeys(master=bytes(range(32)))

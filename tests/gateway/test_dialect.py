@@ -20,8 +20,8 @@ from test_ingest import make_ingest
 
 from gateway.app import Gateway
 from gateway.config import Config
-from gateway.dialect import FISCHER_DETECTION_CRC_EXTRA, fischer_detection
 from gateway.events import Detection, Event
+from gateway.fleet.dialect import FISCHER_DETECTION_CRC_EXTRA, fischer_detection
 from gateway.sim.airframe import SimProfile, SimulatedAirframe
 from gateway.testing import MemorySink, eventually
 
@@ -30,12 +30,12 @@ ROOT = Path(__file__).resolve().parents[2]
 
 @pytest.fixture(scope="module")
 def generated(tmp_path_factory: pytest.TempPathFactory) -> ModuleType:
-    """The dialect module mavgen makes from gateway/fischer_dialect.xml: the oracle."""
+    """The dialect module mavgen makes from gateway/fleet/fischer_dialect.xml: the oracle."""
     out = tmp_path_factory.mktemp("mavgen")
     source = Path(pymavlink.__file__).parent / "dialects" / "v20"
     for name in ("common.xml", "standard.xml", "minimal.xml"):
         shutil.copy(source / name, out / name)
-    shutil.copy(ROOT / "gateway" / "fischer_dialect.xml", out / "fischer.xml")
+    shutil.copy(ROOT / "gateway" / "fleet" / "fischer_dialect.xml", out / "fischer.xml")
     with contextlib.redirect_stdout(io.StringIO()):
         opts = mavgen.Opts(
             output=str(out / "fischer.py"),

@@ -16,10 +16,10 @@ import pytest
 from prometheus_client.parser import text_string_to_metric_families
 from structlog.testing import capture_logs
 
-from gateway import health
 from gateway.errors import LinkUnavailable
-from gateway.health import HealthServer
-from gateway.metrics import Registry
+from gateway.ops import health
+from gateway.ops.health import HealthServer
+from gateway.ops.metrics import Registry
 
 GET = b"GET %s HTTP/1.1\r\nHost: gateway\r\nUser-Agent: test\r\n\r\n"
 

@@ -16,10 +16,10 @@ from pymavlink.dialects.v20 import ardupilotmega as mav
 
 from gateway.config import AirframeConfig, LinkConfig
 from gateway.events import Event, LinkState, Telemetry
-from gateway.ingest import Ingest, LinkIntake
-from gateway.instruments import Instruments
+from gateway.fleet.ingest import Ingest, LinkIntake
+from gateway.fleet.tlog import read_tlog
+from gateway.ops.instruments import Instruments
 from gateway.testing import fuzz_examples
-from gateway.tlog import read_tlog
 
 CORPUS = Path(__file__).resolve().parents[2].parent / "shared" / "corpus"
 SMALL_TLOG = CORPUS / "mavlink" / "arducopter_hw_ground_small.tlog"

@@ -27,7 +27,7 @@ def run_logging(code: str, tmp_path: Path, *, journal: str | None = "match") -> 
         """
         import os, sys
         import structlog
-        from gateway.logsetup import configure_logging, install_loop_exception_handler
+        from gateway.ops.logsetup import configure_logging, install_loop_exception_handler
         stream = open(sys.argv[1], "w", encoding="utf-8")
         env = dict(os.environ)
         if sys.argv[2] != "none":

@@ -9,7 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from prometheus_client.parser import text_string_to_metric_families
 
-from gateway.metrics import DEFAULT_LATENCY_BUCKETS_S, Registry
+from gateway.ops.metrics import DEFAULT_LATENCY_BUCKETS_S, Registry
 
 Sample = tuple[str, dict[str, str], float]
 

@@ -12,7 +12,7 @@ import anyio
 import pytest
 from structlog.testing import capture_logs
 
-from gateway.sdnotify import SystemdNotifier
+from gateway.ops.sdnotify import SystemdNotifier
 
 
 @pytest.fixture

@@ -17,14 +17,14 @@ from structlog.testing import capture_logs
 from gateway.app import Gateway
 from gateway.cli import main
 from gateway.config import Config
-from gateway.deframe import frame_for_stream
 from gateway.errors import ConfigError
 from gateway.events import LinkState, Telemetry
-from gateway.keys import load_day_keys, read_credential, read_key_file
-from gateway.signing import mavlink_timestamp_now
+from gateway.fleet.deframe import frame_for_stream
+from gateway.fleet.security.keys import load_day_keys, read_credential, read_key_file
+from gateway.fleet.security.signing import mavlink_timestamp_now
+from gateway.fleet.security.tunnel import DayKeys, Sealer, TunnelOpener, derive_day_key
 from gateway.sim.airframe import SimulatedAirframe
 from gateway.testing import MemorySink, eventually
-from gateway.tunnel import DayKeys, Sealer, TunnelOpener, derive_day_key
 
 
 def free_udp_port() -> int:

@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
 from gateway.errors import AuthenticationFailed, FrameError, Replayed
-from gateway.signing import SigningVerifier, mavlink_timestamp_now, sign_frame
+from gateway.fleet.security.signing import SigningVerifier, mavlink_timestamp_now, sign_frame
 from gateway.testing import fuzz_examples
 
 KEY = hashlib.sha256(b"fischer-test-passphrase").digest()
@@ -117,8 +117,8 @@ def test_frames_signed_before_the_verifier_started_are_replays() -> None:
 
 def test_outbound_signer_output_verifies_in_pymavlink() -> None:
     """What the gateway signs for a signed link, pymavlink's own signing check accepts."""
-    from gateway.mavlink import crc_extra
-    from gateway.signing import OutboundSigner
+    from gateway.fleet.mavlink import crc_extra
+    from gateway.fleet.security.signing import OutboundSigner
 
     plain = mav.MAVLink(None, srcSystem=255, srcComponent=190)
     command = bytes(plain.command_long_encode(1, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0).pack(plain))

@@ -9,11 +9,11 @@ import anyio
 import anyio.lowlevel
 import pytest
 
-from gateway.bus import Bus
+from gateway.c2.sinkrunner import SinkRunner
 from gateway.config import RouteConfig, SinkEntry
 from gateway.events import Detection, EventKind, Position, Sensor, Telemetry
-from gateway.instruments import Instruments
-from gateway.sinkrunner import SinkRunner
+from gateway.flow.bus import Bus
+from gateway.ops.instruments import Instruments
 from gateway.testing import MemorySink, eventually
 
 T0 = datetime(2026, 11, 22, 12, 0, tzinfo=UTC)

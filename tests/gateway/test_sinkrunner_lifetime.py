@@ -10,11 +10,11 @@ import anyio.abc
 import pytest
 from structlog.testing import capture_logs
 
+from gateway.c2.sink import LifetimeSink, Sink
+from gateway.c2.sinkrunner import ERROR_ATTEMPTS, SinkRunner
 from gateway.errors import PermanentSinkError
 from gateway.events import Event
-from gateway.instruments import Instruments
-from gateway.sink import LifetimeSink, Sink
-from gateway.sinkrunner import ERROR_ATTEMPTS, SinkRunner
+from gateway.ops.instruments import Instruments
 from gateway.testing import MemorySink, eventually
 from tests.gateway.test_sinkrunner import detection, entry, telemetry
 

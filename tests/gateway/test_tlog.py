@@ -18,9 +18,9 @@ from pymavlink import mavutil
 from pymavlink.dialects.v10 import ardupilotmega as apm1
 from pymavlink.dialects.v20 import ardupilotmega as apm2
 
+from gateway.fleet.tlog import TlogRecord, TlogStats, parse_udp_target, read_tlog, replay_udp
 from gateway.sim.airframe import SimulatedAirframe
 from gateway.testing import fuzz_examples
-from gateway.tlog import TlogRecord, TlogStats, parse_udp_target, read_tlog, replay_udp
 
 T0_US = 1_763_800_000_000_000  # 2025-11-22
 DAY_US = 86_400 * 1_000_000

@@ -9,8 +9,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from gateway.errors import AuthenticationFailed, FrameError, Malformed, Replayed
+from gateway.fleet.security.tunnel import DayKeys, Sealer, TunnelOpener, derive_day_key
 from gateway.testing import fuzz_examples
-from gateway.tunnel import DayKeys, Sealer, TunnelOpener, derive_day_key
 
 MASTER = bytes(range(32))
 NOON = datetime(2026, 11, 22, 12, 0, tzinfo=UTC)

@@ -11,10 +11,10 @@ import anyio
 import pytest
 from pydantic import ValidationError
 
+from gateway.c2.plugins import GROUP, available, build_sink, load_plugin
+from gateway.c2.sink import Sink, SinkConfig
 from gateway.errors import SinkLoadError
 from gateway.events import EventKind, Position, Telemetry
-from gateway.plugins import GROUP, available, build_sink, load_plugin
-from gateway.sink import Sink, SinkConfig
 
 ROOT = Path(__file__).resolve().parents[2]
 SINK_TYPES = sorted(available())

@@ -20,14 +20,14 @@ from anyio.streams.tls import TLSListener
 from pydantic import ValidationError
 from test_cot_event import DETECTION, EVENTS, TELEMETRY, TRACK
 
+from gateway.c2.sinkrunner import SinkRunner
+from gateway.codecs.cot.proto import read_varint, stream_frame
+from gateway.codecs.cot.validate import parse_cot
 from gateway.config import SinkEntry
 from gateway.errors import PermanentSinkError, TransientSinkError
 from gateway.events import Position
-from gateway.instruments import Instruments
-from gateway.sinkrunner import SinkRunner
+from gateway.ops.instruments import Instruments
 from gateway.testing import eventually
-from sinks._cot_proto import read_varint, stream_frame
-from sinks._cot_validate import parse_cot
 from sinks.cot import CotSink, CotSinkConfig
 
 takproto = pytest.importorskip("takproto")
@@ -492,8 +492,8 @@ class TestStreams:
 
 
 def _encoded(cot: CotSink, events: tuple[Any, ...]) -> list[Any]:
-    from sinks._cot_codec import Encoded
-    from sinks._cot_event import build
+    from gateway.codecs.cot.codec import Encoded
+    from gateway.codecs.cot.event import build
 
     return [Encoded(c) for e in events if (c := build(e, cot.options)) is not None]
 

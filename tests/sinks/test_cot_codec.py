@@ -10,12 +10,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from test_cot_event import EVENTS, T0, options
 
+from gateway.codecs.cot.codec import Encoded, decimal, to_proto, to_xml
+from gateway.codecs.cot.event import CotEvent, build
+from gateway.codecs.cot.proto import mesh_frame, stream_frame
+from gateway.codecs.cot.validate import parse_cot
 from gateway.events import Detection, Position, Sensor, Telemetry, Track, Velocity
 from gateway.testing import fuzz_examples
-from sinks._cot_codec import Encoded, decimal, to_proto, to_xml
-from sinks._cot_event import CotEvent, build
-from sinks._cot_proto import mesh_frame, stream_frame
-from sinks._cot_validate import parse_cot
 
 takproto = pytest.importorskip("takproto")
 etree = pytest.importorskip("lxml.etree")

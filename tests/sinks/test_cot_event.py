@@ -9,12 +9,12 @@ from pathlib import Path
 import pytest
 import yaml
 
+from gateway.codecs.cot.codec import to_xml
+from gateway.codecs.cot.event import CotOptions, StaleTimes, build
+from gateway.codecs.cot.symbols import cot_type_from_sidc, object_symbol, own_symbol
+from gateway.codecs.cot.validate import UNKNOWN
+from gateway.domain.geoid import GeoidGrid, bundled_geoid
 from gateway.events import Detection, LinkState, Position, Sensor, Telemetry, Track, Velocity
-from sinks._cot_codec import to_xml
-from sinks._cot_event import CotOptions, StaleTimes, build
-from sinks._cot_geoid import GeoidGrid, bundled_geoid
-from sinks._cot_symbols import cot_type_from_sidc, object_symbol, own_symbol
-from sinks._cot_validate import UNKNOWN
 
 T0 = datetime(2026, 11, 22, 10, 15, 30, 250000, tzinfo=UTC)
 DATA = Path(__file__).resolve().parents[2] / "gateway" / "data"

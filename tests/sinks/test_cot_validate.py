@@ -10,12 +10,12 @@ from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from test_cot_event import TELEMETRY, options
 
+from gateway.codecs.cot.codec import to_proto, to_xml
+from gateway.codecs.cot.event import build
+from gateway.codecs.cot.proto import ProtoError, mesh_frame, mesh_payload, read_fields, stream_frame
+from gateway.codecs.cot.validate import CotError, TakControl, parse_cot, scan_control
 from gateway.errors import FrameError
 from gateway.testing import fuzz_examples
-from sinks._cot_codec import to_proto, to_xml
-from sinks._cot_event import build
-from sinks._cot_proto import ProtoError, mesh_frame, mesh_payload, read_fields, stream_frame
-from sinks._cot_validate import CotError, TakControl, parse_cot, scan_control
 
 takproto = pytest.importorskip("takproto")
 

@@ -1,0 +1,1 @@
+"""The C2 side: the sink contract, the sink runner, plugin discovery."""

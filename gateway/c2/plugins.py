@@ -1,0 +1,115 @@
+"""Sink discovery through the entry-point group ``fischer_gateway.sinks``.
+
+Built-in sinks are registered under the same group in our own ``pyproject.toml``, so a
+third-party sink installed as a package and one of ours take the same single code path.
+Only the names a config uses are loaded; a name that cannot be loaded fails at load time
+with a ``SinkLoadError`` naming the sink type, its distribution and what is wrong.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from importlib.metadata import EntryPoint, entry_points
+from typing import Any, cast
+
+from pydantic import BaseModel, ValidationError
+
+from gateway.c2.sink import Sink, SinkClass
+from gateway.errors import SinkLoadError, SinkOptionsInvalid
+
+__all__ = ["GROUP", "SinkPlugin", "available", "build_sink", "check_sink", "load_plugin"]
+
+GROUP = "fischer_gateway.sinks"
+
+
+@dataclass(frozen=True, slots=True)
+class SinkPlugin:
+    """A loaded sink type: its factory and where it came from."""
+
+    type: str
+    factory: SinkClass
+    distribution: str
+    version: str
+
+    def build(self, name: str, options: dict[str, Any]) -> Sink:
+        """Validate ``options`` with the sink's model and construct it (no I/O yet).
+
+        Raises pydantic's ``ValidationError`` for bad options.
+        """
+        config = self.factory.config_model.model_validate(options)
+        return self.factory(name, config)
+
+
+def _entry_point(type_name: str) -> EntryPoint:
+    matches = entry_points(group=GROUP, name=type_name)
+    if not matches:
+        known = ", ".join(sorted(available())) or "none"
+        raise SinkLoadError(
+            f"unknown sink type {type_name!r}; installed sink types: {known}", sink=type_name
+        )
+    if len(matches) > 1:
+        dists = sorted({ep.dist.name if ep.dist else "?" for ep in matches})
+        raise SinkLoadError(
+            f"sink type {type_name!r} is provided by several distributions: {dists}",
+            sink=type_name,
+        )
+    (entry,) = matches
+    return entry
+
+
+_cache: dict[str, SinkPlugin] = {}
+
+
+def load_plugin(type_name: str) -> SinkPlugin:
+    """Import the sink type ``type_name`` and check it honours the contract."""
+    if type_name in _cache:
+        return _cache[type_name]
+    entry = _entry_point(type_name)
+    dist = entry.dist.name if entry.dist else "unknown"
+    version = entry.dist.version if entry.dist else "unknown"
+    try:
+        factory = entry.load()
+    except Exception as exc:
+        raise SinkLoadError(
+            f"sink type {type_name!r} from {dist} {version} failed to import "
+            f"{entry.value}: {type(exc).__name__}: {exc}",
+            sink=type_name,
+        ) from exc
+    model = getattr(factory, "config_model", None)
+    if not (isinstance(model, type) and issubclass(model, BaseModel)):
+        raise SinkLoadError(
+            f"sink type {type_name!r} from {dist} {version} has no pydantic 'config_model'",
+            sink=type_name,
+        )
+    missing = [m for m in ("open", "send", "aclose") if not callable(getattr(factory, m, None))]
+    if missing:
+        raise SinkLoadError(
+            f"sink type {type_name!r} from {dist} {version} lacks {', '.join(missing)}",
+            sink=type_name,
+        )
+    plugin = SinkPlugin(type_name, cast("SinkClass", factory), dist, version)
+    _cache[type_name] = plugin
+    return plugin
+
+
+def check_sink(type_name: str, options: dict[str, Any]) -> None:
+    """Load ``type_name`` and validate ``options``; the config loader's sink checker.
+
+    Raises ``SinkLoadError`` for a type that cannot be loaded and ``SinkOptionsInvalid``
+    (with pydantic's error and the options model) for options that do not validate.
+    """
+    model = load_plugin(type_name).factory.config_model
+    try:
+        model.model_validate(options)
+    except ValidationError as exc:
+        raise SinkOptionsInvalid(type_name, exc, model) from None
+
+
+def build_sink(type_name: str, name: str, options: dict[str, Any]) -> Sink:
+    """Load, validate and construct one configured sink."""
+    return load_plugin(type_name).build(name, options)
+
+
+def available() -> dict[str, str]:
+    """Every installed sink type and the distribution providing it (nothing is imported)."""
+    return {ep.name: (ep.dist.name if ep.dist else "unknown") for ep in entry_points(group=GROUP)}

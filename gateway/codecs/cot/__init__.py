@@ -1,0 +1,1 @@
+"""Cursor-on-Target: building, encoding, parsing and validating events."""

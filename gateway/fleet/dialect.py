@@ -1,0 +1,132 @@
+"""The project's MAVLink dialect: FISCHER_DETECTION (61000), added to pymavlink at import.
+
+No upstream dialect has an object-detection message (common.xml and ardupilotmega.xml have
+none), so the airframes send ours. It is defined here as pymavlink's generator would write
+it, and registered in the ``ardupilotmega`` dialect's message map, so one parser reads
+common, ArduPilot and our messages. ``gateway/fleet/fischer_dialect.xml`` is the source of truth;
+the tests check this class against the module ``mavgen`` generates from that XML (same
+CRC_EXTRA, same bytes).
+
+Wire order (sorted by size, then the extension): time_usec u64, detection_id u32, lat i32,
+lon i32 (degE7), alt_msl f32 (m), sigma_h f32 (m), class_id u16, sensor u8, confidence u8 (%),
+subtype char[16] (extension).
+"""
+
+from __future__ import annotations
+
+import struct
+from typing import Any, ClassVar
+
+from pymavlink.dialects.v20 import ardupilotmega as _mav
+
+__all__ = [
+    "CLASS_NAMES",
+    "FISCHER_DETECTION_CRC_EXTRA",
+    "MAVLINK_MSG_ID_FISCHER_DETECTION",
+    "SENSOR_NAMES",
+    "FischerDetection",
+    "fischer_detection",
+]
+
+MAVLINK_MSG_ID_FISCHER_DETECTION = 61000
+#: CRC_EXTRA of the base fields (what mavgen computes from dialect/fischer.xml).
+FISCHER_DETECTION_CRC_EXTRA = 20
+#: class_id → object class, as the airframes' classifier numbers them.
+CLASS_NAMES: dict[int, str] = {
+    1: "tank",
+    2: "armour",
+    3: "infantry_platoon",
+    4: "uav",
+    5: "loitering_munition",
+}
+#: FISCHER_SENSOR enum.
+SENSOR_NAMES: dict[int, str] = {0: "eo", 1: "ir", 2: "rf"}
+
+
+class FischerDetection(_mav.MAVLink_message):  # type: ignore[misc]
+    """One object detection (FISCHER_DETECTION)."""
+
+    id = MAVLINK_MSG_ID_FISCHER_DETECTION
+    msgname = "FISCHER_DETECTION"
+    fieldnames: ClassVar[list[str]] = [
+        "time_usec", "detection_id", "lat", "lon", "alt_msl", "sigma_h", "class_id", "sensor",
+        "confidence", "subtype",
+    ]  # fmt: skip
+    ordered_fieldnames = fieldnames
+    fieldtypes: ClassVar[list[str]] = [
+        "uint64_t", "uint32_t", "int32_t", "int32_t", "float", "float", "uint16_t", "uint8_t",
+        "uint8_t", "char",
+    ]  # fmt: skip
+    fielddisplays_by_name: ClassVar[dict[str, str]] = {}
+    fieldenums_by_name: ClassVar[dict[str, str]] = {"sensor": "FISCHER_SENSOR"}
+    fieldunits_by_name: ClassVar[dict[str, str]] = {
+        "time_usec": "us", "lat": "degE7", "lon": "degE7", "alt_msl": "m", "sigma_h": "m",
+        "confidence": "%",
+    }  # fmt: skip
+    native_format = bytearray(b"<QIiiffHBBc")
+    orders: ClassVar[list[int]] = list(range(10))
+    lengths: ClassVar[list[int]] = [1] * 10
+    array_lengths: ClassVar[list[int]] = [0] * 9 + [16]
+    crc_extra = FISCHER_DETECTION_CRC_EXTRA
+    unpacker = struct.Struct("<QIiiffHBB16s")
+    instance_field = None
+    instance_offset = -1
+
+    def __init__(
+        self,
+        time_usec: int,
+        detection_id: int,
+        lat: int,
+        lon: int,
+        alt_msl: float,
+        sigma_h: float,
+        class_id: int,
+        sensor: int,
+        confidence: int,
+        subtype: bytes = b"",
+    ) -> None:
+        _mav.MAVLink_message.__init__(self, self.id, self.msgname)
+        self._fieldnames = self.fieldnames
+        self._instance_field = None
+        self._instance_offset = -1
+        self.time_usec = time_usec
+        self.detection_id = detection_id
+        self.lat = lat
+        self.lon = lon
+        self.alt_msl = alt_msl
+        self.sigma_h = sigma_h
+        self.class_id = class_id
+        self.sensor = sensor
+        self.confidence = confidence
+        self.subtype = subtype
+
+    def pack(self, mav: Any, force_mavlink1: bool = False) -> bytes:
+        """The frame bytes, as pymavlink packs every message."""
+        payload = self.unpacker.pack(
+            self.time_usec, self.detection_id, self.lat, self.lon, self.alt_msl, self.sigma_h,
+            self.class_id, self.sensor, self.confidence, self.subtype,
+        )  # fmt: skip
+        return bytes(self._pack(mav, self.crc_extra, payload, force_mavlink1=force_mavlink1))
+
+
+def fischer_detection(
+    time_usec: int,
+    detection_id: int,
+    lat_e7: int,
+    lon_e7: int,
+    alt_msl_m: float,
+    sigma_h_m: float,
+    class_id: int,
+    sensor: int,
+    confidence_pct: int,
+    subtype: str = "",
+) -> FischerDetection:
+    """A FISCHER_DETECTION message, ready to ``pack``."""
+    return FischerDetection(
+        time_usec, detection_id, lat_e7, lon_e7, alt_msl_m, sigma_h_m, class_id, sensor,
+        confidence_pct, subtype.encode("ascii")[:16],
+    )  # fmt: skip
+
+
+# Registered in the dialect pymavlink decodes with, so every parser in the process knows it.
+_mav.mavlink_map[MAVLINK_MSG_ID_FISCHER_DETECTION] = FischerDetection

@@ -1,0 +1,383 @@
+"""From bytes on a link to events on the bus: authenticate, parse, demultiplex, de-duplicate.
+
+``Ingest.on_data`` is the per-chunk hot path. It is synchronous and never raises: bytes that
+do not authenticate or parse are counted by reason and logged (rate-limited: at most one
+line per link and reason every ``REJECT_LOG_INTERVAL_S``).
+
+A frame is attributed to an airframe only when it arrives on a link *configured for that
+airframe* and passes that link's security: on a tunnel link the key that sealed it names
+the airframe; on a signed link the airframe's signing key must verify it; on an unsecured
+link its sysid must be one of the airframes configured on that link. Anything else is
+counted with a reason (``foreign_link``, ``unknown_sysid``, ``auth`` ...) and dropped; no
+link is ever added to an airframe at run time. The peer that last authenticated for an
+airframe on a link is remembered, and it is the only peer uplink traffic goes to
+(``peer_for``). A frame that already arrived on another link of the same airframe is
+delivered once. What is left becomes Telemetry, goes to the airframe's passthrough if it has
+one, and updates link health (``linkhealth``). Telemetry snapshots are coalesced per pass of
+the event loop (see ``flush``).
+
+State per sender is bounded: a datagram link keeps one parser for the whole link (each
+datagram is parsed on its own), a stream link one per connection (the listener caps them).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import asdict, dataclass, field
+
+import structlog
+
+from gateway.clock import Clock
+from gateway.config import AirframeConfig
+from gateway.domain.terrain import TerrainModel
+from gateway.errors import FrameError
+from gateway.events import Event
+from gateway.fleet.deframe import StreamDeframer
+from gateway.fleet.linkhealth import LinkHealth
+from gateway.fleet.mavlink import MavlinkParser, MavMessage
+from gateway.fleet.normalise import (
+    NORMALISED_TYPES,
+    AirframeState,
+    Enrichment,
+    detection_from,
+)
+from gateway.fleet.security.signing import SigningVerifier
+from gateway.fleet.security.tunnel import TunnelOpener
+from gateway.ops.instruments import Instruments
+from gateway.ops.logsetup import RateLimit
+from gateway.ops.metrics import CounterChild
+
+__all__ = ["Ingest", "LinkIntake"]
+
+log = structlog.get_logger(__name__)
+
+_SIGNED_V2 = 0xFD
+_MAV_AUTOPILOT_INVALID = 8  # a GCS, a companion or a peripheral: not the flight controller
+_DEDUP_PRUNE_EVERY = 1024
+#: Seconds between two log lines for the same link and rejection reason.
+REJECT_LOG_INTERVAL_S = 10.0
+#: Tunnel frames in a row that fail authentication before a stream peer is hung up on.
+MAX_FAILED_IN_A_ROW = 64
+
+
+@dataclass(slots=True)
+class LinkIntake:
+    """How bytes from one link endpoint are read: security mode, framing, per-peer state."""
+
+    label: str
+    security: str
+    is_stream: bool
+    max_chunk_bytes: int = 2048
+    parsers: dict[object, MavlinkParser] = field(default_factory=dict)
+    deframers: dict[object, StreamDeframer] = field(default_factory=dict)
+    counters: tuple[CounterChild, CounterChild, CounterChild] | None = None
+    airframes: dict[int, _Airframe] = field(default_factory=dict)
+    """The airframes configured on this link, by sysid: the only ones it may speak for."""
+    datagram_parser: MavlinkParser | None = None
+    trust: Callable[[object], None] | None = None
+    """Told the first time a peer authenticates for an airframe (a listener keeps it)."""
+    drop: Callable[[object], None] | None = None
+    """Told to hang up on a stream peer that only sends frames that fail authentication."""
+
+
+@dataclass(slots=True)
+class _Airframe:
+    config: AirframeConfig
+    state: AirframeState
+    health: LinkHealth
+    labels: frozenset[str] = frozenset()
+    verifier: SigningVerifier | None = None
+    passthrough: Callable[[bytes], None] | None = None
+    recent: dict[bytes, float] = field(default_factory=dict)
+    inserts: int = 0
+    peers: dict[str, object] = field(default_factory=dict)
+    """Per link label, the peer that last sent an authenticated frame of this airframe."""
+
+
+class Ingest:
+    """Authenticates and parses link bytes, and routes frames to their airframe's state."""
+
+    def __init__(
+        self,
+        airframes: Iterable[AirframeConfig],
+        publish: Callable[[Event], None],
+        instruments: Instruments,
+        clock: Clock,
+        *,
+        opener: TunnelOpener | None = None,
+        verifiers: Mapping[int, SigningVerifier] | None = None,
+        terrain: TerrainModel | None = None,
+        baro_sigma_m: float = 0.5,
+    ) -> None:
+        self._publish = publish
+        self._inst = instruments
+        self._opener = opener
+        self._clock = clock
+        self._by_sysid: dict[int, _Airframe] = {}
+        self._by_id: dict[str, _Airframe] = {}
+        for cfg in airframes:
+            enrichment = Enrichment(cfg.energy, cfg.ew_mode, terrain, baro_sigma_m)
+            state = AirframeState(cfg.id, clock, enrichment)
+            health = LinkHealth(cfg, publish, clock, instruments, on_active=state.set_active_link)
+            labels = frozenset(link.label for link in cfg.links)
+            airframe = _Airframe(cfg, state, health, labels, (verifiers or {}).get(cfg.sysid))
+            self._by_sysid[cfg.sysid] = airframe
+            self._by_id[cfg.id] = airframe
+        self._intakes: dict[str, LinkIntake] = {}
+        self._unknown_sysids: set[int] = set()
+        self._dirty: dict[str, _Airframe] = {}
+        self._flush_pending = False
+        self._reject_log = RateLimit(interval_s=REJECT_LOG_INTERVAL_S)
+
+    def register_link(self, intake: LinkIntake) -> None:
+        """Declare a link endpoint before it delivers data."""
+        label = intake.label
+        inst = self._inst
+        intake.counters = (
+            inst.link_bytes.labels(label),
+            inst.link_chunks.labels(label),
+            inst.link_frames.labels(label),
+        )
+        intake.airframes = {a.config.sysid: a for a in self._by_sysid.values() if label in a.labels}
+        if not intake.is_stream:
+            intake.datagram_parser = MavlinkParser(max_chunk_bytes=intake.max_chunk_bytes)
+        self._intakes[label] = intake
+
+    def set_passthrough(self, airframe: str, forward: Callable[[bytes], None]) -> None:
+        """Forward every accepted frame of ``airframe`` (raw MAVLink) to ``forward``."""
+        self._by_id[airframe].passthrough = forward
+
+    def forget_peer(self, label: str, peer: object) -> None:
+        """Drop the per-peer state of a closed stream connection."""
+        intake = self._intakes.get(label)
+        if intake is None:
+            return
+        intake.deframers.pop(peer, None)
+        for key in [k for k in intake.parsers if k == peer or (type(k) is tuple and k[0] == peer)]:
+            del intake.parsers[key]
+        for airframe in intake.airframes.values():
+            if airframe.peers.get(label) == peer:
+                del airframe.peers[label]
+
+    def on_data(self, label: str, peer: object, data: bytes) -> None:
+        """Take one datagram or stream read from link ``label``; never raises."""
+        intake = self._intakes.get(label)
+        if intake is None or intake.counters is None:
+            return  # not a registered link: nothing to attribute it to
+        counters = intake.counters
+        counters[0].value += len(data)
+        counters[1].value += 1
+        if intake.security != "tunnel":
+            if not data:
+                self._rejected(label, "malformed", "empty datagram")
+                return
+            for msg in self._parse(intake, peer, data):
+                self._frame(intake, peer, msg, None)
+            return
+        opener = self._opener
+        if opener is None:
+            self._rejected(label, "auth", "tunnel link without a tunnel key")
+            return
+        if intake.is_stream:
+            deframer = intake.deframers.get(peer)
+            if deframer is None:
+                deframer = intake.deframers[peer] = StreamDeframer(intake.max_chunk_bytes)
+            before = dict(deframer.errors)
+            opened = deframer.feed(data, lambda frame: opener.open_frame(frame, label))
+            for reason, count in deframer.errors.items():
+                if count != before.get(reason, 0):
+                    self._rejected(label, reason, "tunnel frame", count - before.get(reason, 0))
+            if deframer.failed_in_a_row >= MAX_FAILED_IN_A_ROW and intake.drop is not None:
+                # Each try costs an AES-GCM open: a peer that never authenticates is cut off.
+                deframer.failed_in_a_row = 0
+                intake.drop(peer)
+        else:
+            try:
+                opened = [opener.open_frame(data, label)]
+            except FrameError as exc:
+                self._rejected(label, exc.reason, str(exc))
+                return
+        now = self._clock() if opened else None
+        for frame in opened:
+            airframe = self._by_id.get(frame.airframe)
+            if airframe is None or label not in airframe.labels:
+                # A valid key, but this link is not one of that airframe's links.
+                self._rejected(label, "foreign_link", f"{frame.airframe} is not configured here")
+                continue
+            if now is not None:
+                latency_s = (now - frame.sent).total_seconds()
+                self._inst.link_latency.labels(frame.airframe, label).observe(max(latency_s, 0.0))
+                airframe.health.latency(label, latency_s)
+            # The key authenticated the datagram, so the sender is this airframe's peer.
+            key = frame.airframe if not intake.is_stream else (peer, frame.airframe)
+            for msg in self._parse(intake, key, frame.payload):
+                self._frame(intake, peer, msg, airframe)
+
+    def _parse(self, intake: LinkIntake, peer: object, data: bytes) -> list[MavMessage]:
+        parser = intake.datagram_parser
+        if parser is None:
+            parser = intake.parsers.get(peer)
+            if parser is None:
+                parser = MavlinkParser(max_chunk_bytes=intake.max_chunk_bytes)
+                intake.parsers[peer] = parser
+        bad, unknown, truncated = parser.bad, parser.unknown, parser.truncated
+        try:
+            messages = parser.feed(data, whole=intake.datagram_parser is not None)
+        except FrameError as exc:
+            self._rejected(intake.label, exc.reason, str(exc))
+            return []
+        label = intake.label
+        if parser.bad != bad:
+            # A datagram is one unit for the sender: it is counted once, however many bad
+            # runs pymavlink found in it (and any cut-off frame at its end is part of that).
+            count = 1 if intake.datagram_parser is not None else parser.bad - bad
+            self._rejected(label, "malformed", "bad MAVLink frame", count)
+        elif parser.truncated != truncated:
+            self._rejected(label, "truncated", "datagram ended inside a frame")
+        if parser.unknown != unknown and (
+            (parser.bad == bad and parser.truncated == truncated) or intake.datagram_parser is None
+        ):
+            # In a datagram already counted as bad, an unknown id is part of the same garbage.
+            self._inst.link_ignored.labels(label, "unknown_msgid").inc(parser.unknown - unknown)
+        return messages
+
+    def _frame(
+        self, intake: LinkIntake, peer: object, msg: MavMessage, sealed_by: _Airframe | None
+    ) -> None:
+        label = intake.label
+        sysid = msg.get_srcSystem()
+        airframe = intake.airframes.get(sysid)
+        if airframe is None:
+            if sysid in self._by_sysid:
+                # A configured airframe's sysid on a link not configured for it: impersonation
+                # or a wiring mistake, and never attributed either way.
+                self._rejected(label, "foreign_link", f"sysid {sysid} is not configured here")
+            else:
+                self._inst.link_ignored.labels(label, "unknown_sysid").inc()
+                if len(self._unknown_sysids) < 256 and sysid not in self._unknown_sysids:
+                    self._unknown_sysids.add(sysid)
+                    log.info("unknown_sysid_heard", link=label, sysid=sysid)
+            return
+        if sealed_by is not None and sealed_by is not airframe:
+            # A tunnel key proves who sealed the frame: it may not speak for another sysid.
+            self._rejected(label, "auth", f"{sealed_by.config.id} sent frames as sysid {sysid}")
+            return
+        buf = msg.get_msgbuf()
+        authenticated = True
+        if intake.security == "signed":
+            verifier = airframe.verifier
+            if verifier is None:
+                self._rejected(label, "auth", f"{airframe.config.id} has no signing key")
+                return
+            try:
+                # False: an unsigned frame the config accepts (accept_unsigned_msgids). It is
+                # used, but proves nothing: it neither names the peer nor keeps the link up.
+                authenticated = verifier.verify(bytes(buf))
+            except FrameError as exc:
+                self._rejected(label, exc.reason, str(exc))
+                return
+        intake.counters[2].value += 1  # type: ignore[index]
+        now_mono = time.monotonic()
+        if authenticated:
+            if airframe.peers.get(label) != peer:
+                airframe.peers[label] = peer
+                if intake.trust is not None:
+                    intake.trust(peer)
+            airframe.health.heard(label, msg.get_srcComponent(), msg.get_seq(), now_mono)
+        if len(airframe.health.links) > 1 and self._duplicate(airframe, buf, now_mono):
+            self._inst.link_ignored.labels(label, "duplicate").inc()
+            return
+        if airframe.passthrough is not None:
+            airframe.passthrough(bytes(buf))
+        name = msg.get_type()
+        if name == "HEARTBEAT" and msg.autopilot != _MAV_AUTOPILOT_INVALID:
+            airframe.health.autopilot_compid = msg.get_srcComponent()
+        if name == "FISCHER_DETECTION":
+            self._detection(label, airframe, msg)
+            return
+        if name in NORMALISED_TYPES and airframe.state.update(name, msg):
+            self._dirty[airframe.config.id] = airframe
+            if not self._flush_pending:
+                self._schedule_flush()
+
+    def _detection(self, label: str, airframe: _Airframe, msg: MavMessage) -> None:
+        # Detections are durable: published at once, never coalesced like telemetry.
+        detection = detection_from(airframe.config.id, msg, self._clock())
+        if detection is None:
+            self._rejected(label, "malformed", "FISCHER_DETECTION with impossible values")
+            return
+        self._publish(detection)
+
+    def _schedule_flush(self) -> None:
+        # Telemetry is latest-wins, so the frames read in one pass of the event loop make one
+        # snapshot per airframe: under load the work per frame shrinks instead of queueing.
+        self._flush_pending = True
+        try:
+            asyncio.get_running_loop().call_soon(self.flush)
+        except RuntimeError:  # no loop (a synchronous caller): publish at once
+            self.flush()
+
+    def flush(self) -> None:
+        """Publish one Telemetry snapshot for every airframe updated since the last flush."""
+        self._flush_pending = False
+        dirty, self._dirty = self._dirty, {}
+        for airframe in dirty.values():
+            self._publish(airframe.state.snapshot())
+
+    def _duplicate(self, airframe: _Airframe, buf: bytes | bytearray, now_mono: float) -> bool:
+        """True if the same frame arrived on another link within the de-duplication window."""
+        # A signature differs per link (its link id), so compare the frame without it.
+        key = bytes(buf[:-13]) if buf[0] == _SIGNED_V2 and buf[2] & 1 else bytes(buf)
+        window = airframe.config.dedup_window_s
+        seen = airframe.recent.get(key)
+        if seen is not None and now_mono - seen < window:
+            return True
+        airframe.recent[key] = now_mono
+        airframe.inserts += 1
+        if airframe.inserts % _DEDUP_PRUNE_EVERY == 0:
+            airframe.recent = {k: t for k, t in airframe.recent.items() if now_mono - t < window}
+        return False
+
+    def _rejected(self, label: str, reason: str, detail: str, count: int = 1) -> None:
+        self._inst.link_rejected.labels(label, reason).inc(count)
+        if self._reject_log.allow((label, reason)):
+            log.warning("frame_rejected", link=label, reason=reason, detail=detail)
+
+    def check_links(self, now_mono: float | None = None) -> None:
+        """Re-evaluate link health (timeouts, failover, failback); call periodically."""
+        now_mono = time.monotonic() if now_mono is None else now_mono
+        for airframe in self._by_sysid.values():
+            airframe.health.check(now_mono)
+
+    def active_link(self, airframe: str) -> str | None:
+        """The label of the link commands to ``airframe`` should go out on."""
+        return self._by_id[airframe].health.active
+
+    def peer_for(self, airframe: str, label: str) -> object | None:
+        """The peer on link ``label`` that last sent an authenticated frame of ``airframe``."""
+        return self._by_id[airframe].peers.get(label)
+
+    def is_configured(self, airframe: str, label: str) -> bool:
+        """True if link ``label`` is one of ``airframe``'s configured links."""
+        known = self._by_id.get(airframe)
+        return known is not None and label in known.labels
+
+    def status(self) -> list[dict[str, object]]:
+        """Per airframe: its links with health, for /status."""
+        return [
+            {
+                "airframe": a.config.id,
+                "sysid": a.config.sysid,
+                "active_link": a.health.active,
+                "links": a.health.status(),
+                "signing": None if a.verifier is None else asdict(a.verifier.counters),
+            }
+            for a in self._by_sysid.values()
+        ]
+
+    @property
+    def unknown_sysids(self) -> frozenset[int]:
+        """System ids heard that no configured airframe has."""
+        return frozenset(self._unknown_sysids)

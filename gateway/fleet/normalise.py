@@ -1,0 +1,281 @@
+"""MAVLink messages to typed events: the per-airframe state that merges the latest fields.
+
+This is the one place where values from the wire are checked: MAVLink's "unknown" sentinels
+(-1, UINT16_MAX, 0 for optional extensions, NaN) become None, units become SI, and a position
+of exactly 0,0 (an autopilot without a fix) becomes no position. After this, events are trusted.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from datetime import datetime, timedelta
+from typing import Any
+
+from gateway.clock import Clock
+from gateway.domain.energy import EnergyProfile, EwMode, endurance_remaining_min
+from gateway.domain.terrain import TerrainModel, agl_from_msl, agl_sigma
+from gateway.events import (
+    BOOT_ID,
+    Attitude,
+    Detection,
+    Position,
+    Sensor,
+    Telemetry,
+    Velocity,
+    event_id,
+)
+from gateway.fleet.dialect import CLASS_NAMES, SENSOR_NAMES
+from gateway.fleet.mavlink import MavMessage
+
+__all__ = ["NORMALISED_TYPES", "AirframeState", "Enrichment", "detection_from"]
+
+
+@dataclass(frozen=True)
+class Enrichment:
+    """What the platform maths adds to an airframe's telemetry."""
+
+    energy: EnergyProfile
+    ew_mode: EwMode
+    terrain: TerrainModel | None = None
+    baro_sigma_m: float = 0.5
+
+
+_UINT16_MAX = 0xFFFF
+_MAV_AUTOPILOT_INVALID = 8
+_MAV_MODE_FLAG_SAFETY_ARMED = 128
+
+#: The MAVLink messages that change an airframe's Telemetry.
+NORMALISED_TYPES = frozenset(
+    {
+        "HEARTBEAT",
+        "SYS_STATUS",
+        "GLOBAL_POSITION_INT",
+        "GPS_RAW_INT",
+        "ATTITUDE",
+        "VFR_HUD",
+        "BATTERY_STATUS",
+    }
+)
+
+
+def _finite(value: float) -> float | None:
+    return value if math.isfinite(value) else None
+
+
+class AirframeState:
+    """The merged latest state of one airframe, and the Telemetry it yields.
+
+    ``apply`` takes one message of a type in ``NORMALISED_TYPES`` and returns a fresh
+    Telemetry snapshot; the state is only ever read and written from the event loop.
+    """
+
+    def __init__(self, airframe: str, clock: Clock, enrichment: Enrichment | None = None) -> None:
+        self.airframe = airframe
+        self._clock = clock
+        self._enrichment = enrichment
+        self._agl_for: tuple[float, float, float | None] | None = None
+        self._agl: tuple[float | None, float | None] = (None, None)
+        self._seq = 0
+        self._fields: dict[str, Any] = {}
+        self._geoid_sep_m: float | None = None
+        self._handlers: dict[str, Callable[[MavMessage], bool]] = {
+            "HEARTBEAT": self._heartbeat,
+            "SYS_STATUS": self._sys_status,
+            "GLOBAL_POSITION_INT": self._global_position,
+            "GPS_RAW_INT": self._gps_raw,
+            "ATTITUDE": self._attitude,
+            "VFR_HUD": self._vfr_hud,
+            "BATTERY_STATUS": self._battery_status,
+        }
+        self.active_link: str | None = None
+
+    def set_active_link(self, label: str | None) -> None:
+        """Record which link is active; later snapshots carry it."""
+        self.active_link = label
+
+    def update(self, name: str, msg: MavMessage) -> bool:
+        """Merge ``msg`` (of type ``name``); True if the state changed."""
+        handler = self._handlers.get(name)
+        return handler is not None and handler(msg)
+
+    def snapshot(self) -> Telemetry:
+        """The merged state now, as a new Telemetry event."""
+        self._seq += 1
+        derived: dict[str, Any] = {}
+        if self._enrichment is not None:
+            derived = self._derive(self._enrichment)
+        return Telemetry(
+            event_id=event_id(self.airframe, "tel", BOOT_ID, self._seq),
+            airframe=self.airframe,
+            time=self._clock(),
+            active_link=self.active_link,
+            **self._fields,
+            **derived,
+        )
+
+    def _derive(self, enrichment: Enrichment) -> dict[str, Any]:
+        """Height above ground (where a DEM covers the point) and predicted endurance."""
+        out: dict[str, Any] = {"ew_mode": enrichment.ew_mode.value}
+        position: Position | None = self._fields.get("position")
+        terrain = enrichment.terrain
+        if position is not None and position.alt_msl_m is not None and terrain is not None:
+            key = (position.lat_deg, position.lon_deg, position.alt_msl_m)
+            if key != self._agl_for:
+                # Tile lookups are memory-mapped reads; only a moved airframe pays for one.
+                self._agl_for = key
+                found = terrain.lookup(position.lat_deg, position.lon_deg)
+                self._agl = (
+                    (None, None)
+                    if found is None
+                    else (
+                        agl_from_msl(position.alt_msl_m, found[0]),
+                        agl_sigma(enrichment.baro_sigma_m, found[1].sigma_m),
+                    )
+                )
+            out["alt_agl_m"], out["agl_sigma_m"] = self._agl
+        profile = enrichment.energy
+        pct = self._fields.get("battery_pct")
+        consumed = self._fields.get("battery_consumed_wh")
+        wh_left = None
+        if pct is not None:
+            wh_left = profile.battery_usable_wh * pct / 100.0
+        elif consumed is not None:
+            wh_left = profile.battery_usable_wh - consumed
+        if wh_left is not None:
+            # No solar measurement arrives over MAVLink: predict the worst case (night).
+            out["endurance_remaining_min"] = endurance_remaining_min(
+                wh_left, profile, enrichment.ew_mode
+            )
+        return out
+
+    def apply(self, name: str, msg: MavMessage) -> Telemetry | None:
+        """``update`` then ``snapshot``; None if the message changed nothing."""
+        return self.snapshot() if self.update(name, msg) else None
+
+    def _heartbeat(self, msg: MavMessage) -> bool:
+        # Ground stations and companion computers send heartbeats under the same sysid;
+        # only the autopilot's describes the vehicle.
+        if msg.autopilot == _MAV_AUTOPILOT_INVALID:
+            return False
+        f = self._fields
+        f["mav_type"] = msg.type
+        f["autopilot"] = msg.autopilot
+        f["is_armed"] = bool(msg.base_mode & _MAV_MODE_FLAG_SAFETY_ARMED)
+        f["custom_mode"] = msg.custom_mode
+        f["system_status"] = msg.system_status
+        return True
+
+    def _sys_status(self, msg: MavMessage) -> bool:
+        f = self._fields
+        f["battery_voltage_v"] = (
+            None if msg.voltage_battery == _UINT16_MAX else msg.voltage_battery / 1000.0
+        )
+        f["battery_current_a"] = None if msg.current_battery == -1 else msg.current_battery / 100.0
+        f["battery_pct"] = None if msg.battery_remaining < 0 else float(msg.battery_remaining)
+        return True
+
+    def _global_position(self, msg: MavMessage) -> bool:
+        f = self._fields
+        if msg.lat == 0 and msg.lon == 0:
+            f["position"] = None
+        else:
+            alt_msl_m = msg.alt / 1000.0
+            sep = self._geoid_sep_m
+            f["position"] = Position(
+                lat_deg=msg.lat / 1e7,
+                lon_deg=msg.lon / 1e7,
+                alt_msl_m=alt_msl_m,
+                alt_hae_m=None if sep is None else alt_msl_m + sep,
+                alt_rel_home_m=msg.relative_alt / 1000.0,
+            )
+        f["velocity"] = Velocity(
+            north_mps=msg.vx / 100.0, east_mps=msg.vy / 100.0, down_mps=msg.vz / 100.0
+        )
+        if msg.hdg != _UINT16_MAX:
+            f["heading_deg"] = msg.hdg / 100.0
+        return True
+
+    def _gps_raw(self, msg: MavMessage) -> bool:
+        f = self._fields
+        f["gps_fix_type"] = msg.fix_type
+        f["satellites_visible"] = None if msg.satellites_visible == 255 else msg.satellites_visible
+        # alt_ellipsoid and h_acc are MAVLink 2 extensions: absent (0) from MAVLink 1 senders.
+        alt_ellipsoid = getattr(msg, "alt_ellipsoid", 0)
+        if alt_ellipsoid and msg.fix_type >= 3:
+            self._geoid_sep_m = (alt_ellipsoid - msg.alt) / 1000.0
+        h_acc = getattr(msg, "h_acc", 0)
+        f["h_acc_m"] = h_acc / 1000.0 if h_acc else None
+        return True
+
+    def _attitude(self, msg: MavMessage) -> bool:
+        roll, pitch, yaw = _finite(msg.roll), _finite(msg.pitch), _finite(msg.yaw)
+        if roll is None or pitch is None or yaw is None:
+            return False
+        self._fields["attitude"] = Attitude(roll_rad=roll, pitch_rad=pitch, yaw_rad=yaw)
+        return True
+
+    def _vfr_hud(self, msg: MavMessage) -> bool:
+        f = self._fields
+        f["airspeed_mps"] = _finite(msg.airspeed)
+        f["groundspeed_mps"] = _finite(msg.groundspeed)
+        f["climb_mps"] = _finite(msg.climb)
+        return True
+
+    def _battery_status(self, msg: MavMessage) -> bool:
+        f = self._fields
+        if msg.battery_remaining >= 0:
+            f["battery_pct"] = float(msg.battery_remaining)
+        if msg.current_battery != -1:
+            f["battery_current_a"] = msg.current_battery / 100.0
+        # energy_consumed is in hectojoules: 1 hJ = 100 J = 1/36 Wh.
+        f["battery_consumed_wh"] = (
+            None if msg.energy_consumed == -1 else msg.energy_consumed * 100.0 / 3600.0
+        )
+        time_remaining = getattr(msg, "time_remaining", 0)
+        f["battery_time_remaining_s"] = float(time_remaining) if time_remaining else None
+        return True
+
+
+_DAY_US = 86_400_000_000
+
+
+def detection_from(airframe: str, msg: MavMessage, now: datetime) -> Detection | None:
+    """A Detection from a FISCHER_DETECTION message; None if its values are not physical.
+
+    The observation time is the airframe's ``time_usec`` when it is within a day of ours
+    (airframes have GPS time), else our receive time.
+    """
+    lat, lon = msg.lat / 1e7, msg.lon / 1e7
+    sigma = msg.sigma_h
+    sensor = SENSOR_NAMES.get(msg.sensor)
+    if (
+        not (-90 <= lat <= 90 and -180 <= lon <= 180)
+        or (msg.lat == 0 and msg.lon == 0)
+        or not math.isfinite(sigma)
+        or sigma < 0
+        or sensor is None
+        or msg.confidence > 100
+    ):
+        return None
+    observed = now
+    now_us = int(now.timestamp() * 1_000_000)
+    if abs(msg.time_usec - now_us) <= _DAY_US:
+        observed = now + timedelta(microseconds=msg.time_usec - now_us)
+    subtype = msg.subtype.decode("ascii", "replace") if isinstance(msg.subtype, bytes) else ""
+    return Detection(
+        event_id=event_id(airframe, "det", msg.detection_id, msg.time_usec),
+        airframe=airframe,
+        time=observed,
+        sensor=Sensor(sensor),
+        object_class=CLASS_NAMES.get(msg.class_id, f"class_{msg.class_id}"),
+        subtype=subtype,
+        confidence=msg.confidence / 100.0,
+        position=Position(
+            lat_deg=lat,
+            lon_deg=lon,
+            alt_msl_m=msg.alt_msl if math.isfinite(msg.alt_msl) else None,
+        ),
+        sigma_h_m=sigma,
+    )

@@ -1,0 +1,1 @@
+"""The middle: the bus that routes events to subscribers."""

@@ -1,0 +1,1 @@
+"""Operating the daemon: health endpoint, metrics, systemd notify, logging, shipped files."""

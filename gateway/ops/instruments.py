@@ -1,0 +1,123 @@
+"""Every metric family the gateway exports, declared once per gateway instance.
+
+Components receive the ``Instruments`` and keep the labelled children they need, so the
+hot path only adds to an attribute.
+"""
+
+from __future__ import annotations
+
+from gateway.ops.metrics import Registry
+from gateway.ops.procmetrics import register_process_metrics
+from gateway.ops.version import package_version
+
+__all__ = ["Instruments"]
+
+
+class Instruments:
+    """The gateway's metric families on one registry."""
+
+    def __init__(self, registry: Registry | None = None) -> None:
+        self.registry = registry or Registry()
+        r = self.registry
+        self.link_bytes = r.counter("fg_link_bytes_total", "Bytes read from a link.", ("link",))
+        self.link_chunks = r.counter(
+            "fg_link_chunks_total", "Datagrams or stream reads from a link.", ("link",)
+        )
+        self.link_frames = r.counter(
+            "fg_link_frames_total",
+            "MAVLink frames accepted from a link (attributed and authenticated).",
+            ("link",),
+        )
+        self.link_ignored = r.counter(
+            "fg_link_frames_ignored_total",
+            "Good frames not used, by reason (unknown_sysid, unknown_msgid, duplicate).",
+            ("link", "reason"),
+        )
+        self.link_rejected = r.counter(
+            "fg_link_frames_rejected_total",
+            "Frames refused, by reason (malformed, truncated, oversize, auth, replay, "
+            "foreign_link: a configured airframe's sysid or key on a link not configured for it).",
+            ("link", "reason"),
+        )
+        self.link_loss = r.gauge(
+            "fg_link_loss_ratio",
+            "Autopilot-component frames lost to MAVLink sequence gaps over those expected, "
+            "per airframe and link.",
+            ("airframe", "link"),
+        )
+        self.link_last_heard_age = r.gauge(
+            "fg_link_last_heard_age_seconds",
+            "Seconds since the airframe was last heard on the link.",
+            ("airframe", "link"),
+        )
+        self.link_up = r.gauge(
+            "fg_link_up", "1 when the airframe is heard on the link.", ("airframe", "link")
+        )
+        self.events = r.counter(
+            "fg_events_total", "Events published on the bus, by kind.", ("kind",)
+        )
+        self.sink_sent = r.counter(
+            "fg_sink_events_sent_total", "Events a sink accepted.", ("sink",)
+        )
+        self.sink_failed = r.counter(
+            "fg_sink_send_failures_total",
+            "Failed send calls, by reason (transient, timeout, error, permanent).",
+            ("sink", "reason"),
+        )
+        self.sink_dropped = r.counter(
+            "fg_sink_events_dropped_total",
+            "Events a sink will never get, by reason (overflow, rejected, error).",
+            ("sink", "reason"),
+        )
+        self.sink_superseded = r.counter(
+            "fg_sink_events_superseded_total",
+            "Latest-wins events replaced by a newer one before the sink took them.",
+            ("sink",),
+        )
+        self.sink_rate_limited = r.counter(
+            "fg_route_events_rate_limited_total",
+            "Latest-wins events thinned by a route's max_rate_hz.",
+            ("sink",),
+        )
+        self.sink_queue = r.gauge(
+            "fg_sink_queue_depth", "Events waiting for a sink, by class.", ("sink", "class")
+        )
+        self.sink_latency = r.histogram(
+            "fg_sink_delivery_latency_seconds",
+            "From ingest to the sink accepting the event.",
+            ("sink",),
+        )
+        self.sink_open = r.gauge("fg_sink_open", "1 while a sink is open and healthy.", ("sink",))
+        self.uplink_frames = r.counter(
+            "fg_uplink_sends_total",
+            "Sends to an airframe (passthrough, commands), per airframe and link.",
+            ("airframe", "link"),
+        )
+        self.uplink_refused = r.counter(
+            "fg_uplink_refused_total",
+            "Sends to an airframe refused, by reason (no_link, no_peer, unsignable, send_failed).",
+            ("airframe", "reason"),
+        )
+        self.link_latency = r.histogram(
+            "fg_link_latency_seconds",
+            "Airframe to gateway, from the tunnel's send time (needs both clocks on GPS/NTP).",
+            ("airframe", "link"),
+        )
+        self.build_info = r.gauge(
+            "fg_build_info", "Always 1; the label is the running gateway's version.", ("version",)
+        )
+        self.build_info.labels(package_version()).set(1)
+        self.ready = r.gauge(
+            "fg_ready", "1 once every link is bound and every sink open (as /readyz), else 0."
+        )
+        self.dem_source_up = r.gauge(
+            "fg_dem_source_up",
+            "1 while a DEM source is used for AGL, 0 once disabled.",
+            ("source",),
+        )
+        self.dem_errors = r.counter(
+            "fg_dem_errors_total",
+            "DEM tiles or sources that failed, by source and reason (unreadable, missing, ...).",
+            ("source", "reason"),
+        )
+        register_process_metrics(r)

@@ -1,0 +1,1 @@
+"""Shared transports: the bounded TCP listener, TLS contexts."""

@@ -1,0 +1,1 @@
+"""Input plugins of fischer-gateway (entry-point group fischer_gateway.sources)."""
