@@ -17,22 +17,24 @@ import anyio
 import anyio.abc
 import structlog
 
-from gateway.c2.plugins import build_sink
+from gateway.c2.plugins import PROCESSOR_GROUP, SOURCE_GROUP, build_sink, load_component
 from gateway.c2.sink import Sink
 from gateway.c2.sinkrunner import SinkRunner
+from gateway.c2.source import Source
 from gateway.clock import Clock, utc_now
 from gateway.config import Config
 from gateway.domain.terrain import DemSource, TerrainModel
 from gateway.errors import FrameError, LinkError, LinkUnavailable
+from gateway.events import Event
 from gateway.fleet.ingest import Ingest, LinkIntake
 from gateway.fleet.links import Link, make_link
 from gateway.fleet.passthrough import Passthrough
 from gateway.fleet.security.material import Security
 from gateway.flow.bus import Bus
+from gateway.flow.processors import ProcessorRunner
 from gateway.ops.health import HealthServer
 from gateway.ops.instruments import Instruments
 from gateway.ops.sdnotify import SystemdNotifier
-from sources.cot import CotListener
 
 __all__ = ["Gateway", "utc_now"]
 
@@ -81,7 +83,25 @@ class Gateway:
             self.runners[entry.name] = SinkRunner(entry, sink, self.instruments)
         if given:
             raise ValueError(f"sinks given for names not in the config: {sorted(given)}")
-        self.bus = Bus(config.routes, self.runners, self.instruments, source=source)
+        self.processors: dict[str, ProcessorRunner] = {}
+        for processor_entry in config.processors:
+            component = load_component(PROCESSOR_GROUP, processor_entry.type)
+            options = component.model.model_validate(processor_entry.options)
+            self.processors[processor_entry.name] = ProcessorRunner(
+                processor_entry.name,
+                processor_entry.type,
+                component.factory(processor_entry.name, options),
+                self.instruments,
+                self._publish,
+                queue_max=processor_entry.queue_max,
+            )
+        self.bus = Bus(
+            config.routes,
+            self.runners,
+            self.instruments,
+            source=source,
+            processors=self.processors.values(),
+        )
         self.instruments.sink_queue.set_function(self._queue_depths)
         self.security = Security.from_config(config, clock)
         self.terrain = terrain_model(config)
@@ -118,8 +138,14 @@ class Gateway:
                         drop=link.drop,
                     )
                 )
-        self.sources = [
-            CotListener(source, self.bus.publish, clock=clock) for source in config.sources
+        self.sources: list[Source] = [
+            load_component(SOURCE_GROUP, entry.type).factory(
+                entry.name,
+                load_component(SOURCE_GROUP, entry.type).model.model_validate(entry.options),
+                self.bus.publish,
+                clock=clock,
+            )
+            for entry in config.sources
         ]
         self.passthroughs: dict[str, Passthrough] = {}
         for airframe in config.airframes:
@@ -143,6 +169,10 @@ class Gateway:
         self._started_mono = time.monotonic()
         self._links_up = False
         self.log = log.bind(node=config.gateway.node_id)
+
+    def _publish(self, event: Event) -> None:
+        """What processors publish goes on the bus like ingest's events."""
+        self.bus.publish(event)
 
     def _queue_depths(self) -> list[tuple[tuple[str, ...], float]]:
         depths: list[tuple[tuple[str, ...], float]] = []
@@ -203,6 +233,8 @@ class Gateway:
         async with anyio.create_task_group() as outer:
             for runner in self.runners.values():
                 await outer.start(runner.run)
+            for processor in self.processors.values():
+                await outer.start(processor.run)
             if self.health is not None:
                 self.health_port = await outer.start(self.health.run)
             async with anyio.create_task_group() as ingest:
@@ -295,17 +327,10 @@ class Gateway:
                 for link in self.links.values()
             ],
             "passthroughs": [p.status() for p in self.passthroughs.values()],
-            "sources": [
-                {
-                    "source": s.config.name,
-                    "uri": s.config.uri,
-                    "counts": dict(s.counts),
-                    "connections": dict(s.connections),
-                }
-                for s in self.sources
-            ],
+            "sources": [s.status() for s in self.sources],
             "unknown_sysids": sorted(self.ingest.unknown_sysids),
             "sinks": [runner.status() for runner in self.runners.values()],
+            "processors": [p.status() for p in self.processors.values()],
             "listeners": [self.health.stats.status()] if self.health is not None else [],
             "terrain": [] if self.terrain is None else self.terrain.status(),
         }

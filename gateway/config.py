@@ -25,7 +25,6 @@ from pydantic import (
 
 from gateway.domain.energy import EnergyProfile, EwMode
 from gateway.events import EventKind
-from sources.cot import CotSourceConfig
 
 __all__ = [
     "AirframeConfig",
@@ -35,9 +34,11 @@ __all__ = [
     "GatewayConfig",
     "HealthConfig",
     "LinkConfig",
+    "ProcessorEntry",
     "RouteConfig",
     "SigningConfig",
     "SinkEntry",
+    "SourceEntry",
     "TerrainConfig",
     "TunnelConfig",
     "parse_endpoint",
@@ -331,6 +332,46 @@ class SinkEntry(BaseModel):
     )
 
 
+class SourceEntry(BaseModel):
+    """One configured source: ``name``, ``type`` (an entry point name) and its own options.
+
+    The options sit beside ``name`` and ``type`` (``{name: atak, type: cot, uri: ...}``); the
+    source type's model validates them (``check-config`` and ``run`` do so at load).
+    """
+
+    model_config = ConfigDict(frozen=True, extra="allow")
+
+    name: str = Field(default="cot", pattern=_ID, description="Named in metrics and /status.")
+    type: str = Field(
+        default="cot",
+        pattern=r"^[a-z][a-z0-9_]*$",
+        description="An installed source type (entry point fischer_gateway.sources).",
+    )
+
+    @property
+    def options(self) -> dict[str, Any]:
+        """Everything beside ``name`` and ``type``: the source type's options."""
+        return dict(self.model_extra or {})
+
+
+class ProcessorEntry(BaseModel):
+    """One configured processor: its type (an entry point name) and its inbox."""
+
+    model_config = _FROZEN
+
+    name: str = Field(pattern=_ID, description="Named in metrics, logs and /status.")
+    type: str = Field(
+        pattern=r"^[a-z][a-z0-9_]*$",
+        description="An installed processor type (entry point fischer_gateway.processors).",
+    )
+    options: dict[str, Any] = Field(
+        default_factory=dict, description="The processor type's own options (see its schema)."
+    )
+    queue_max: int = Field(
+        default=10_000, ge=1, le=1_000_000, description="Events waiting for it before drops."
+    )
+
+
 class RouteConfig(BaseModel):
     """Which events go to which sinks. An omitted filter matches everything."""
 
@@ -408,8 +449,11 @@ class Config(BaseModel):
     terrain: TerrainConfig = Field(
         default=TerrainConfig(), description="DEM sources for height above ground."
     )
-    sources: tuple[CotSourceConfig, ...] = Field(
+    sources: tuple[SourceEntry, ...] = Field(
         default=(), description="Inputs beyond the airframes: CoT from ATAK/WinTAK (blue force)."
+    )
+    processors: tuple[ProcessorEntry, ...] = Field(
+        default=(), description="Components that derive events from events (fusion ...)."
     )
     airframes: tuple[AirframeConfig, ...] = Field(default=(), description="The fleet.")
     sinks: tuple[SinkEntry, ...] = Field(default=(), description="Where events go.")

@@ -17,15 +17,15 @@ from collections.abc import Generator, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
-from pydantic import ValidationError
+from pydantic import BaseModel, ValidationError
 
 from gateway.app import dem_sources
-from gateway.c2.plugins import load_plugin
+from gateway.c2.plugins import PROCESSOR_GROUP, SOURCE_GROUP, check_component, load_plugin
 from gateway.c2.sink import Sink
 from gateway.config import Config
 from gateway.configfile import Loc, validation_issues
 from gateway.domain.terrain import check_sources
-from gateway.errors import ConfigError, SinkLoadError
+from gateway.errors import ConfigError, SinkLoadError, SinkOptionsInvalid
 from gateway.events import EventKind
 from gateway.fleet.security.keys import read_credential, read_key_file
 
@@ -46,6 +46,7 @@ class NodeCheck:
         self.sinks: dict[str, Sink] = {}
 
     def __call__(self, data: dict[str, Any], config: Config | None) -> Iterator[Finding]:
+        yield from _components(data)
         if not self.environment:
             return
         yield from self._keys(data)
@@ -168,6 +169,32 @@ class NodeCheck:
                             f"{sorted(k.value for k in accepted)}",
                             True,
                         )
+
+
+def _components(data: dict[str, Any]) -> Iterator[Finding]:
+    """Sources' and processors' types and options, checked by their plugins' models."""
+    for i, entry in enumerate(_items(data.get("sources"))):
+        type_name = entry.get("type", "cot")
+        if not isinstance(type_name, str):
+            continue
+        options = {k: v for k, v in entry.items() if k not in ("name", "type")}
+        yield from _component(SOURCE_GROUP, type_name, options, ("sources", i))
+    for i, entry in enumerate(_items(data.get("processors"))):
+        type_name, options = entry.get("type"), entry.get("options") or {}
+        if isinstance(type_name, str) and isinstance(options, dict):
+            yield from _component(PROCESSOR_GROUP, type_name, options, ("processors", i, "options"))
+
+
+def _component(group: str, type_name: str, options: dict[str, Any], loc: Loc) -> Iterator[Finding]:
+    try:
+        check_component(group, type_name, options)
+    except SinkOptionsInvalid as exc:
+        if isinstance(exc.validation, ValidationError):
+            model = exc.model if issubclass(exc.model, BaseModel) else None
+            for where, message in validation_issues(exc.validation, loc, model):
+                yield where, message, True
+    except SinkLoadError as exc:
+        yield (*loc[:2], "type"), str(exc), True
 
 
 def _key_problem(loc: Loc, path: Path, *, exact: bool) -> Iterator[Finding]:

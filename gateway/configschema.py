@@ -8,9 +8,16 @@ of the models all carry a description (a test keeps it so).
 
 from __future__ import annotations
 
+from importlib.metadata import entry_points
 from typing import Any
 
-from gateway.c2.plugins import available, load_plugin
+from gateway.c2.plugins import (
+    PROCESSOR_GROUP,
+    SOURCE_GROUP,
+    available,
+    load_component,
+    load_plugin,
+)
 from gateway.config import Config
 from gateway.errors import SinkLoadError
 from gateway.ops.version import package_version
@@ -43,6 +50,31 @@ def config_schema() -> dict[str, Any]:
         )
     if "SinkEntry" in defs and branches:
         defs["SinkEntry"]["allOf"] = branches
+    for group, entry_def, inline in (
+        (PROCESSOR_GROUP, "ProcessorEntry", False),
+        (SOURCE_GROUP, "SourceEntry", True),
+    ):
+        component_branches = []
+        for ep in sorted(entry_points(group=group), key=lambda ep: ep.name):
+            try:
+                component = load_component(group, ep.name)
+            except SinkLoadError:
+                continue
+            options = component.model.model_json_schema(ref_template="#/$defs/{model}")
+            defs.update(options.pop("$defs", {}))
+            name = f"{group.rsplit('.', 1)[1]}_options_{ep.name}"
+            defs[name] = options
+            # Sources take their options beside name and type; processors under options.
+            then = (
+                {"$ref": f"#/$defs/{name}"}
+                if inline
+                else {"properties": {"options": {"$ref": f"#/$defs/{name}"}}}
+            )
+            component_branches.append(
+                {"if": {"properties": {"type": {"const": ep.name}}}, "then": then}
+            )
+        if entry_def in defs and component_branches:
+            defs[entry_def]["allOf"] = component_branches
     return {
         "$schema": "https://json-schema.org/draft/2020-12/schema",
         "$id": SCHEMA_ID,

@@ -28,7 +28,7 @@ from collections import Counter, OrderedDict
 from collections.abc import Callable
 from datetime import UTC, datetime, timedelta
 from ipaddress import ip_address
-from typing import Literal
+from typing import ClassVar, Literal
 from urllib.parse import urlsplit
 
 import anyio
@@ -114,13 +114,17 @@ def _utc_now() -> datetime:
 class CotListener:
     """Receives CoT and publishes a ``BlueForce`` for each current friendly position."""
 
+    config_model: ClassVar[type[CotSourceConfig]] = CotSourceConfig
+
     def __init__(
         self,
+        name: str,
         config: CotSourceConfig,
         publish: Callable[[Event], None],
         *,
         clock: Callable[[], datetime] = _utc_now,
     ) -> None:
+        self.name = name
         self.config = config
         self._publish = publish
         self._clock = clock
@@ -133,7 +137,7 @@ class CotListener:
         self.problems: Counter[str] = Counter()
         self._newest: OrderedDict[str, datetime] = OrderedDict()
         self._log_limit = RateLimit(interval_s=10.0)
-        self.log = log.bind(source=config.name)
+        self.log = log.bind(source=name)
         self._stream = CotStreamServer(
             self.host,
             self.port,
@@ -142,7 +146,7 @@ class CotListener:
             max_clients=config.max_clients,
             max_event_bytes=config.max_event_bytes,
             idle_timeout_s=config.idle_timeout_s,
-            name=config.name,
+            name=name,
         )
         self._udp_port = 0
 
@@ -170,6 +174,16 @@ class CotListener:
         """TCP connections closed because ``max_clients`` were held (refused or evicted)."""
         stats = self._stream.stats
         return stats.refused + stats.evicted
+
+    def status(self) -> dict[str, object]:
+        """What /status shows for this source."""
+        return {
+            "source": self.name,
+            "type": "cot",
+            "uri": self.config.uri,
+            "counts": dict(self.counts),
+            "connections": dict(self.connections),
+        }
 
     @property
     def parsed(self) -> int:

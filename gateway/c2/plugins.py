@@ -1,13 +1,16 @@
-"""Sink discovery through the entry-point group ``fischer_gateway.sinks``.
+"""Plugin discovery through entry points: sinks, processors and sources.
 
-Built-in sinks are registered under the same group in our own ``pyproject.toml``, so a
-third-party sink installed as a package and one of ours take the same single code path.
-Only the names a config uses are loaded; a name that cannot be loaded fails at load time
-with a ``SinkLoadError`` naming the sink type, its distribution and what is wrong.
+Groups: ``fischer_gateway.sinks``, ``fischer_gateway.processors``,
+``fischer_gateway.sources``. Built-in plugins are registered under the same groups in our
+own ``pyproject.toml``, so a third-party plugin installed as a package and one of ours take
+the same single code path. Only the names a config uses are loaded; a name that cannot be
+loaded fails at load time with a ``SinkLoadError`` naming the type, its distribution and
+what is wrong.
 """
 
 from __future__ import annotations
 
+import builtins
 from dataclasses import dataclass
 from importlib.metadata import EntryPoint, entry_points
 from typing import Any, cast
@@ -17,9 +20,88 @@ from pydantic import BaseModel, ValidationError
 from gateway.c2.sink import Sink, SinkClass
 from gateway.errors import SinkLoadError, SinkOptionsInvalid
 
-__all__ = ["GROUP", "SinkPlugin", "available", "build_sink", "check_sink", "load_plugin"]
+__all__ = [
+    "GROUP",
+    "PROCESSOR_GROUP",
+    "SOURCE_GROUP",
+    "Component",
+    "SinkPlugin",
+    "available",
+    "build_sink",
+    "check_component",
+    "check_sink",
+    "load_component",
+    "load_plugin",
+]
 
 GROUP = "fischer_gateway.sinks"
+PROCESSOR_GROUP = "fischer_gateway.processors"
+SOURCE_GROUP = "fischer_gateway.sources"
+_WHAT = {GROUP: "sink", PROCESSOR_GROUP: "processor", SOURCE_GROUP: "source"}
+
+
+@dataclass(frozen=True, slots=True)
+class Component:
+    """A loaded processor or source type: its factory, options model and origin."""
+
+    group: str
+    type_name: str
+    factory: Any
+    model: builtins.type[BaseModel]
+    distribution: str
+    version: str
+
+
+_components: dict[tuple[str, str], Component] = {}
+
+
+def load_component(group: str, type_name: str) -> Component:
+    """Import ``type_name`` of entry-point ``group``; check it has a model and ``run``."""
+    cached = _components.get((group, type_name))
+    if cached is not None:
+        return cached
+    what = _WHAT[group]
+    matches = entry_points(group=group, name=type_name)
+    if len(matches) != 1:
+        known = ", ".join(sorted(ep.name for ep in entry_points(group=group))) or "none"
+        problem = "unknown" if not matches else "ambiguous (several distributions provide it)"
+        raise SinkLoadError(
+            f"{problem} {what} type {type_name!r}; installed {what} types: {known}",
+            sink=type_name,
+        )
+    (entry,) = matches
+    dist = entry.dist.name if entry.dist else "unknown"
+    version = entry.dist.version if entry.dist else "unknown"
+    try:
+        factory = entry.load()
+    except Exception as exc:
+        raise SinkLoadError(
+            f"{what} type {type_name!r} from {dist} {version} failed to import "
+            f"{entry.value}: {type(exc).__name__}: {exc}",
+            sink=type_name,
+        ) from exc
+    model = getattr(factory, "config_model", None)
+    if not (isinstance(model, type) and issubclass(model, BaseModel)):
+        raise SinkLoadError(
+            f"{what} type {type_name!r} from {dist} {version} has no pydantic 'config_model'",
+            sink=type_name,
+        )
+    if not callable(getattr(factory, "run", None)):
+        raise SinkLoadError(
+            f"{what} type {type_name!r} from {dist} {version} lacks run", sink=type_name
+        )
+    component = Component(group, type_name, factory, model, dist, version)
+    _components[(group, type_name)] = component
+    return component
+
+
+def check_component(group: str, type_name: str, options: dict[str, Any]) -> BaseModel:
+    """Load and validate; raise ``SinkLoadError`` or ``SinkOptionsInvalid``."""
+    component = load_component(group, type_name)
+    try:
+        return component.model.model_validate(options)
+    except ValidationError as exc:
+        raise SinkOptionsInvalid(type_name, exc, component.model) from None
 
 
 @dataclass(frozen=True, slots=True)

@@ -110,6 +110,11 @@ class SinkRunner:
         self._overflow_log = RateLimit(interval_s=5.0)
         self.log = log.bind(sink=self.name)
 
+    @property
+    def description(self) -> str:
+        """How config errors name this runner's sink."""
+        return f"sink {self.name!r} ({self.entry.type})"
+
     # -- ingest side: synchronous, O(1), never blocks ------------------------------------
 
     def offer(self, event: Event, ingest_mono: float) -> None:

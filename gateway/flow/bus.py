@@ -1,9 +1,10 @@
-"""Fan-out of events to sink runners, by the routes of the config.
+"""Fan-out of events to subscribers: sink runners by the routes of the config, processors by kind.
 
-``Bus.publish`` is synchronous and never blocks: it hands each event to the runners its
-routes select (each runner applies its kind's queue policy). The route decision for a
-(kind, airframe, class) triple is computed once and cached, so the hot path is one dict
-lookup plus one ``offer`` per destination.
+``Bus.publish`` is synchronous and never blocks: it hands each event to the subscribers its
+routes select (each applies its own queue policy) and to every processor that consumes its
+kind. The route decision for a (kind, airframe, class) triple is computed once and cached, so
+the hot path is one dict lookup plus one ``offer_slot`` per destination. The bus knows
+subscribers only through ``gateway.flow.subscriber.Subscriber``.
 """
 
 from __future__ import annotations
@@ -14,10 +15,10 @@ from dataclasses import dataclass
 
 import structlog
 
-from gateway.c2.sinkrunner import SinkRunner
 from gateway.config import RouteConfig
 from gateway.errors import ConfigError, ConfigIssue
 from gateway.events import LATEST_WINS_KINDS, Detection, Event, EventKind, Track, latest_key
+from gateway.flow.subscriber import Subscriber
 from gateway.ops.instruments import Instruments
 
 __all__ = ["Bus"]
@@ -27,7 +28,7 @@ log = structlog.get_logger(__name__)
 
 @dataclass(slots=True)
 class _Target:
-    runner: SinkRunner
+    runner: Subscriber
     min_interval_s: float | None
     last_sent: dict[str, float]
 
@@ -55,13 +56,18 @@ class Bus:
     def __init__(
         self,
         routes: Iterable[RouteConfig],
-        runners: Mapping[str, SinkRunner],
+        runners: Mapping[str, Subscriber],
         instruments: Instruments,
         *,
         source: str = "<config>",
+        processors: Iterable[Subscriber] = (),
     ) -> None:
         self._routes = tuple(routes)
         self._runners = runners
+        self._processors = tuple(processors)
+        self._by_kind: dict[EventKind, tuple[Subscriber, ...]] = {
+            kind: tuple(p for p in self._processors if kind in p.kinds) for kind in EventKind
+        }
         self._inst = instruments
         self._cache: dict[tuple[EventKind, tuple[str, ...] | None, str | None], list[_Target]] = {}
         self._targets: dict[tuple[int, str], _Target] = {}
@@ -81,7 +87,7 @@ class Bus:
                                 source,
                                 None,
                                 f"routes[{i}].kinds",
-                                f"sink {name!r} ({runner.entry.type}) does not accept "
+                                f"{runner.description} does not accept "
                                 f"{kind.value!r}; it accepts "
                                 f"{sorted(k.value for k in runner.kinds)}",
                             )
@@ -123,6 +129,12 @@ class Bus:
     def publish(self, event: Event) -> None:
         """Hand ``event`` to every runner its routes select; never blocks, never raises."""
         self._event_counters[event.kind].inc()
+        consumers = self._by_kind[event.kind]
+        if consumers:
+            slot = latest_key(event)
+            now = time.monotonic()
+            for consumer in consumers:
+                consumer.offer_slot(event, now, slot)
         key = (event.kind, _airframes_of(event), _class_of(event))
         targets = self._cache.get(key)
         if targets is None:

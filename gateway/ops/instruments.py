@@ -98,6 +98,11 @@ class Instruments:
             "Sends to an airframe refused, by reason (no_link, no_peer, unsignable, send_failed).",
             ("airframe", "reason"),
         )
+        self.processor_events = r.counter(
+            "fg_processor_events_total",
+            "Events into and out of a processor, and dropped when its inbox was full.",
+            ("processor", "direction"),
+        )
         self.link_latency = r.histogram(
             "fg_link_latency_seconds",
             "Airframe to gateway, from the tunnel's send time (needs both clocks on GPS/NTP).",

@@ -248,6 +248,7 @@ class TestCli:
             "tunnel",
             "terrain",
             "sources",
+            "processors",
             "airframes",
             "sinks",
             "routes",

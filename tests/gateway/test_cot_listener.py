@@ -40,7 +40,7 @@ NOW = datetime(2026, 11, 22, 10, 1, tzinfo=UTC)
 
 def listener(events: list[Event], uri: str = "udp://127.0.0.1:0", **options: Any) -> CotListener:
     config = CotSourceConfig(uri=uri, **options)
-    return CotListener(config, events.append, clock=lambda: NOW)
+    return CotListener("cot", config, events.append, clock=lambda: NOW)
 
 
 def at(event: bytes, time: str, uid: str = "ANDROID-1") -> bytes:
@@ -70,7 +70,7 @@ def test_real_atak_and_wintak_events_all_parse_and_no_fix_is_rejected() -> None:
     events: list[Event] = []
     now = [NOW]
     source = CotListener(
-        CotSourceConfig(uri="udp://127.0.0.1:0"), events.append, clock=lambda: now[0]
+        "cot", CotSourceConfig(uri="udp://127.0.0.1:0"), events.append, clock=lambda: now[0]
     )
     for path in files:
         data = path.read_bytes()
@@ -89,7 +89,7 @@ def test_real_atak_and_wintak_events_all_parse_and_no_fix_is_rejected() -> None:
 def test_years_old_real_events_are_not_current_blue_force() -> None:
     """Issue 10: the 2020 captures were published as current friendly positions."""
     events: list[Event] = []
-    source = CotListener(CotSourceConfig(uri="udp://127.0.0.1:0"), events.append)  # wall clock
+    source = CotListener("cot", CotSourceConfig(uri="udp://127.0.0.1:0"), events.append)
     for path in corpus_files():
         source.handle(path.read_bytes())
     assert events == []
@@ -104,7 +104,7 @@ def test_real_events_out_of_order_keep_the_newest_per_uid() -> None:
     last = newest_first[0][0].time
     events: list[Event] = []
     source = CotListener(
-        CotSourceConfig(uri="udp://127.0.0.1:0"), events.append, clock=lambda: last
+        "cot", CotSourceConfig(uri="udp://127.0.0.1:0"), events.append, clock=lambda: last
     )
     for _, data in newest_first:
         source.handle(data)

@@ -1,0 +1,134 @@
+"""Runs one processor: a bounded inbox from the bus, its lifetime, restarts, metrics.
+
+``ProcessorRunner`` is a bus ``Subscriber``: ``offer_slot`` puts the event in a bounded
+memory stream without waiting (when it is full the event is dropped, counted and logged at
+most every few seconds, so a slow processor never slows ingest). ``run`` starts the
+processor with a clone of that stream and a ``publish`` that puts its events back on the bus
+(never back to itself); if the processor raises, it is logged and started again with jittered
+backoff, and what arrived meanwhile is still in the stream.
+"""
+
+from __future__ import annotations
+
+import random
+from functools import partial
+
+import anyio
+import anyio.abc
+import structlog
+
+from gateway.events import Event, EventKind
+from gateway.flow.processor import Processor, Publish
+from gateway.ops.instruments import Instruments
+from gateway.ops.logsetup import RateLimit
+
+__all__ = ["ProcessorRunner"]
+
+log = structlog.get_logger(__name__)
+
+_RESTART_INITIAL_S = 0.5
+_RESTART_MAX_S = 30.0
+
+
+class ProcessorRunner:
+    """Owns one processor's inbox and the task that runs it."""
+
+    def __init__(
+        self,
+        name: str,
+        type_name: str,
+        processor: Processor,
+        instruments: Instruments,
+        publish: Publish,
+        *,
+        queue_max: int,
+    ) -> None:
+        self.name = name
+        self.type_name = type_name
+        self.processor = processor
+        self.kinds: frozenset[EventKind] = frozenset(processor.kinds)
+        self._publish = publish
+        self._send, self._receive = anyio.create_memory_object_stream[Event](queue_max)
+        self._publishing = False
+        self.state = "starting"
+        self.reason = ""
+        self.restarts = 0
+        self._in = instruments.processor_events.labels(name, "in")
+        self._out = instruments.processor_events.labels(name, "out")
+        self._dropped = instruments.processor_events.labels(name, "dropped")
+        self._log_limit = RateLimit(interval_s=5.0)
+        self.log = log.bind(processor=name)
+
+    @property
+    def description(self) -> str:
+        """How config errors name this processor."""
+        return f"processor {self.name!r} ({self.type_name})"
+
+    def offer_slot(self, event: Event, ingest_mono: float, slot: str | None) -> None:
+        """Queue ``event`` for the processor without waiting; never raises."""
+        if self._publishing:
+            return  # its own output coming back round: never fed to itself
+        try:
+            self._send.send_nowait(event)
+        except anyio.WouldBlock:
+            self._dropped.inc()
+            if self._log_limit.allow("full"):
+                self.log.error(
+                    "processor_inbox_full",
+                    kind=event.kind.value,
+                    dropped=self._dropped.value,
+                    note="the processor is slower than its input",
+                )
+        else:
+            self._in.inc()
+
+    def publish(self, event: Event) -> None:
+        """Put one of the processor's events on the bus."""
+        self._publishing = True
+        try:
+            self._publish(event)
+        finally:
+            self._publishing = False
+        self._out.inc()
+
+    async def run(
+        self, *, task_status: anyio.abc.TaskStatus[None] = anyio.TASK_STATUS_IGNORED
+    ) -> None:
+        """Run the processor until cancelled, restarting it when it fails."""
+        delay = _RESTART_INITIAL_S
+        started = False
+        while True:
+            try:
+                async with anyio.create_task_group() as tg:
+                    run = partial(self.processor.run, self._receive.clone(), self.publish)
+                    await tg.start(run)
+                    self.state, self.reason = "running", ""
+                    if not started:
+                        task_status.started()
+                        started = True
+                    delay = _RESTART_INITIAL_S
+            except Exception as exc:
+                self.restarts += 1
+                self.state, self.reason = "restarting", f"{type(exc).__name__}: {exc}"
+                if self._log_limit.allow("failed"):
+                    self.log.exception("processor_failed", restarts=self.restarts)
+            else:
+                self.state, self.reason = "stopped", "its run returned"
+            if not started:
+                task_status.started()  # degraded, not fatal: the daemon starts without it
+                started = True
+            await anyio.sleep(delay * random.uniform(0.5, 1.0))  # noqa: S311 - jitter
+            delay = min(delay * 2, _RESTART_MAX_S)
+
+    def status(self) -> dict[str, object]:
+        """State and counters for /status."""
+        return {
+            "processor": self.name,
+            "type": self.type_name,
+            "state": self.state,
+            "reason": self.reason,
+            "restarts": self.restarts,
+            "events_in": self._in.value,
+            "events_out": self._out.value,
+            "dropped": self._dropped.value,
+        }
