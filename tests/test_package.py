@@ -14,7 +14,7 @@ import gateway
 ROOT = Path(__file__).resolve().parents[1]
 MODULES = sorted(
     ".".join(path.relative_to(ROOT).with_suffix("").parts)
-    for package in ("gateway", "sinks")
+    for package in ("gateway", "sinks", "sources")
     for path in (ROOT / package).rglob("*.py")
     if path.name not in ("__init__.py", "__main__.py")
 )

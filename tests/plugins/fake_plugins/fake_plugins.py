@@ -1,0 +1,115 @@
+"""A third-party processor and a third-party source, as another package would ship them.
+
+``Doubler`` (processor ``doubler``) consumes Detections and publishes, for each, a Track at
+the same position: the smallest processor that shows the contract end to end. ``Ticker``
+(source ``ticker``) publishes one BlueForce event every ``interval_s``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from datetime import datetime
+from typing import Any, ClassVar
+
+import anyio
+import anyio.abc
+from anyio.streams.memory import MemoryObjectReceiveStream
+from pydantic import BaseModel, ConfigDict, Field
+
+from gateway.events import BlueForce, Detection, Event, EventKind, Position, Track
+
+
+class DoublerConfig(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    prefix: str = Field(default="T", description="Start of every track id.")
+
+
+class Doubler:
+    config_model: ClassVar[type[BaseModel]] = DoublerConfig
+
+    def __init__(self, name: str, config: DoublerConfig) -> None:
+        self.name = name
+        self.config = config
+
+    @property
+    def kinds(self) -> frozenset[EventKind]:
+        return frozenset({EventKind.DETECTION})
+
+    async def run(
+        self,
+        events: MemoryObjectReceiveStream[Event],
+        publish: Callable[[Event], None],
+        *,
+        task_status: anyio.abc.TaskStatus[None] = anyio.TASK_STATUS_IGNORED,
+    ) -> None:
+        task_status.started()
+        async with events:
+            async for event in events:
+                if not isinstance(event, Detection):
+                    continue
+                publish(
+                    Track(
+                        event_id=f"{self.config.prefix}-{event.event_id}",
+                        track_id=f"{self.config.prefix}-{event.airframe}-{event.object_class}",
+                        time=event.time,
+                        object_class=event.object_class,
+                        subtype=event.subtype,
+                        confidence=event.confidence,
+                        position=event.position,
+                        cep50_m=event.sigma_h_m * 1.1774,
+                        cep90_m=event.sigma_h_m * 2.1460,
+                        airframes=(event.airframe,),
+                        detection_ids=(event.event_id,),
+                        first_seen=event.time,
+                        last_seen=event.time,
+                        hostility="hostile",
+                    )
+                )
+
+
+class TickerConfig(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    interval_s: float = Field(default=0.2, gt=0, description="Seconds between reports.")
+    callsign: str = Field(default="TICK", description="The unit reported.")
+
+
+class Ticker:
+    config_model: ClassVar[type[BaseModel]] = TickerConfig
+
+    def __init__(
+        self,
+        name: str,
+        config: TickerConfig,
+        publish: Callable[[Event], None],
+        *,
+        clock: Callable[[], datetime],
+    ) -> None:
+        self.name = name
+        self.config = config
+        self._publish = publish
+        self._clock = clock
+        self.sent = 0
+
+    async def run(
+        self, *, task_status: anyio.abc.TaskStatus[None] = anyio.TASK_STATUS_IGNORED
+    ) -> None:
+        task_status.started()
+        while True:
+            now = self._clock()
+            self.sent += 1
+            self._publish(
+                BlueForce(
+                    event_id=f"tick-{self.sent}",
+                    time=now,
+                    uid=self.config.callsign,
+                    callsign=self.config.callsign,
+                    position=Position(lat_deg=65.8, lon_deg=21.7),
+                    source="ticker",
+                )
+            )
+            await anyio.sleep(self.config.interval_s)
+
+    def status(self) -> dict[str, Any]:
+        return {"source": self.name, "type": "ticker", "sent": self.sent}

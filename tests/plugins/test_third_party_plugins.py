@@ -1,0 +1,107 @@
+"""A third-party processor and source, each with its own entry point, through ``run``.
+
+``tests/plugins/fake_plugins`` is laid out as an installed distribution (a module and its
+``.dist-info`` with ``entry_points.txt``); the daemon finds both through the entry-point
+groups once that directory is on its ``PYTHONPATH``, exactly as it would a pip-installed one.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+from pathlib import Path
+
+import pytest
+from daemon_support import Airframe, archive_events, free_udp_port, running, wait_until
+
+from gateway.fleet.dialect import CLASS_NAMES
+
+PACKAGE = Path(__file__).resolve().parent / "fake_plugins"
+
+pytestmark = pytest.mark.timeout(60)
+
+
+def test_a_third_party_processor_and_source_plug_in_through_config(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv(
+        "PYTHONPATH", os.pathsep.join([str(PACKAGE), os.environ.get("PYTHONPATH", "")])
+    )
+    port = free_udp_port()
+    archive = tmp_path / "archive.jsonl"
+    config = tmp_path / "node.yaml"
+    config.write_text(
+        f"""
+gateway: {{shutdown_deadline_s: 2}}
+health: {{port: 0}}
+airframes:
+  - {{id: OPEN, sysid: 3, links: [{{uri: 'udp://127.0.0.1:{port}', security: unsecured}}]}}
+sources:
+  - {{name: tick, type: ticker, interval_s: 0.1, callsign: ALPHA}}
+processors:
+  - {{name: twin, type: doubler, options: {{prefix: TW}}}}
+sinks:
+  - {{name: archive, type: jsonl, options: {{path: '{archive}'}}}}
+routes:
+  - {{sinks: [archive]}}
+"""
+    )
+    plane = Airframe(3)
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sender, running(config) as daemon:
+        for _ in range(3):
+            sender.sendto(plane.detection(), ("127.0.0.1", port))
+
+        def kinds() -> set[str]:
+            return {str(e.get("kind")) for e in archive_events(archive)}
+
+        wait_until(lambda: {"detection", "track", "blue_force"} <= kinds(), 10, "all three")
+        status = daemon.status()
+        (processor,) = status["processors"]
+        assert processor["processor"] == "twin"
+        assert processor["state"] == "running"
+        assert processor["events_in"] >= 3
+        assert processor["events_out"] >= 3
+        assert {s["source"] for s in status["sources"]} == {"tick"}
+        assert daemon.metric("fg_processor_events_total", processor="twin", direction="out") >= 3
+    tracks = [e for e in archive_events(archive) if e["kind"] == "track"]
+    expected = f"TW-OPEN-{CLASS_NAMES[1]}"  # the daemon_support detection's class_id
+    assert {t["track_id"] for t in tracks} == {expected}
+    assert len(tracks) == 3
+    ticks = [e for e in archive_events(archive) if e["kind"] == "blue_force"]
+    assert all(t["callsign"] == "ALPHA" for t in ticks)
+    assert json.dumps(ticks[0])  # archived whole
+
+
+def test_a_bad_plugin_option_is_a_config_error_with_its_line(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import subprocess
+    import sys
+
+    env = {**os.environ, "PYTHONPATH": str(PACKAGE)}
+    config = tmp_path / "c.yaml"
+    config.write_text(
+        "airframes:\n  - {id: A, sysid: 1, links: [{uri: 'udp://127.0.0.1:14550', "
+        "security: unsecured}]}\n"
+        "sources:\n  - {name: tick, type: ticker, intervl_s: 1}\n"
+        "processors:\n  - {name: twin, type: doubler, options: {prefx: X}}\n"
+        "  - {name: other, type: nosuch}\n"
+    )
+    result = subprocess.run(
+        [sys.executable, "-m", "gateway", "check-config", str(config)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+        env=env,
+    )
+    assert result.returncode == 2
+    assert (
+        f"{config}:4 sources[0].intervl_s: unknown key 'intervl_s'; did you mean 'interval_s'?"
+        in result.stderr
+    )
+    assert (
+        "processors[0].options.prefx: unknown key 'prefx'; did you mean 'prefix'?" in result.stderr
+    )
+    assert "processors[1].type: unknown processor type 'nosuch'" in result.stderr
