@@ -247,7 +247,7 @@ async def _serve(
     extra: Callable[[], Coroutine[Any, Any, None]] | None = None,
     config_path: Path | None = None,
 ) -> None:
-    from gateway.ops.reload import recheck_config
+    from gateway.reload import recheck_config
 
     install_loop_exception_handler()
     # SIGHUP (systemctl reload) re-checks the config file; without one, its default stands.

@@ -1,0 +1,131 @@
+"""The layering of the packages is a checked contract, not a convention.
+
+Every import between the project's modules (read from the source, ``TYPE_CHECKING`` imports
+included) must run down the layers or stay inside one part of a layer. The sides of the bus
+do not know each other: the airframe side (``gateway.fleet``), the middle
+(``gateway.flow``) and the C2 side (``gateway.c2`` and the plugins in ``sinks``/``sources``)
+meet only in ``gateway.app``. The core never imports a plugin: plugins are found through
+entry points.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+#: (layer, part) for each module prefix; the longest matching prefix wins.
+LAYERS: dict[str, tuple[int, str]] = {
+    "gateway.errors": (0, "base"),
+    "gateway.events": (0, "base"),
+    "gateway.clock": (0, "base"),
+    "gateway.ops.logsetup": (0, "base"),
+    "gateway.ops.metrics": (0, "base"),
+    "gateway.ops.version": (0, "base"),
+    "gateway.domain": (1, "domain"),
+    "gateway.config": (2, "config"),
+    "gateway.configfile": (2, "config"),
+    "gateway.codecs": (2, "codecs"),
+    "gateway.transports": (2, "transports"),
+    "gateway.ops": (2, "ops"),
+    "gateway.fleet": (3, "fleet"),
+    "gateway.sim": (3, "sim"),
+    "gateway.flow": (3, "flow"),
+    "gateway.c2": (3, "c2"),
+    "gateway.testing": (3, "c2"),
+    "gateway.contract": (3, "c2"),
+    "sinks": (3, "sinks"),
+    "sources": (3, "sources"),
+    "gateway.app": (4, "assembly"),
+    "gateway.configcheck": (4, "assembly"),
+    "gateway.configschema": (4, "assembly"),
+    "gateway.reload": (4, "assembly"),
+    "gateway.cli": (5, "entry"),
+    "gateway.__main__": (5, "entry"),
+    # The package's public face (``from gateway import Sink``): for plugin authors. It only
+    # re-exports lazily, so its own imports (under TYPE_CHECKING) are not checked.
+    "gateway": (3, "public"),
+}
+
+#: Parts of one layer that may import each other, in this direction only.
+ALLOWED_ACROSS: set[tuple[str, str]] = {
+    ("codecs", "transports"),
+    ("ops", "transports"),
+    ("ops", "config"),
+    ("codecs", "config"),
+    ("sim", "fleet"),
+    ("c2", "flow"),
+    ("sinks", "c2"),
+    ("sources", "c2"),
+    ("sinks", "public"),
+    ("sources", "public"),
+}
+
+
+def _layer(module: str) -> tuple[int, str] | None:
+    best = None
+    for prefix, layer in LAYERS.items():
+        if (module == prefix or module.startswith(prefix + ".")) and (
+            best is None or len(prefix) > len(best[0])
+        ):
+            best = (prefix, layer)
+    return None if best is None else best[1]
+
+
+def _modules() -> dict[str, Path]:
+    found = {}
+    for package in ("gateway", "sinks", "sources"):
+        for path in (ROOT / package).rglob("*.py"):
+            parts = list(path.relative_to(ROOT).with_suffix("").parts)
+            if parts[-1] == "__init__":
+                parts = parts[:-1]
+            found[".".join(parts)] = path
+    return found
+
+
+def _imports(path: Path) -> set[str]:
+    names = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            names.add(node.module)
+        elif isinstance(node, ast.Import):
+            names.update(alias.name for alias in node.names)
+    return {n for n in names if n.split(".")[0] in ("gateway", "sinks", "sources")}
+
+
+def test_every_module_has_a_layer() -> None:
+    assert [m for m in _modules() if _layer(m) is None] == []
+
+
+def test_imports_run_down_the_layers_and_the_sides_stay_apart() -> None:
+    broken = []
+    for module, path in sorted(_modules().items()):
+        here = _layer(module)
+        assert here is not None
+        if module == "gateway":
+            continue
+        for imported in sorted(_imports(path)):
+            there = _layer(imported)
+            if there is None or imported == module:
+                continue
+            if there[0] > here[0]:
+                broken.append(f"{module} -> {imported}: runs up from layer {here[0]} to {there[0]}")
+            elif (
+                there[0] == here[0]
+                and there[1] != here[1]
+                and (here[1], there[1]) not in ALLOWED_ACROSS
+            ):
+                broken.append(f"{module} -> {imported}: {here[1]} may not import {there[1]}")
+    assert broken == []
+
+
+def test_the_core_never_imports_a_plugin() -> None:
+    offenders = [
+        f"{module} -> {imported}"
+        for module, path in _modules().items()
+        if module.split(".")[0] == "gateway"
+        for imported in _imports(path)
+        if imported.split(".")[0] in ("sinks", "sources")
+    ]
+    assert offenders == []
