@@ -116,6 +116,9 @@ class Gateway:
             terrain=self.terrain,
             baro_sigma_m=config.terrain.baro_sigma_m,
         )
+        self.sessions = self.ingest.sessions
+        for session in self.sessions.values():
+            session.transmit = self.send_to_airframe
         self.links: dict[str, Link] = {}
         self._links_by_label: dict[str, Link] = {}
         self._link_security: dict[str, str] = {}

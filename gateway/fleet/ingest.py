@@ -45,6 +45,7 @@ from gateway.fleet.normalise import (
 )
 from gateway.fleet.security.signing import SigningVerifier
 from gateway.fleet.security.tunnel import TunnelOpener
+from gateway.fleet.session import AirframeSession
 from gateway.ops.instruments import Instruments
 from gateway.ops.logsetup import RateLimit
 from gateway.ops.metrics import CounterChild
@@ -73,27 +74,13 @@ class LinkIntake:
     parsers: dict[object, MavlinkParser] = field(default_factory=dict)
     deframers: dict[object, StreamDeframer] = field(default_factory=dict)
     counters: tuple[CounterChild, CounterChild, CounterChild] | None = None
-    airframes: dict[int, _Airframe] = field(default_factory=dict)
+    airframes: dict[int, AirframeSession] = field(default_factory=dict)
     """The airframes configured on this link, by sysid: the only ones it may speak for."""
     datagram_parser: MavlinkParser | None = None
     trust: Callable[[object], None] | None = None
     """Told the first time a peer authenticates for an airframe (a listener keeps it)."""
     drop: Callable[[object], None] | None = None
     """Told to hang up on a stream peer that only sends frames that fail authentication."""
-
-
-@dataclass(slots=True)
-class _Airframe:
-    config: AirframeConfig
-    state: AirframeState
-    health: LinkHealth
-    labels: frozenset[str] = frozenset()
-    verifier: SigningVerifier | None = None
-    passthrough: Callable[[bytes], None] | None = None
-    recent: dict[bytes, float] = field(default_factory=dict)
-    inserts: int = 0
-    peers: dict[str, object] = field(default_factory=dict)
-    """Per link label, the peer that last sent an authenticated frame of this airframe."""
 
 
 class Ingest:
@@ -115,19 +102,23 @@ class Ingest:
         self._inst = instruments
         self._opener = opener
         self._clock = clock
-        self._by_sysid: dict[int, _Airframe] = {}
-        self._by_id: dict[str, _Airframe] = {}
+        self._by_sysid: dict[int, AirframeSession] = {}
+        self._by_id: dict[str, AirframeSession] = {}
         for cfg in airframes:
             enrichment = Enrichment(cfg.energy, cfg.ew_mode, terrain, baro_sigma_m)
             state = AirframeState(cfg.id, clock, enrichment)
             health = LinkHealth(cfg, publish, clock, instruments, on_active=state.set_active_link)
             labels = frozenset(link.label for link in cfg.links)
-            airframe = _Airframe(cfg, state, health, labels, (verifiers or {}).get(cfg.sysid))
+            airframe = AirframeSession(cfg, state, health, labels, (verifiers or {}).get(cfg.sysid))
+            for name in NORMALISED_TYPES:
+                airframe.on(name, self._telemetry)
+            airframe.on("FISCHER_DETECTION", self._detection)
+            airframe.on("COMMAND_ACK", airframe.on_command_ack)
             self._by_sysid[cfg.sysid] = airframe
             self._by_id[cfg.id] = airframe
         self._intakes: dict[str, LinkIntake] = {}
         self._unknown_sysids: set[int] = set()
-        self._dirty: dict[str, _Airframe] = {}
+        self._dirty: dict[str, AirframeSession] = {}
         self._flush_pending = False
         self._reject_log = RateLimit(interval_s=REJECT_LOG_INTERVAL_S)
 
@@ -244,7 +235,7 @@ class Ingest:
         return messages
 
     def _frame(
-        self, intake: LinkIntake, peer: object, msg: MavMessage, sealed_by: _Airframe | None
+        self, intake: LinkIntake, peer: object, msg: MavMessage, sealed_by: AirframeSession | None
     ) -> None:
         label = intake.label
         sysid = msg.get_srcSystem()
@@ -294,15 +285,17 @@ class Ingest:
         name = msg.get_type()
         if name == "HEARTBEAT" and msg.autopilot != _MAV_AUTOPILOT_INVALID:
             airframe.health.autopilot_compid = msg.get_srcComponent()
-        if name == "FISCHER_DETECTION":
-            self._detection(label, airframe, msg)
-            return
-        if name in NORMALISED_TYPES and airframe.state.update(name, msg):
+        handler = airframe.handlers.get(name)
+        if handler is not None:
+            handler(airframe, label, msg)
+
+    def _telemetry(self, airframe: AirframeSession, _label: str, msg: MavMessage) -> None:
+        if airframe.state.update(msg.get_type(), msg):
             self._dirty[airframe.config.id] = airframe
             if not self._flush_pending:
                 self._schedule_flush()
 
-    def _detection(self, label: str, airframe: _Airframe, msg: MavMessage) -> None:
+    def _detection(self, airframe: AirframeSession, label: str, msg: MavMessage) -> None:
         # Detections are durable: published at once, never coalesced like telemetry.
         detection = detection_from(airframe.config.id, msg, self._clock())
         if detection is None:
@@ -326,7 +319,9 @@ class Ingest:
         for airframe in dirty.values():
             self._publish(airframe.state.snapshot())
 
-    def _duplicate(self, airframe: _Airframe, buf: bytes | bytearray, now_mono: float) -> bool:
+    def _duplicate(
+        self, airframe: AirframeSession, buf: bytes | bytearray, now_mono: float
+    ) -> bool:
         """True if the same frame arrived on another link within the de-duplication window."""
         # A signature differs per link (its link id), so compare the frame without it.
         key = bytes(buf[:-13]) if buf[0] == _SIGNED_V2 and buf[2] & 1 else bytes(buf)
@@ -355,6 +350,11 @@ class Ingest:
         """The label of the link commands to ``airframe`` should go out on."""
         return self._by_id[airframe].health.active
 
+    @property
+    def sessions(self) -> dict[str, AirframeSession]:
+        """Every airframe's session, by airframe id."""
+        return self._by_id
+
     def peer_for(self, airframe: str, label: str) -> object | None:
         """The peer on link ``label`` that last sent an authenticated frame of ``airframe``."""
         return self._by_id[airframe].peers.get(label)
@@ -373,6 +373,7 @@ class Ingest:
                 "active_link": a.health.active,
                 "links": a.health.status(),
                 "signing": None if a.verifier is None else asdict(a.verifier.counters),
+                **a.command_status(),
             }
             for a in self._by_sysid.values()
         ]

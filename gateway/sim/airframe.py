@@ -159,6 +159,12 @@ class SimulatedAirframe:
         self._detections = 0
         self.sent_positions: deque[SentPosition] = deque(maxlen=position_history)
         self.frames_sent = 0
+        #: Answer COMMAND_LONG with COMMAND_ACK (MAV_RESULT_ACCEPTED); False plays a lost uplink.
+        self.ack_commands = True
+        #: (command id, confirmation) of every COMMAND_LONG for us that arrived.
+        self.commands: list[tuple[int, int]] = []
+        self._parser = mav.MAVLink(None, srcSystem=sysid, srcComponent=1)
+        self._parser.robust_parsing = True
 
     def frames_at(self, t_s: float) -> list[bytes]:
         """The frames due at sim time ``t_s`` (seconds since boot), in a fixed order.
@@ -311,16 +317,21 @@ class SimulatedAirframe:
         """
         if not (math.isfinite(speed) and speed > 0):
             raise ValueError(f"speed: expected a positive finite number, got {speed!r}")
-        async with await anyio.create_connected_udp_socket(
-            remote_host=host, remote_port=port
-        ) as sock:
+        async with (
+            await anyio.create_connected_udp_socket(remote_host=host, remote_port=port) as sock,
+            anyio.create_task_group() as tg,
+        ):
+            sending = anyio.Lock()  # the position loop and the command answers share the socket
+            if sealer is None:  # a tunnel airframe would need its opener: plain MAVLink only
+                tg.start_soon(self._answer_commands, sock, sending)
             task_status.started()
             start = anyio.current_time()
             self.boot_unix_s = time.time()
             t_s = 0.0
             while duration_s is None or t_s <= duration_s + _EPS_S:
                 for frame in self.frames_at(t_s):
-                    await sock.send(sealer.seal(frame) if sealer else frame)
+                    async with sending:
+                        await sock.send(sealer.seal(frame) if sealer else frame)
                     self.frames_sent += 1
                 t_s = self.next_due_s()
                 if duration_s is not None:
@@ -328,7 +339,26 @@ class SimulatedAirframe:
                 if math.isinf(t_s):  # every rate is 0: nothing will ever be due
                     await anyio.sleep_forever()
                 await anyio.sleep(max(start + t_s / speed - anyio.current_time(), 0.0))
+            tg.cancel_scope.cancel()
         log.debug("simulation_finished", sysid=self.sysid, frames_sent=self.frames_sent)
+
+    async def _answer_commands(
+        self, sock: anyio.abc.ConnectedUDPSocket, sending: anyio.Lock
+    ) -> None:
+        """Read what the gateway sends; acknowledge each COMMAND_LONG meant for us."""
+        async for datagram in sock:
+            try:
+                messages = self._parser.parse_buffer(datagram) or []
+            except mav.MAVError:
+                continue
+            for msg in messages:
+                if msg.get_type() != "COMMAND_LONG" or msg.target_system != self.sysid:
+                    continue
+                self.commands.append((int(msg.command), int(msg.confirmation)))
+                if self.ack_commands:
+                    ack = self._mav.command_ack_encode(msg.command, mav.MAV_RESULT_ACCEPTED)
+                    async with sending:
+                        await sock.send(bytes(ack.pack(self._mav)))
 
 
 def _period(rate_hz: float) -> float:

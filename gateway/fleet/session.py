@@ -1,0 +1,209 @@
+"""One airframe, in both directions: its links, its state, its message handlers, its commands.
+
+``AirframeSession`` holds what the gateway knows of one airframe: its configured links (the
+only ones that may speak for it) and the peer that last authenticated on each, link health
+and failover, de-duplication, the passthrough, the normalised state, and an extensible
+message table (``on(name, handler)``: telemetry, detections and COMMAND_ACK are registered by
+ingest; camera, gimbal and mission messages join the same way). ``Ingest`` demultiplexes
+frames to sessions after authentication; everything per airframe lives here.
+
+Outbound, ``send`` puts raw MAVLink on the airframe's active link in the link's mode (the
+transmit function the gateway gives it), and ``command_long`` sends a COMMAND_LONG and waits
+for the COMMAND_ACK with the same command id: correlated, under a timeout, retried with an
+incremented ``confirmation`` field as MAVLink's command protocol asks, and reported as a
+``CommandResult`` (result, attempts, latency) that ``status()`` shows.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import anyio
+import structlog
+
+from gateway.config import AirframeConfig
+from gateway.errors import LinkUnavailable
+from gateway.fleet.linkhealth import LinkHealth
+from gateway.fleet.mavlink import MavMessage, dialect
+from gateway.fleet.normalise import AirframeState
+from gateway.fleet.security.signing import SigningVerifier
+
+__all__ = ["AirframeSession", "CommandResult", "Handler"]
+
+log = structlog.get_logger(__name__)
+
+Handler = Callable[["AirframeSession", str, MavMessage], None]
+"""Called with the session, the link label and one accepted, de-duplicated message."""
+
+Transmit = Callable[[str, bytes], Awaitable[None]]
+
+#: Our identity on the MAVLink network when the gateway itself commands: a ground station.
+GATEWAY_SYSID = 255
+GATEWAY_COMPID = 190  # MAV_COMP_ID_MISSIONPLANNER, as ground-station software uses
+
+_RESULT_NAMES: dict[int, str] = {
+    int(key): str(entry.name) for key, entry in dialect.enums["MAV_RESULT"].items()
+}
+_MAV_RESULT_IN_PROGRESS = 5
+
+
+@dataclass(frozen=True, slots=True)
+class CommandResult:
+    """How one command ended: acknowledged (``result`` is a MAV_RESULT) or timed out."""
+
+    command: int
+    result: int | None
+    attempts: int
+    latency_s: float | None
+    """From the last attempt's send to its COMMAND_ACK."""
+
+    @property
+    def is_accepted(self) -> bool:
+        """True for MAV_RESULT_ACCEPTED (0)."""
+        return self.result == 0
+
+    @property
+    def result_name(self) -> str:
+        """``MAV_RESULT_ACCEPTED`` ..., or ``TIMEOUT``."""
+        if self.result is None:
+            return "TIMEOUT"
+        return _RESULT_NAMES.get(self.result, str(self.result))
+
+
+@dataclass(slots=True)
+class _Pending:
+    sent_mono: float
+    done: anyio.Event = field(default_factory=anyio.Event)
+    result: int | None = None
+    acked_mono: float | None = None
+
+
+@dataclass(slots=True)
+class AirframeSession:
+    """Everything the gateway holds for one airframe; see the module docstring."""
+
+    config: AirframeConfig
+    state: AirframeState
+    health: LinkHealth
+    labels: frozenset[str] = frozenset()
+    verifier: SigningVerifier | None = None
+    passthrough: Callable[[bytes], None] | None = None
+    recent: dict[bytes, float] = field(default_factory=dict)
+    inserts: int = 0
+    peers: dict[str, object] = field(default_factory=dict)
+    """Per link label, the peer that last sent an authenticated frame of this airframe."""
+    handlers: dict[str, Handler] = field(default_factory=dict)
+    transmit: Transmit | None = None
+    last_command: CommandResult | None = None
+    commands_sent: int = 0
+    commands_timed_out: int = 0
+    _pending: dict[int, _Pending] = field(default_factory=dict)
+    _seq: int = 0
+
+    @property
+    def id(self) -> str:
+        """The airframe's id from the config."""
+        return self.config.id
+
+    def on(self, message: str, handler: Handler) -> None:
+        """Handle every accepted ``message`` (a MAVLink message name) of this airframe."""
+        self.handlers[message] = handler
+
+    def dispatch(self, label: str, name: str, msg: MavMessage) -> None:
+        """Hand an accepted message to its handler; messages nobody handles are ignored."""
+        handler = self.handlers.get(name)
+        if handler is not None:
+            handler(self, label, msg)
+
+    # -- outbound ---------------------------------------------------------------------------
+
+    async def send(self, frames: bytes) -> None:
+        """Send raw MAVLink ``frames`` to the airframe; ``LinkError`` if it cannot go."""
+        if self.transmit is None:
+            raise LinkUnavailable(self.id, "the session has no transmit path")
+        await self.transmit(self.id, frames)
+
+    def on_command_ack(self, _session: AirframeSession, _label: str, msg: MavMessage) -> None:
+        """The COMMAND_ACK handler: resolve the command waiting for it, if any."""
+        pending = self._pending.get(int(msg.command))
+        if pending is None or pending.done.is_set():
+            return
+        if int(msg.result) == _MAV_RESULT_IN_PROGRESS:  # keep waiting for the final one
+            return
+        pending.result = int(msg.result)
+        pending.acked_mono = time.monotonic()
+        pending.done.set()
+
+    def _encode_command_long(
+        self, command: int, params: tuple[float, ...], confirmation: int
+    ) -> bytes:
+        mav = dialect.MAVLink(None, srcSystem=GATEWAY_SYSID, srcComponent=GATEWAY_COMPID)
+        mav.seq = self._seq
+        self._seq = (self._seq + 1) % 256
+        padded = (*params, *(0.0,) * (7 - len(params)))[:7]
+        msg = mav.command_long_encode(self.config.sysid, 1, command, confirmation, *padded)
+        return bytes(msg.pack(mav))
+
+    async def command_long(
+        self,
+        command: int,
+        *params: float,
+        timeout_s: float = 1.5,
+        retries: int = 2,
+    ) -> CommandResult:
+        """Send COMMAND_LONG ``command`` and wait for its COMMAND_ACK.
+
+        Retries ``retries`` times after a timeout (``confirmation`` counts the attempts).
+        Returns the ``CommandResult``; raises ``LinkError`` if it cannot be sent at all. One
+        command per id at a time: a second ``command_long`` with the same id waits its turn.
+        """
+        while command in self._pending:
+            await self._pending[command].done.wait()
+        attempts = 0
+        pending = _Pending(time.monotonic())
+        self._pending[command] = pending
+        try:
+            for confirmation in range(retries + 1):
+                attempts += 1
+                pending.sent_mono = time.monotonic()
+                self.commands_sent += 1
+                await self.send(self._encode_command_long(command, params, confirmation))
+                with anyio.move_on_after(timeout_s):
+                    await pending.done.wait()
+                if pending.done.is_set():
+                    break
+            if pending.result is None:
+                self.commands_timed_out += 1
+                log.warning(
+                    "command_timed_out",
+                    airframe=self.id,
+                    command=command,
+                    attempts=attempts,
+                    timeout_s=timeout_s,
+                )
+        finally:
+            pending.done.set()
+            del self._pending[command]
+        latency = None if pending.acked_mono is None else pending.acked_mono - pending.sent_mono
+        result = CommandResult(command, pending.result, attempts, latency)
+        self.last_command = result
+        return result
+
+    def command_status(self) -> dict[str, Any]:
+        """The command side of the session for /status."""
+        last = self.last_command
+        return {
+            "commands_sent": self.commands_sent,
+            "commands_timed_out": self.commands_timed_out,
+            "last_command": None
+            if last is None
+            else {
+                "command": last.command,
+                "result": last.result_name,
+                "attempts": last.attempts,
+                "latency_s": None if last.latency_s is None else round(last.latency_s, 4),
+            },
+        }

@@ -1,0 +1,79 @@
+"""The airframe session's outbound path: a command correlated with its COMMAND_ACK, over UDP.
+
+A real gateway (unsecured UDP link on loopback) and the simulator, which answers COMMAND_LONG
+with COMMAND_ACK, or, told not to, plays a lost uplink.
+"""
+
+from __future__ import annotations
+
+from functools import partial
+
+import anyio
+import pytest
+from structlog.testing import capture_logs
+
+from gateway.app import Gateway
+from gateway.config import Config
+from gateway.sim.airframe import SimulatedAirframe
+from gateway.testing import MemorySink, eventually
+
+MAV_CMD_COMPONENT_ARM_DISARM = 400  # any command the simulator acknowledges will do
+MAV_CMD_DO_SET_MODE = 176
+
+
+def gateway() -> Gateway:
+    config = Config.model_validate(
+        {
+            "gateway": {"shutdown_deadline_s": 1},
+            "health": {"enabled": False},
+            "airframes": [
+                {
+                    "id": "F26E-001",
+                    "sysid": 1,
+                    "links": [{"uri": "udp://127.0.0.1:0", "security": "unsecured"}],
+                }
+            ],
+            "sinks": [{"name": "mem", "type": "memory"}],
+            "routes": [{"sinks": ["mem"]}],
+        }
+    )
+    return Gateway(config, sinks={"mem": MemorySink("mem")})
+
+
+@pytest.mark.anyio
+async def test_a_command_is_correlated_with_its_ack_and_a_lost_one_is_retried_then_reported() -> (
+    None
+):
+    gw = gateway()
+    sim = SimulatedAirframe(1)
+    with anyio.fail_after(20):
+        async with anyio.create_task_group() as tg:
+            await tg.start(gw.run)
+            port = next(iter(gw.links.values())).local_port  # type: ignore[attr-defined]
+            await tg.start(partial(sim.run_udp, "127.0.0.1", port))
+            await eventually(lambda: gw.ingest.active_link("F26E-001") is not None)
+            session = gw.sessions["F26E-001"]
+
+            done = await session.command_long(MAV_CMD_COMPONENT_ARM_DISARM, 1.0)
+            assert done.is_accepted
+            assert done.result_name == "MAV_RESULT_ACCEPTED"
+            assert done.attempts == 1
+            assert done.latency_s is not None
+            assert 0 < done.latency_s < 1.0
+            assert sim.commands == [(MAV_CMD_COMPONENT_ARM_DISARM, 0)]
+
+            sim.ack_commands = False
+            with capture_logs() as logs:
+                lost = await session.command_long(MAV_CMD_DO_SET_MODE, 1, timeout_s=0.2, retries=2)
+            assert lost.result is None
+            assert lost.result_name == "TIMEOUT"
+            assert lost.attempts == 3
+            # Each retry says it is one (MAVLink's confirmation field counts them).
+            assert sim.commands[1:] == [(MAV_CMD_DO_SET_MODE, n) for n in range(3)]
+            assert [e["event"] for e in logs] == ["command_timed_out"]
+            status = gw.status()["airframes"][0]
+            assert status["commands_sent"] == 4
+            assert status["commands_timed_out"] == 1
+            assert status["last_command"]["result"] == "TIMEOUT"
+            gw.shutdown()
+            tg.cancel_scope.cancel()
