@@ -41,7 +41,7 @@ from gateway.events import BlueForce, Event, Position, event_id
 from gateway.ops.logsetup import RateLimit
 from sources._cot_stream import CotStreamServer
 
-__all__ = ["FUTURE_TOLERANCE", "NO_FIX_DEG", "CotListener", "CotSourceConfig"]
+__all__ = ["FUTURE_TOLERANCE", "NO_FIX_DEG", "CotSource", "CotSourceConfig"]
 
 log = structlog.get_logger(__name__)
 
@@ -56,7 +56,7 @@ class CotSourceConfig(BaseModel):
     """A CoT input: ``udp://HOST:PORT``, ``udp+multicast://GROUP:PORT`` or ``tcp://HOST:PORT``.
 
     For UDP, HOST is the address to bind (or a multicast group to join on ``interface``); for
-    TCP, the address to listen on. Port 0 picks a free port (see ``CotListener.local_port``).
+    TCP, the address to listen on. Port 0 picks a free port (see ``CotSource.local_port``).
     """
 
     model_config = ConfigDict(frozen=True, extra="forbid")
@@ -111,7 +111,7 @@ def _utc_now() -> datetime:
     return datetime.now(UTC)
 
 
-class CotListener:
+class CotSource:
     """Receives CoT and publishes a ``BlueForce`` for each current friendly position."""
 
     config_model: ClassVar[type[CotSourceConfig]] = CotSourceConfig

@@ -21,7 +21,7 @@ from gateway.config import Config
 from gateway.events import BlueForce, Event
 from gateway.testing import MemorySink, eventually, fuzz_examples
 from sources._cot_stream import EventSplitter
-from sources.cot import NO_FIX_DEG, CotListener, CotSourceConfig
+from sources.cot import NO_FIX_DEG, CotSource, CotSourceConfig
 
 CORPUS = Path(__file__).resolve().parents[2].parent / "shared" / "corpus" / "cot"
 METRICS = CORPUS / "freetakserver_example_metrics" / "cot"
@@ -38,9 +38,9 @@ FRIEND = (
 NOW = datetime(2026, 11, 22, 10, 1, tzinfo=UTC)
 
 
-def listener(events: list[Event], uri: str = "udp://127.0.0.1:0", **options: Any) -> CotListener:
+def listener(events: list[Event], uri: str = "udp://127.0.0.1:0", **options: Any) -> CotSource:
     config = CotSourceConfig(uri=uri, **options)
-    return CotListener("cot", config, events.append, clock=lambda: NOW)
+    return CotSource("cot", config, events.append, clock=lambda: NOW)
 
 
 def at(event: bytes, time: str, uid: str = "ANDROID-1") -> bytes:
@@ -69,7 +69,7 @@ def test_real_atak_and_wintak_events_all_parse_and_no_fix_is_rejected() -> None:
     files = corpus_files()
     events: list[Event] = []
     now = [NOW]
-    source = CotListener(
+    source = CotSource(
         "cot", CotSourceConfig(uri="udp://127.0.0.1:0"), events.append, clock=lambda: now[0]
     )
     for path in files:
@@ -89,7 +89,7 @@ def test_real_atak_and_wintak_events_all_parse_and_no_fix_is_rejected() -> None:
 def test_years_old_real_events_are_not_current_blue_force() -> None:
     """Issue 10: the 2020 captures were published as current friendly positions."""
     events: list[Event] = []
-    source = CotListener("cot", CotSourceConfig(uri="udp://127.0.0.1:0"), events.append)
+    source = CotSource("cot", CotSourceConfig(uri="udp://127.0.0.1:0"), events.append)
     for path in corpus_files():
         source.handle(path.read_bytes())
     assert events == []
@@ -103,7 +103,7 @@ def test_real_events_out_of_order_keep_the_newest_per_uid() -> None:
     newest_first = sorted(parsed, key=lambda item: item[0].time, reverse=True)
     last = newest_first[0][0].time
     events: list[Event] = []
-    source = CotListener(
+    source = CotSource(
         "cot", CotSourceConfig(uri="udp://127.0.0.1:0"), events.append, clock=lambda: last
     )
     for _, data in newest_first:
