@@ -6,29 +6,18 @@ One event per datagram, XML or TAK protocol v1 mesh protobuf; never split across
 
 from __future__ import annotations
 
-import socket
-import struct
 from collections.abc import Sequence
-from ipaddress import ip_address
 
 import anyio
 
 from gateway.codecs.cot.codec import Encoded, Encoding, tak_control
 from gateway.codecs.cot.proto import mesh_frame
+from gateway.transports.udp import DatagramSender
 from sinks._cot_transport import Endpoint
 
 __all__ = ["UdpSender"]
 
 _MAX_DATAGRAM = 65_000
-
-
-def _interface_request(interface: str) -> bytes:
-    """``IP_MULTICAST_IF`` argument for an interface address or name (Linux ``ip_mreqn``)."""
-    try:
-        return socket.inet_aton(str(ip_address(interface)))
-    except ValueError:
-        index = socket.if_nametoindex(interface)
-        return struct.pack("=4s4si", b"\0" * 4, b"\0" * 4, index)
 
 
 class UdpSender:
@@ -47,9 +36,9 @@ class UdpSender:
         self.announce_every_s = announce_every_s
         self._control = tak_control()
         self._announced_at: float | None = None
-        self._sock: socket.socket | None = None
-        self._address: tuple[str, int] | None = None
-        self._opening = anyio.Lock()
+        self._datagrams = DatagramSender(
+            endpoint.host, endpoint.port, ttl=endpoint.ttl, interface=endpoint.interface
+        )
 
     def announce_due_in_s(self) -> float:
         """Seconds until the next ``TakControl`` is due (0: now)."""
@@ -65,28 +54,7 @@ class UdpSender:
 
     async def open(self) -> None:
         """Create the socket (resolving the host once); ``OSError`` if that fails."""
-        async with self._opening:
-            if self._sock is None:
-                await self._create()
-
-    async def _create(self) -> None:
-        infos = await anyio.getaddrinfo(
-            self.endpoint.host, self.endpoint.port, family=socket.AF_INET, type=socket.SOCK_DGRAM
-        )
-        address = infos[0][4]
-        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        try:
-            sock.setblocking(False)
-            if ip_address(address[0]).is_multicast:
-                sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, self.endpoint.ttl)
-                sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_LOOP, 1)
-                if self.endpoint.interface:
-                    request = _interface_request(self.endpoint.interface)
-                    sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, request)
-        except OSError:
-            sock.close()
-            raise
-        self._sock, self._address = sock, (str(address[0]), int(address[1]))
+        await self._datagrams.open()
 
     def oversize(self, events: Sequence[Encoded]) -> list[Encoded]:
         """The events too large for one datagram in this destination's encoding."""
@@ -105,18 +73,8 @@ class UdpSender:
                 await self._send_datagram(data)
 
     async def _send_datagram(self, data: bytes) -> None:
-        await self.open()
-        assert self._sock is not None  # noqa: S101 - opened above
-        assert self._address is not None  # noqa: S101 - opened above
-        while True:
-            try:
-                self._sock.sendto(data, self._address)
-                return
-            except BlockingIOError:
-                await anyio.wait_writable(self._sock)
+        await self._datagrams.send(data)
 
     async def aclose(self) -> None:
         """Close the socket."""
-        if self._sock is not None:
-            self._sock.close()
-        self._sock = None
+        await self._datagrams.aclose()

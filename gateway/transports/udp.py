@@ -1,0 +1,83 @@
+"""Datagrams to a unicast address or a multicast group, for any sink that speaks UDP.
+
+``DatagramSender`` resolves the host once, opens a non-blocking socket (for a multicast group:
+TTL, loopback on, and the interface to send from, by address or name) and sends each
+datagram whole, waiting while the kernel's buffer is full. CoT to ATAK's SA mesh uses it
+today; KLV and Ra 180's UDP radio gateway will too.
+"""
+
+from __future__ import annotations
+
+import socket
+import struct
+from ipaddress import ip_address
+
+import anyio
+
+__all__ = ["DatagramSender", "interface_request"]
+
+
+def interface_request(interface: str) -> bytes:
+    """``IP_MULTICAST_IF`` argument for an interface address or name (Linux ``ip_mreqn``)."""
+    try:
+        return socket.inet_aton(str(ip_address(interface)))
+    except ValueError:
+        index = socket.if_nametoindex(interface)
+        return struct.pack("=4s4si", b"\0" * 4, b"\0" * 4, index)
+
+
+class DatagramSender:
+    """One UDP destination; ``OSError`` from ``open``/``send`` if the network refuses."""
+
+    def __init__(self, host: str, port: int, *, ttl: int = 1, interface: str | None = None):
+        self.host = host
+        self.port = port
+        self.ttl = ttl
+        self.interface = interface
+        self._sock: socket.socket | None = None
+        self._address: tuple[str, int] | None = None
+        self._opening = anyio.Lock()
+
+    async def open(self) -> None:
+        """Create the socket (resolving the host once); a no-op when open."""
+        async with self._opening:
+            if self._sock is None:
+                await self._create()
+
+    async def _create(self) -> None:
+        infos = await anyio.getaddrinfo(
+            self.host, self.port, family=socket.AF_INET, type=socket.SOCK_DGRAM
+        )
+        address = infos[0][4]
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            sock.setblocking(False)
+            if ip_address(address[0]).is_multicast:
+                sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, self.ttl)
+                sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_LOOP, 1)
+                if self.interface:
+                    request = interface_request(self.interface)
+                    sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, request)
+        except OSError:
+            sock.close()
+            raise
+        self._sock, self._address = sock, (str(address[0]), int(address[1]))
+
+    async def send(self, data: bytes) -> None:
+        """Send ``data`` as one datagram, opening the socket first if needed."""
+        await self.open()
+        sock, address = self._sock, self._address
+        if sock is None or address is None:
+            raise OSError("the UDP socket is not open")
+        while True:
+            try:
+                sock.sendto(data, address)
+                return
+            except BlockingIOError:
+                await anyio.wait_writable(sock)
+
+    async def aclose(self) -> None:
+        """Close the socket (it is opened again by the next ``send``)."""
+        if self._sock is not None:
+            self._sock.close()
+        self._sock = None
