@@ -70,7 +70,7 @@ class ProcessorRunner:
             return  # its own output coming back round: never fed to itself
         try:
             self._send.send_nowait(event)
-        except anyio.WouldBlock:
+        except (anyio.WouldBlock, anyio.ClosedResourceError, anyio.BrokenResourceError):
             self._dropped.inc()
             if self._log_limit.allow("full"):
                 self.log.error(
@@ -95,13 +95,24 @@ class ProcessorRunner:
         self, *, task_status: anyio.abc.TaskStatus[None] = anyio.TASK_STATUS_IGNORED
     ) -> None:
         """Run the processor until cancelled, restarting it when it fails."""
+        try:
+            await self._supervise(task_status)
+        finally:
+            self.close()
+
+    def close(self) -> None:
+        """Close the inbox (the runner's task does so when it ends)."""
+        self._send.close()
+        self._receive.close()
+
+    async def _supervise(self, task_status: anyio.abc.TaskStatus[None]) -> None:
         delay = _RESTART_INITIAL_S
         started = False
         while True:
+            inbox = self._receive.clone()  # closed below whatever the processor did with it
             try:
-                async with anyio.create_task_group() as tg:
-                    run = partial(self.processor.run, self._receive.clone(), self.publish)
-                    await tg.start(run)
+                async with inbox, anyio.create_task_group() as tg:
+                    await tg.start(partial(self.processor.run, inbox, self.publish))
                     self.state, self.reason = "running", ""
                     if not started:
                         task_status.started()
