@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Mapping
+from functools import partial
 from importlib.metadata import PackageNotFoundError, version
 from typing import Any
 
@@ -35,6 +36,7 @@ from gateway.flow.processors import ProcessorRunner
 from gateway.ops.health import HealthServer
 from gateway.ops.instruments import Instruments
 from gateway.ops.sdnotify import SystemdNotifier
+from gateway.ops.supervise import Supervised, supervise
 
 __all__ = ["Gateway", "utc_now"]
 
@@ -150,6 +152,7 @@ class Gateway:
             )
             for entry in config.sources
         ]
+        self._source_records = [Supervised(s.name) for s in self.sources]
         self.passthroughs: dict[str, Passthrough] = {}
         for airframe in config.airframes:
             if airframe.passthrough is not None:
@@ -245,8 +248,10 @@ class Gateway:
                     await ingest.start(link.run)
                 for passthrough in self.passthroughs.values():
                     await ingest.start(passthrough.run)
-                for source in self.sources:
-                    await ingest.start(source.run)
+                for source, record in zip(self.sources, self._source_records, strict=True):
+                    # A source is a plugin: its failure (or a start that never comes) is
+                    # retried with backoff and shown on /status, never the daemon's end.
+                    await ingest.start(partial(supervise, source.run, record, what="source"))
                 ingest.start_soon(self._watch_links)
                 self._links_up = True
                 outer.start_soon(self.notifier.run_watchdog)
@@ -330,7 +335,10 @@ class Gateway:
                 for link in self.links.values()
             ],
             "passthroughs": [p.status() for p in self.passthroughs.values()],
-            "sources": [s.status() for s in self.sources],
+            "sources": [
+                {**s.status(), "state": r.state, "reason": r.reason, "restarts": r.restarts}
+                for s, r in zip(self.sources, self._source_records, strict=True)
+            ],
             "unknown_sysids": sorted(self.ingest.unknown_sysids),
             "sinks": [runner.status() for runner in self.runners.values()],
             "processors": [p.status() for p in self.processors.values()],

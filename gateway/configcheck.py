@@ -20,8 +20,15 @@ from typing import Any
 from pydantic import BaseModel, ValidationError
 
 from gateway.app import dem_sources
-from gateway.c2.plugins import PROCESSOR_GROUP, SOURCE_GROUP, check_component, load_plugin
+from gateway.c2.plugins import (
+    PROCESSOR_GROUP,
+    SOURCE_GROUP,
+    check_component,
+    load_component,
+    load_plugin,
+)
 from gateway.c2.sink import Sink
+from gateway.clock import utc_now
 from gateway.config import Config
 from gateway.configfile import Loc, validation_issues
 from gateway.domain.terrain import check_sources
@@ -46,7 +53,7 @@ class NodeCheck:
         self.sinks: dict[str, Sink] = {}
 
     def __call__(self, data: dict[str, Any], config: Config | None) -> Iterator[Finding]:
-        yield from _components(data)
+        yield from _components(data, build=self.environment)
         if not self.environment:
             return
         yield from self._keys(data)
@@ -171,30 +178,55 @@ class NodeCheck:
                         )
 
 
-def _components(data: dict[str, Any]) -> Iterator[Finding]:
-    """Sources' and processors' types and options, checked by their plugins' models."""
+def _components(data: dict[str, Any], *, build: bool) -> Iterator[Finding]:
+    """Sources' and processors' types and options; with ``build``, each is constructed too."""
     for i, entry in enumerate(_items(data.get("sources"))):
-        type_name = entry.get("type", "cot")
+        type_name, name = entry.get("type", "cot"), entry.get("name", "cot")
         if not isinstance(type_name, str):
             continue
         options = {k: v for k, v in entry.items() if k not in ("name", "type")}
-        yield from _component(SOURCE_GROUP, type_name, options, ("sources", i))
+        loc: Loc = ("sources", i)
+        yield from _component(SOURCE_GROUP, type_name, str(name), options, loc, build=build)
     for i, entry in enumerate(_items(data.get("processors"))):
         type_name, options = entry.get("type"), entry.get("options") or {}
         if isinstance(type_name, str) and isinstance(options, dict):
-            yield from _component(PROCESSOR_GROUP, type_name, options, ("processors", i, "options"))
+            loc = ("processors", i, "options")
+            name = str(entry.get("name", type_name))
+            yield from _component(PROCESSOR_GROUP, type_name, name, options, loc, build=build)
 
 
-def _component(group: str, type_name: str, options: dict[str, Any], loc: Loc) -> Iterator[Finding]:
+def _component(
+    group: str,
+    type_name: str,
+    name: str,
+    options: dict[str, Any],
+    loc: Loc,
+    *,
+    build: bool,
+) -> Iterator[Finding]:
+    what = "source" if group == SOURCE_GROUP else "processor"
     try:
-        check_component(group, type_name, options)
+        config = check_component(group, type_name, options)
     except SinkOptionsInvalid as exc:
         if isinstance(exc.validation, ValidationError):
             model = exc.model if issubclass(exc.model, BaseModel) else None
             for where, message in validation_issues(exc.validation, loc, model):
                 yield where, message, True
+        return
     except SinkLoadError as exc:
         yield (*loc[:2], "type"), str(exc), True
+        return
+    if not build:
+        return
+    # As the daemon will: a constructor that fails is a config error on this line.
+    factory = load_component(group, type_name).factory
+    try:
+        if group == SOURCE_GROUP:
+            factory(name, config, lambda _event: None, clock=utc_now)
+        else:
+            factory(name, config)
+    except (TypeError, ValueError, OSError) as exc:
+        yield (*loc[:2], "type"), f"{what} type {type_name!r} cannot be built: {exc}", True
 
 
 def _key_problem(loc: Loc, path: Path, *, exact: bool) -> Iterator[Finding]:

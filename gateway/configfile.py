@@ -259,6 +259,22 @@ def _cross_check(data: dict[str, Any]) -> Iterator[tuple[Loc, str]]:
                     )
                 else:
                     seen[value] = i
+    for section in ("sources", "processors"):
+        items = data.get(section)
+        names: dict[object, int] = {}
+        for i, item in enumerate(items if isinstance(items, list) else ()):
+            if not isinstance(item, dict):
+                continue
+            name = item.get("name", "cot" if section == "sources" else None)
+            if name is None:
+                continue
+            if name in names:
+                yield (
+                    (section, i, "name"),
+                    f"duplicate name {name!r}, already used by {section}[{names[name]}]",
+                )
+            else:
+                names[name] = i
     sink_names: dict[object, int] = {}
     sinks = data.get("sinks")
     if isinstance(sinks, list):

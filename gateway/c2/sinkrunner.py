@@ -36,12 +36,14 @@ from gateway.events import LATEST_WINS_KINDS, Event, latest_key
 from gateway.ops.instruments import Instruments
 from gateway.ops.logsetup import RateLimit
 
-__all__ = ["DEAD_LETTER_KEEP", "ERROR_ATTEMPTS", "SinkRunner"]
+__all__ = ["DEAD_LETTER_KEEP", "ERROR_ATTEMPTS", "MAX_LATEST_SLOTS", "SinkRunner"]
 
 log = structlog.get_logger(__name__)
 
 #: Dead-lettered events kept in memory for /status until the spool keeps them on disk.
 DEAD_LETTER_KEEP = 1000
+#: Latest-wins slots held for one sink at most (units reported over CoT, airframes ...).
+MAX_LATEST_SLOTS = 10_000
 
 #: Unexpected errors (sink bugs) in a row on one batch before its events are tried one by one
 #: and those that still fail are given up on (dead-lettered, or counted if latest-wins).
@@ -127,6 +129,12 @@ class SinkRunner:
             latest = self._latest
             if slot in latest:
                 self._superseded.inc()
+                del latest[slot]  # re-inserted below: the dict stays oldest-first
+            elif len(latest) >= MAX_LATEST_SLOTS:
+                # Slots are keyed by airframe, uid ... from the network: while a sink is down
+                # the oldest latest-wins report makes room (counted like an overflow).
+                del latest[next(iter(latest))]
+                self._overflow.inc()
             latest[slot] = (event, ingest_mono)
         elif len(self._durable) >= self.entry.queue_max:
             self._overflow.inc()

@@ -285,9 +285,15 @@ class Ingest:
         name = msg.get_type()
         if name == "HEARTBEAT" and msg.autopilot != _MAV_AUTOPILOT_INVALID:
             airframe.health.autopilot_compid = msg.get_srcComponent()
-        handler = airframe.handlers.get(name)
-        if handler is not None:
-            handler(airframe, label, msg)
+        try:
+            airframe.dispatch(label, name, msg)
+        except Exception:
+            # A handler is an extension point (session.on): its bug costs this message only.
+            self._inst.link_ignored.labels(label, "handler_error").inc()
+            if self._reject_log.allow((label, "handler_error")):
+                log.exception(
+                    "message_handler_failed", link=label, airframe=airframe.id, message=name
+                )
 
     def _telemetry(self, airframe: AirframeSession, _label: str, msg: MavMessage) -> None:
         if airframe.state.update(msg.get_type(), msg):

@@ -42,7 +42,9 @@ Transmit = Callable[[str, bytes], Awaitable[None]]
 
 #: Our identity on the MAVLink network when the gateway itself commands: a ground station.
 GATEWAY_SYSID = 255
-GATEWAY_COMPID = 190  # MAV_COMP_ID_MISSIONPLANNER, as ground-station software uses
+#: MAV_COMP_ID_ONBOARD_COMPUTER: not 190, which QGroundControl and Mission Planner use, so a
+#: ground station on the passthrough and the gateway are two components, never confused.
+GATEWAY_COMPID = 191
 
 _RESULT_NAMES: dict[int, str] = {
     int(key): str(entry.name) for key, entry in dialect.enums["MAV_RESULT"].items()
@@ -79,6 +81,8 @@ class _Pending:
     done: anyio.Event = field(default_factory=anyio.Event)
     result: int | None = None
     acked_mono: float | None = None
+    in_progress: bool = False
+    progress: anyio.Event = field(default_factory=anyio.Event)
 
 
 @dataclass(slots=True)
@@ -128,10 +132,18 @@ class AirframeSession:
 
     def on_command_ack(self, _session: AirframeSession, _label: str, msg: MavMessage) -> None:
         """The COMMAND_ACK handler: resolve the command waiting for it, if any."""
+        # An ACK addressed to someone else (a ground station on the passthrough) is not ours.
+        target_system = int(getattr(msg, "target_system", 0) or 0)
+        target_component = int(getattr(msg, "target_component", 0) or 0)
+        if target_system not in (0, GATEWAY_SYSID) or target_component not in (0, GATEWAY_COMPID):
+            return
         pending = self._pending.get(int(msg.command))
         if pending is None or pending.done.is_set():
             return
-        if int(msg.result) == _MAV_RESULT_IN_PROGRESS:  # keep waiting for the final one
+        if int(msg.result) == _MAV_RESULT_IN_PROGRESS:
+            # Accepted and running (a calibration ...): stop resending, wait for the result.
+            pending.in_progress = True
+            pending.progress.set()
             return
         pending.result = int(msg.result)
         pending.acked_mono = time.monotonic()
@@ -153,13 +165,19 @@ class AirframeSession:
         *params: float,
         timeout_s: float = 1.5,
         retries: int = 2,
+        in_progress_timeout_s: float = 60.0,
     ) -> CommandResult:
         """Send COMMAND_LONG ``command`` and wait for its COMMAND_ACK.
 
-        Retries ``retries`` times after a timeout (``confirmation`` counts the attempts).
-        Returns the ``CommandResult``; raises ``LinkError`` if it cannot be sent at all. One
-        command per id at a time: a second ``command_long`` with the same id waits its turn.
+        Retries ``retries`` times after a timeout (``confirmation`` counts the attempts); once
+        the airframe says MAV_RESULT_IN_PROGRESS it is not resent, and the final ACK is awaited
+        for up to ``in_progress_timeout_s``. Returns the ``CommandResult``; raises
+        ``LinkError`` if it cannot be sent at all. One command per id at a time: a second
+        ``command_long`` with the same id waits its turn. MAVLink ACKs carry no request id, so
+        an ACK that comes after its command timed out can answer the next one with that id.
         """
+        if retries < 0 or timeout_s <= 0:
+            raise ValueError("expected retries >= 0 and timeout_s > 0")
         while command in self._pending:
             await self._pending[command].done.wait()
         attempts = 0
@@ -169,11 +187,14 @@ class AirframeSession:
             for confirmation in range(retries + 1):
                 attempts += 1
                 pending.sent_mono = time.monotonic()
-                self.commands_sent += 1
                 await self.send(self._encode_command_long(command, params, confirmation))
+                self.commands_sent += 1
                 with anyio.move_on_after(timeout_s):
-                    await pending.done.wait()
-                if pending.done.is_set():
+                    await _first(pending.done, pending.progress)
+                if pending.in_progress and not pending.done.is_set():
+                    with anyio.move_on_after(in_progress_timeout_s):
+                        await pending.done.wait()
+                if pending.done.is_set() or pending.in_progress:
                     break
             if pending.result is None:
                 self.commands_timed_out += 1
@@ -207,3 +228,15 @@ class AirframeSession:
                 "latency_s": None if last.latency_s is None else round(last.latency_s, 4),
             },
         }
+
+
+async def _first(*events: anyio.Event) -> None:
+    """Return as soon as one of ``events`` is set."""
+    async with anyio.create_task_group() as tg:
+
+        async def wait(event: anyio.Event) -> None:
+            await event.wait()
+            tg.cancel_scope.cancel()
+
+        for event in events:
+            tg.start_soon(wait, event)

@@ -23,6 +23,8 @@ from gateway.ops.instruments import Instruments
 
 __all__ = ["Bus"]
 
+_MAX_CACHED_ROUTES = 4096
+
 log = structlog.get_logger(__name__)
 
 
@@ -70,7 +72,7 @@ class Bus:
         }
         self._inst = instruments
         self._cache: dict[tuple[EventKind, tuple[str, ...] | None, str | None], list[_Target]] = {}
-        self._targets: dict[tuple[int, str], _Target] = {}
+        self._targets: dict[tuple[int, str, EventKind], _Target] = {}
         self._event_counters = {kind: instruments.events.labels(kind.value) for kind in EventKind}
         self._check(source)
 
@@ -119,10 +121,12 @@ class Bus:
                     continue
                 seen.add(name)
                 rate = route.max_rate_hz if kind in LATEST_WINS_KINDS else None
-                target = self._targets.get((i, name))
+                # Per kind: a route's max_rate_hz thins latest-wins kinds only, whichever kind
+                # happened to be routed first.
+                target = self._targets.get((i, name, kind))
                 if target is None:
                     target = _Target(runner, None if rate is None else 1.0 / rate, {})
-                    self._targets[(i, name)] = target
+                    self._targets[(i, name, kind)] = target
                 targets.append(target)
         return targets
 
@@ -139,6 +143,9 @@ class Bus:
         targets = self._cache.get(key)
         if targets is None:
             targets = self._resolve(*key)
+            if len(self._cache) >= _MAX_CACHED_ROUTES:
+                # Keys include classes and airframes from the network: bounded, not a leak.
+                self._cache.clear()
             self._cache[key] = targets
         if not targets:
             return

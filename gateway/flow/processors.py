@@ -10,9 +10,6 @@ backoff, and what arrived meanwhile is still in the stream.
 
 from __future__ import annotations
 
-import random
-from functools import partial
-
 import anyio
 import anyio.abc
 import structlog
@@ -21,13 +18,11 @@ from gateway.events import Event, EventKind
 from gateway.flow.processor import Processor, Publish
 from gateway.ops.instruments import Instruments
 from gateway.ops.logsetup import RateLimit
+from gateway.ops.supervise import Supervised, supervise
 
 __all__ = ["ProcessorRunner"]
 
 log = structlog.get_logger(__name__)
-
-_RESTART_INITIAL_S = 0.5
-_RESTART_MAX_S = 30.0
 
 
 class ProcessorRunner:
@@ -50,9 +45,7 @@ class ProcessorRunner:
         self._publish = publish
         self._send, self._receive = anyio.create_memory_object_stream[Event](queue_max)
         self._publishing = False
-        self.state = "starting"
-        self.reason = ""
-        self.restarts = 0
+        self.record = Supervised(name)
         self._in = instruments.processor_events.labels(name, "in")
         self._out = instruments.processor_events.labels(name, "out")
         self._dropped = instruments.processor_events.labels(name, "dropped")
@@ -96,7 +89,7 @@ class ProcessorRunner:
     ) -> None:
         """Run the processor until cancelled, restarting it when it fails."""
         try:
-            await self._supervise(task_status)
+            await supervise(self._run_once, self.record, what="processor", task_status=task_status)
         finally:
             self.close()
 
@@ -105,41 +98,22 @@ class ProcessorRunner:
         self._send.close()
         self._receive.close()
 
-    async def _supervise(self, task_status: anyio.abc.TaskStatus[None]) -> None:
-        delay = _RESTART_INITIAL_S
-        started = False
-        while True:
-            inbox = self._receive.clone()  # closed below whatever the processor did with it
-            try:
-                async with inbox, anyio.create_task_group() as tg:
-                    await tg.start(partial(self.processor.run, inbox, self.publish))
-                    self.state, self.reason = "running", ""
-                    if not started:
-                        task_status.started()
-                        started = True
-                    delay = _RESTART_INITIAL_S
-            except Exception as exc:
-                self.restarts += 1
-                self.state, self.reason = "restarting", f"{type(exc).__name__}: {exc}"
-                if self._log_limit.allow("failed"):
-                    self.log.exception("processor_failed", restarts=self.restarts)
-            else:
-                self.state, self.reason = "stopped", "its run returned"
-            if not started:
-                task_status.started()  # degraded, not fatal: the daemon starts without it
-                started = True
-            await anyio.sleep(delay * random.uniform(0.5, 1.0))  # noqa: S311 - jitter
-            delay = min(delay * 2, _RESTART_MAX_S)
+    async def _run_once(
+        self, *, task_status: anyio.abc.TaskStatus[None] = anyio.TASK_STATUS_IGNORED
+    ) -> None:
+        # A fresh clone each time, closed whatever the processor did with it.
+        async with self._receive.clone() as inbox:
+            await self.processor.run(inbox, self.publish, task_status=task_status)
 
     def status(self) -> dict[str, object]:
         """State and counters for /status."""
         return {
             "processor": self.name,
             "type": self.type_name,
-            "state": self.state,
-            "reason": self.reason,
-            "restarts": self.restarts,
-            "events_in": self._in.value,
-            "events_out": self._out.value,
-            "dropped": self._dropped.value,
+            "state": self.record.state,
+            "reason": self.record.reason,
+            "restarts": self.record.restarts,
+            "events_in": int(self._in.value),
+            "events_out": int(self._out.value),
+            "dropped": int(self._dropped.value),
         }

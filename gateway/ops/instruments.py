@@ -30,7 +30,8 @@ class Instruments:
         )
         self.link_ignored = r.counter(
             "fg_link_frames_ignored_total",
-            "Good frames not used, by reason (unknown_sysid, unknown_msgid, duplicate).",
+            "Good frames not used, by reason (unknown_sysid, unknown_msgid, duplicate, "
+            "handler_error).",
             ("link", "reason"),
         )
         self.link_rejected = r.counter(

@@ -356,7 +356,12 @@ class SimulatedAirframe:
                     continue
                 self.commands.append((int(msg.command), int(msg.confirmation)))
                 if self.ack_commands:
-                    ack = self._mav.command_ack_encode(msg.command, mav.MAV_RESULT_ACCEPTED)
+                    ack = self._mav.command_ack_encode(
+                        msg.command,
+                        mav.MAV_RESULT_ACCEPTED,
+                        target_system=msg.get_srcSystem(),
+                        target_component=msg.get_srcComponent(),
+                    )
                     async with sending:
                         await sock.send(bytes(ack.pack(self._mav)))
 

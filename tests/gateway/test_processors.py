@@ -74,7 +74,7 @@ async def test_a_failing_processor_restarts_and_is_never_fed_its_own_output() ->
         async with anyio.create_task_group() as tg:
             await tg.start(runner.run)
             bus.publish(blue(1))
-            await eventually(lambda: runner.restarts == 1)
+            await eventually(lambda: runner.record.restarts == 1)
             bus.publish(blue(2))
             await eventually(lambda: len(published) == 1)
             tg.cancel_scope.cancel()

@@ -77,3 +77,42 @@ async def test_a_command_is_correlated_with_its_ack_and_a_lost_one_is_retried_th
             assert status["last_command"]["result"] == "TIMEOUT"
             gw.shutdown()
             tg.cancel_scope.cancel()
+
+
+class _Ack:
+    """A COMMAND_ACK as pymavlink decodes it."""
+
+    def __init__(self, command: int, result: int, target: tuple[int, int]) -> None:
+        self.command, self.result = command, result
+        self.target_system, self.target_component = target
+
+
+@pytest.mark.anyio
+async def test_in_progress_stops_resending_and_a_foreign_ack_is_not_ours() -> None:
+    from gateway.fleet.session import GATEWAY_COMPID, GATEWAY_SYSID
+
+    gw = gateway()
+    session = gw.sessions["F26E-001"]
+    sent: list[bytes] = []
+
+    async def transmit(_airframe: str, frames: bytes) -> None:
+        sent.append(frames)
+
+    session.transmit = transmit
+    ours = (GATEWAY_SYSID, GATEWAY_COMPID)
+    with anyio.fail_after(10):
+        async with anyio.create_task_group() as tg:
+
+            async def airframe() -> None:
+                await eventually(lambda: len(sent) == 1)
+                # QGroundControl's ACK for the same command id: addressed to 255/190.
+                session.on_command_ack(session, "l", _Ack(241, 4, (255, 190)))
+                session.on_command_ack(session, "l", _Ack(241, 5, ours))  # IN_PROGRESS
+                await anyio.sleep(0.5)  # longer than the timeout: no resend may follow
+                session.on_command_ack(session, "l", _Ack(241, 0, ours))
+
+            tg.start_soon(airframe)
+            done = await session.command_long(241, 1.0, timeout_s=0.2, retries=3)
+    assert len(sent) == 1
+    assert done.is_accepted
+    assert done.attempts == 1
