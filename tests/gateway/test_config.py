@@ -282,3 +282,9 @@ def test_replay_to_a_non_udp_target_is_a_usage_error(
     monkeypatch.setattr("gateway.cli.configure_logging", lambda *a, **k: None)
     assert main(["replay", "/dev/null", "--to", "tcp://127.0.0.1:1"]) == 2
     assert "--to: expected udp://HOST:PORT" in capsys.readouterr().err
+
+
+def test_source_and_processor_names_are_unique() -> None:
+    text = "sources:\n  - {name: a, uri: 'udp://127.0.0.1:1'}\n  - {name: a, uri: 'udp://127.0.0.1:2'}\n"
+    with pytest.raises(ConfigError, match=r"duplicate name 'a', already used by sources\[0\]"):
+        load_config_text(text, "s.yaml")

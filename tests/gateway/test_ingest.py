@@ -254,3 +254,20 @@ def test_loss_ratio_of_real_logs_is_the_loss_of_the_autopilot_frames(
             ingest.on_data("l", "tlog", record.frame)
     (link,) = ingest.status()[0]["links"]  # type: ignore[misc]
     assert link["loss_pct"] / 100 == pytest.approx(drop, abs=0.02)
+
+
+def test_a_failing_message_handler_costs_that_message_only() -> None:
+    """session.on() is an extension point: its bug is counted, never raised into a link."""
+    ingest, events, inst = make_ingest(1)
+    session = ingest.sessions["AF-1"]
+
+    def broken(_session: object, _label: str, _msg: object) -> None:
+        raise KeyError("a bug in a handler")
+
+    session.on("HEARTBEAT", broken)
+    m = encoder(1)
+    ingest.on_data("l", "peer", pack(m, m.heartbeat_encode(1, 3, 0, 0, 4)))
+    ingest.on_data("l", "peer", gpi(m, 590000000, 180000000, 100000))
+    ingest.flush()
+    assert inst.link_ignored.labels("l", "handler_error").value == 1
+    assert telemetry_of(events)  # the next message was handled as usual

@@ -38,7 +38,7 @@ health: {{port: 0}}
 airframes:
   - {{id: OPEN, sysid: 3, links: [{{uri: 'udp://127.0.0.1:{port}', security: unsecured}}]}}
 sources:
-  - {{name: tick, type: ticker, interval_s: 0.1, callsign: ALPHA}}
+  - {{name: tick, type: ticker, interval_s: 0.1, callsign: ALPHA, crash_every: 5}}
 processors:
   - {{name: twin, type: doubler, options: {{prefix: TW}}}}
 sinks:
@@ -63,6 +63,10 @@ routes:
         assert processor["events_in"] >= 3
         assert processor["events_out"] >= 3
         assert {s["source"] for s in status["sources"]} == {"tick"}
+        # The ticker raises every 5 reports: restarted, never the end of the daemon.
+        wait_until(lambda: daemon.status()["sources"][0]["restarts"] >= 1, 10, "a restart")
+        assert daemon.get("/readyz")[0] == 200
+        assert daemon.events("source_failed")
         assert daemon.metric("fg_processor_events_total", processor="twin", direction="out") >= 3
     tracks = [e for e in archive_events(archive) if e["kind"] == "track"]
     expected = f"TW-OPEN-{CLASS_NAMES[1]}"  # the daemon_support detection's class_id

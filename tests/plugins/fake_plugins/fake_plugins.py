@@ -73,6 +73,7 @@ class TickerConfig(BaseModel):
 
     interval_s: float = Field(default=0.2, gt=0, description="Seconds between reports.")
     callsign: str = Field(default="TICK", description="The unit reported.")
+    crash_every: int | None = Field(default=None, description="Raise after this many ticks.")
 
 
 class Ticker:
@@ -109,6 +110,8 @@ class Ticker:
                     source="ticker",
                 )
             )
+            if self.config.crash_every and self.sent % self.config.crash_every == 0:
+                raise RuntimeError("a bug in the ticker")
             await anyio.sleep(self.config.interval_s)
 
     def status(self) -> dict[str, Any]:
