@@ -16,6 +16,7 @@ if TYPE_CHECKING:
     from gateway.c2.sink import LifetimeSink as LifetimeSink
     from gateway.c2.sink import Sink as Sink
     from gateway.c2.sink import SinkConfig as SinkConfig
+    from gateway.c2.source import Source as Source
     from gateway.config import Config as Config
     from gateway.configfile import load_config as load_config
     from gateway.errors import GatewayError as GatewayError
@@ -23,6 +24,9 @@ if TYPE_CHECKING:
     from gateway.errors import TransientSinkError as TransientSinkError
     from gateway.events import Event as Event
     from gateway.events import EventKind as EventKind
+    from gateway.flow.processor import Processor as Processor
+    from gateway.flow.processor import ProcessorConfig as ProcessorConfig
+    from gateway.flow.processor import Publish as Publish
 
 __all__ = [
     "Config",
@@ -32,8 +36,12 @@ __all__ = [
     "GatewayError",
     "LifetimeSink",
     "PermanentSinkError",
+    "Processor",
+    "ProcessorConfig",
+    "Publish",
     "Sink",
     "SinkConfig",
+    "Source",
     "TransientSinkError",
     "load_config",
 ]
@@ -45,6 +53,10 @@ _HOME = {
     "Gateway": "gateway.app",
     "GatewayError": "gateway.errors",
     "LifetimeSink": "gateway.c2.sink",
+    "Processor": "gateway.flow.processor",
+    "ProcessorConfig": "gateway.flow.processor",
+    "Publish": "gateway.flow.processor",
+    "Source": "gateway.c2.source",
     "PermanentSinkError": "gateway.errors",
     "Sink": "gateway.c2.sink",
     "SinkConfig": "gateway.c2.sink",

@@ -26,7 +26,13 @@ import anyio
 import structlog
 
 from gateway.app import Gateway
-from gateway.c2.plugins import check_sink, load_plugin
+from gateway.c2.plugins import (
+    PROCESSOR_GROUP,
+    SOURCE_GROUP,
+    check_sink,
+    load_component,
+    load_plugin,
+)
 from gateway.clock import utc_now
 from gateway.config import Config
 from gateway.configcheck import NodeCheck
@@ -238,6 +244,18 @@ def _check_config(path: Path, *, environment: bool) -> int:
             f"  sink {entry.name}: type {entry.type} from {plugin.distribution} {plugin.version}",
             file=out,
         )
+    for group, entries in (
+        (PROCESSOR_GROUP, [(p.name, p.type) for p in config.processors]),
+        (SOURCE_GROUP, [(s.name, s.type) for s in config.sources]),
+    ):
+        what = "processor" if group == PROCESSOR_GROUP else "source"
+        for name, type_name in entries:
+            component = load_component(group, type_name)
+            print(
+                f"  {what} {name}: type {type_name} from {component.distribution} "
+                f"{component.version}",
+                file=out,
+            )
     return EXIT_OK
 
 
