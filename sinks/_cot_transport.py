@@ -20,8 +20,6 @@ connection, since half a frame would corrupt everything after it.
 
 from __future__ import annotations
 
-import errno
-import os
 import socket
 import ssl
 from collections.abc import Sequence
@@ -35,6 +33,7 @@ import structlog
 from gateway.codecs.cot.codec import Encoded, Encoding, cot_time
 from gateway.codecs.cot.validate import TakControl, scan_control
 from gateway.errors import TransientSinkError
+from gateway.transports.stream import open_tcp, start_tls
 from gateway.transports.tls import TlsFiles, describe_tls_error, tls_context
 
 __all__ = ["Endpoint", "StreamConnection"]
@@ -103,31 +102,7 @@ class StreamConnection:
     # -- connecting --------------------------------------------------------------------------
 
     async def _tcp_socket(self) -> socket.socket:
-        infos = await anyio.getaddrinfo(
-            self.endpoint.host, self.endpoint.port, type=socket.SOCK_STREAM
-        )
-        error: OSError = OSError(errno.EHOSTUNREACH, "no address")
-        for family, kind, proto, _, address in infos:
-            sock = socket.socket(family, kind, proto)
-            connected = False
-            try:
-                sock.setblocking(False)
-                code = sock.connect_ex(address)
-                if code in (errno.EINPROGRESS, errno.EAGAIN):
-                    await anyio.wait_writable(sock)
-                    code = sock.getsockopt(socket.SOL_SOCKET, socket.SO_ERROR)
-                if code:
-                    raise OSError(code, os.strerror(code))
-                sock.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)
-                sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-                connected = True
-                return sock
-            except OSError as exc:
-                error = exc
-            finally:
-                if not connected:
-                    sock.close()
-        raise error
+        return await open_tcp(self.endpoint.host, self.endpoint.port)
 
     async def _handshake(self, raw: socket.socket) -> socket.socket:
         tls = self.endpoint.tls
@@ -136,23 +111,7 @@ class StreamConnection:
         if self._context is None:
             self._context = tls_context(tls)
         hostname = self.endpoint.server_hostname or self.endpoint.host
-        sock = self._context.wrap_socket(
-            raw, server_hostname=hostname, do_handshake_on_connect=False
-        )
-        done = False
-        try:
-            while not done:
-                try:
-                    sock.do_handshake()
-                    done = True
-                except ssl.SSLWantReadError:
-                    await anyio.wait_readable(sock)
-                except ssl.SSLWantWriteError:
-                    await anyio.wait_writable(sock)
-        finally:
-            if not done:
-                sock.close()  # wrap_socket took the descriptor over from ``raw``
-        return sock
+        return await start_tls(raw, self._context, hostname)
 
     async def _connect(self) -> None:
         hostname = self.endpoint.server_hostname or self.endpoint.host

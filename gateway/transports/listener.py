@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import contextlib
 import errno
-import os
 import resource
 import socket
 import time
@@ -36,6 +35,7 @@ import structlog
 
 from gateway.errors import LinkUnavailable, os_reason
 from gateway.ops.logsetup import RateLimit
+from gateway.transports.stream import open_tcp
 
 __all__ = [
     "Connection",
@@ -269,29 +269,9 @@ class TcpListener:
 
 async def connect(host: str, port: int) -> Connection:
     """Open a TCP connection read the same bounded way as accepted ones; raise ``OSError``."""
-    infos = await anyio.getaddrinfo(host, port, type=socket.SOCK_STREAM)
-    last: OSError = OSError(f"no address for {host}")
-    for family, kind, proto, _name, address in infos:
-        sock = socket.socket(family, kind, proto)
-        try:
-            sock.setblocking(False)
-            error = sock.connect_ex(address)
-            if error not in (0, errno.EINPROGRESS):
-                raise OSError(error, os.strerror(error))
-            await anyio.wait_writable(sock)
-            error = sock.getsockopt(socket.SOL_SOCKET, socket.SO_ERROR)
-            if error:
-                raise OSError(error, os.strerror(error))
-            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        except OSError as exc:
-            sock.close()
-            last = exc
-            continue
-        except BaseException:
-            sock.close()
-            raise
-        return Connection(sock, (str(address[0]), int(address[1])))
-    raise last
+    sock = await open_tcp(host, port)
+    address = sock.getpeername()
+    return Connection(sock, (str(address[0]), int(address[1])))
 
 
 def raise_open_files_limit(wanted: int = 65536) -> tuple[int, int]:
