@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import builtins
 from dataclasses import dataclass
-from importlib.metadata import EntryPoint, entry_points
+from importlib.metadata import entry_points
 from typing import Any, cast
 
 from pydantic import BaseModel, ValidationError
@@ -38,11 +38,16 @@ GROUP = "fischer_gateway.sinks"
 PROCESSOR_GROUP = "fischer_gateway.processors"
 SOURCE_GROUP = "fischer_gateway.sources"
 _WHAT = {GROUP: "sink", PROCESSOR_GROUP: "processor", SOURCE_GROUP: "source"}
+_REQUIRED = {
+    GROUP: ("open", "send", "aclose"),
+    PROCESSOR_GROUP: ("run",),
+    SOURCE_GROUP: ("run",),
+}
 
 
 @dataclass(frozen=True, slots=True)
 class Component:
-    """A loaded processor or source type: its factory, options model and origin."""
+    """A loaded plugin type of any group: its factory, options model and origin."""
 
     group: str
     type_name: str
@@ -86,9 +91,11 @@ def load_component(group: str, type_name: str) -> Component:
             f"{what} type {type_name!r} from {dist} {version} has no pydantic 'config_model'",
             sink=type_name,
         )
-    if not callable(getattr(factory, "run", None)):
+    missing = [m for m in _REQUIRED[group] if not callable(getattr(factory, m, None))]
+    if missing:
         raise SinkLoadError(
-            f"{what} type {type_name!r} from {dist} {version} lacks run", sink=type_name
+            f"{what} type {type_name!r} from {dist} {version} lacks {', '.join(missing)}",
+            sink=type_name,
         )
     component = Component(group, type_name, factory, model, dist, version)
     _components[(group, type_name)] = component
@@ -122,55 +129,19 @@ class SinkPlugin:
         return self.factory(name, config)
 
 
-def _entry_point(type_name: str) -> EntryPoint:
-    matches = entry_points(group=GROUP, name=type_name)
-    if not matches:
-        known = ", ".join(sorted(available())) or "none"
-        raise SinkLoadError(
-            f"unknown sink type {type_name!r}; installed sink types: {known}", sink=type_name
-        )
-    if len(matches) > 1:
-        dists = sorted({ep.dist.name if ep.dist else "?" for ep in matches})
-        raise SinkLoadError(
-            f"sink type {type_name!r} is provided by several distributions: {dists}",
-            sink=type_name,
-        )
-    (entry,) = matches
-    return entry
-
-
 _cache: dict[str, SinkPlugin] = {}
 
 
 def load_plugin(type_name: str) -> SinkPlugin:
     """Import the sink type ``type_name`` and check it honours the contract."""
-    if type_name in _cache:
-        return _cache[type_name]
-    entry = _entry_point(type_name)
-    dist = entry.dist.name if entry.dist else "unknown"
-    version = entry.dist.version if entry.dist else "unknown"
-    try:
-        factory = entry.load()
-    except Exception as exc:
-        raise SinkLoadError(
-            f"sink type {type_name!r} from {dist} {version} failed to import "
-            f"{entry.value}: {type(exc).__name__}: {exc}",
-            sink=type_name,
-        ) from exc
-    model = getattr(factory, "config_model", None)
-    if not (isinstance(model, type) and issubclass(model, BaseModel)):
-        raise SinkLoadError(
-            f"sink type {type_name!r} from {dist} {version} has no pydantic 'config_model'",
-            sink=type_name,
-        )
-    missing = [m for m in ("open", "send", "aclose") if not callable(getattr(factory, m, None))]
-    if missing:
-        raise SinkLoadError(
-            f"sink type {type_name!r} from {dist} {version} lacks {', '.join(missing)}",
-            sink=type_name,
-        )
-    plugin = SinkPlugin(type_name, cast("SinkClass", factory), dist, version)
-    _cache[type_name] = plugin
+    plugin = _cache.get(type_name)
+    if plugin is None:
+        component = load_component(GROUP, type_name)
+        plugin = SinkPlugin(
+            type_name, cast("SinkClass", component.factory), component.distribution,
+            component.version,
+        )  # fmt: skip
+        _cache[type_name] = plugin
     return plugin
 
 
