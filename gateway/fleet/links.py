@@ -357,25 +357,6 @@ class TcpServerLink(_StreamLink):
             self._streams.pop(peer, None)
             self.on_close(self.label, peer)
 
-    async def _pump_connection(self, connection: Connection) -> None:
-        peer = connection.peer
-        auth_deadline = anyio.current_time() + self.idle_timeout_s
-        while True:
-            # Until it authenticates, a connection has one idle timeout in all to do so (a
-            # byte now and then does not keep a stranger's connection open).
-            timeout = self.idle_timeout_s
-            if not connection.trusted:
-                timeout = min(timeout, auth_deadline - anyio.current_time())
-            try:
-                with anyio.fail_after(max(timeout, 0.0)):
-                    data = await connection.receive(_READ_CHUNK)
-            except TimeoutError as exc:
-                silent = f"peer {peer} silent or unauthenticated for {self.idle_timeout_s} s"
-                raise LinkClosed(self.label, silent) from exc
-            except (anyio.EndOfStream, anyio.BrokenResourceError) as exc:
-                raise LinkClosed(self.label, f"peer {peer} closed the stream") from exc
-            self.on_data(self.label, peer, data)
-
     def trust(self, peer: object) -> None:
         connection = self._streams.get(peer)
         if connection is not None and not connection.trusted:
