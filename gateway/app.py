@@ -143,15 +143,13 @@ class Gateway:
                         drop=link.drop,
                     )
                 )
-        self.sources: list[Source] = [
-            load_component(SOURCE_GROUP, entry.type).factory(
-                entry.name,
-                load_component(SOURCE_GROUP, entry.type).model.model_validate(entry.options),
-                self.bus.publish,
-                clock=clock,
+        self.sources: list[Source] = []
+        for source_entry in config.sources:
+            component = load_component(SOURCE_GROUP, source_entry.type)
+            options = component.model.model_validate(source_entry.options)
+            self.sources.append(
+                component.factory(source_entry.name, options, self.bus.publish, clock=clock)
             )
-            for entry in config.sources
-        ]
         self._source_records = [Supervised(s.name) for s in self.sources]
         self.passthroughs: dict[str, Passthrough] = {}
         for airframe in config.airframes:

@@ -26,7 +26,6 @@ import ssl
 from collections.abc import Sequence
 from datetime import datetime, timedelta
 from importlib.metadata import PackageNotFoundError, version
-from ipaddress import ip_address
 from pathlib import Path
 from typing import Any, Literal
 from urllib.parse import parse_qs, urlsplit
@@ -51,6 +50,7 @@ from gateway.errors import PermanentSinkError, TransientSinkError
 from gateway.events import Event, EventKind, Track
 from gateway.ops.logsetup import RateLimit
 from gateway.transports.tls import TlsFiles, tls_context
+from gateway.transports.udp import is_multicast
 from sinks._cot_transport import Endpoint, StreamConnection
 from sinks._cot_udp import UdpSender
 
@@ -137,7 +137,7 @@ class CotDestination(BaseModel):
         udp = parts.scheme.startswith("udp")
         if set(query) - {"ttl", "iface"} or (query and not udp):
             raise ValueError(f"{self.uri!r}: only udp URIs take query options, ttl and iface")
-        if parts.scheme == "udp+multicast" and not _is_multicast(parts.hostname):
+        if parts.scheme == "udp+multicast" and not is_multicast(parts.hostname):
             raise ValueError(f"{self.uri!r}: {parts.hostname} is not a multicast group")
         if (parts.scheme == "tls") != (self.tls is not None):
             raise ValueError(f"{self.uri!r}: a 'tls' section goes with tls:// and only with it")
@@ -177,13 +177,6 @@ class CotDestination(BaseModel):
         if urlsplit(value).password is not None:
             raise ValueError("no passwords in URIs; use tls.password_file")
         return value
-
-
-def _is_multicast(host: str) -> bool:
-    try:
-        return ip_address(host).is_multicast
-    except ValueError:
-        return False
 
 
 class CotStale(BaseModel):

@@ -26,8 +26,7 @@ import socket
 import struct
 from collections import Counter, OrderedDict
 from collections.abc import Callable
-from datetime import UTC, datetime, timedelta
-from ipaddress import ip_address
+from datetime import datetime, timedelta
 from typing import ClassVar, Literal
 from urllib.parse import urlsplit
 
@@ -36,9 +35,11 @@ import anyio.abc
 import structlog
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from gateway.clock import utc_now
 from gateway.codecs.cot.validate import CotError, ParsedCot, is_unknown, parse_cot
 from gateway.events import BlueForce, Event, Position, event_id
 from gateway.ops.logsetup import RateLimit
+from gateway.transports.udp import is_multicast
 from sources._cot_stream import CotStreamServer
 
 __all__ = ["FUTURE_TOLERANCE", "NO_FIX_DEG", "CotSource", "CotSourceConfig"]
@@ -95,20 +96,9 @@ class CotSourceConfig(BaseModel):
             port = None
         if parts.scheme not in _SCHEMES or not parts.hostname or port is None:
             raise ValueError(f"expected udp://, udp+multicast:// or tcp://HOST:PORT, got {value!r}")
-        if parts.scheme == "udp+multicast" and not _is_multicast(parts.hostname):
+        if parts.scheme == "udp+multicast" and not is_multicast(parts.hostname):
             raise ValueError(f"{value!r}: {parts.hostname} is not a multicast group")
         return value
-
-
-def _is_multicast(host: str) -> bool:
-    try:
-        return ip_address(host).is_multicast
-    except ValueError:
-        return False
-
-
-def _utc_now() -> datetime:
-    return datetime.now(UTC)
 
 
 class CotSource:
@@ -122,7 +112,7 @@ class CotSource:
         config: CotSourceConfig,
         publish: Callable[[Event], None],
         *,
-        clock: Callable[[], datetime] = _utc_now,
+        clock: Callable[[], datetime] = utc_now,
     ) -> None:
         self.name = name
         self.config = config
@@ -261,7 +251,7 @@ class CotSource:
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         try:
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            multicast = _is_multicast(self.host)
+            multicast = is_multicast(self.host)
             # Bound to the group itself, the socket gets that group's datagrams and no others.
             sock.bind((self.host, self.port))
             if multicast:

@@ -217,6 +217,43 @@ def sealer(airframe_id: str) -> Sealer:
     return Sealer(airframe_id, DayKeys(keys=keys), utc_now)
 
 
+def three_airframe_node(
+    tmp_path: Path, ports: dict[str, int], *, tun_extra: str = ""
+) -> tuple[Path, Path]:
+    """A node with a tunnel (TUN, sysid 1), a signed (SIG, 2) and an unsecured (OPEN, 3)
+    airframe on the UDP ports ``ports["tun"|"sig"|"open"]``, and a jsonl archive.
+
+    ``tun_extra`` adds YAML lines (indented four spaces) to TUN. Returns (config, archive).
+    """
+    archive = tmp_path / "archive.jsonl"
+    master = write_key(tmp_path / "master.key", MASTER)
+    signing = write_key(tmp_path / "signing.key", SIGNING_KEY)
+    config = tmp_path / "node.yaml"
+    config.write_text(
+        f"""
+gateway: {{shutdown_deadline_s: 2}}
+health: {{port: 0}}
+tunnel: {{master_key_file: '{master}'}}
+airframes:
+  - id: TUN
+    sysid: 1
+{tun_extra}    links: [{{uri: 'udp://127.0.0.1:{ports["tun"]}', security: tunnel, name: tun}}]
+  - id: SIG
+    sysid: 2
+    signing: {{key_file: '{signing}'}}
+    links: [{{uri: 'udp://127.0.0.1:{ports["sig"]}', security: signed, name: sig}}]
+  - id: OPEN
+    sysid: 3
+    links: [{{uri: 'udp://127.0.0.1:{ports["open"]}', security: unsecured, name: open}}]
+sinks:
+  - {{name: archive, type: jsonl, options: {{path: '{archive}'}}}}
+routes:
+  - {{sinks: [archive]}}
+"""
+    )
+    return config, archive
+
+
 def archive_events(path: Path) -> list[dict[str, Any]]:
     if not path.exists():
         return []

@@ -14,7 +14,15 @@ from ipaddress import ip_address
 
 import anyio
 
-__all__ = ["DatagramSender", "interface_request"]
+__all__ = ["DatagramSender", "interface_request", "is_multicast"]
+
+
+def is_multicast(host: str) -> bool:
+    """True for an IP literal in a multicast range; False for names and unicast addresses."""
+    try:
+        return ip_address(host).is_multicast
+    except ValueError:
+        return False
 
 
 def interface_request(interface: str) -> bytes:
@@ -52,7 +60,7 @@ class DatagramSender:
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         try:
             sock.setblocking(False)
-            if ip_address(address[0]).is_multicast:
+            if is_multicast(str(address[0])):
                 sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, self.ttl)
                 sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_LOOP, 1)
                 if self.interface:

@@ -10,12 +10,11 @@ from __future__ import annotations
 
 import socket
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 from daemon_support import (
-    MASTER,
     SIGNING_KEY,
     Airframe,
     archive_events,
@@ -23,8 +22,8 @@ from daemon_support import (
     free_udp_port,
     running,
     sealer,
+    three_airframe_node,
     wait_until,
-    write_key,
 )
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
@@ -35,53 +34,12 @@ pytestmark = pytest.mark.timeout(90)
 
 def write_config(tmp_path: Path) -> tuple[Path, dict[str, int], Path]:
     ports = {name: free_udp_port() for name in ("tun", "sig", "open", "gcs")}
-    archive = tmp_path / "archive.jsonl"
-    master = write_key(tmp_path / "master.key", MASTER)
-    signing = write_key(tmp_path / "signing.key", SIGNING_KEY)
-    config = tmp_path / "node.yaml"
-    config.write_text(
-        f"""
-gateway: {{shutdown_deadline_s: 2}}
-health: {{port: 0}}
-tunnel: {{master_key_file: '{master}'}}
-airframes:
-  - id: TUN
-    sysid: 1
-    link_timeout_s: 0.5
-    failback_hold_s: 0
-    passthrough: 'udp://127.0.0.1:{ports["gcs"]}'
-    links: [{{uri: 'udp://127.0.0.1:{ports["tun"]}', security: tunnel, name: tun}}]
-  - id: SIG
-    sysid: 2
-    signing: {{key_file: '{signing}'}}
-    links: [{{uri: 'udp://127.0.0.1:{ports["sig"]}', security: signed, name: sig}}]
-  - id: OPEN
-    sysid: 3
-    links: [{{uri: 'udp://127.0.0.1:{ports["open"]}', security: unsecured, name: open}}]
-sinks:
-  - {{name: archive, type: jsonl, options: {{path: '{archive}'}}}}
-routes:
-  - {{sinks: [archive]}}
-"""
+    tun_extra = (
+        "    link_timeout_s: 0.5\n    failback_hold_s: 0\n"
+        f"    passthrough: 'udp://127.0.0.1:{ports['gcs']}'\n"
     )
+    config, archive = three_airframe_node(tmp_path, ports, tun_extra=tun_extra)
     return config, ports, archive
-
-
-@pytest.fixture
-def udp_socket() -> Iterator[Callable[[], socket.socket]]:
-    """Makes loopback UDP sockets, all closed when the test ends."""
-    made: list[socket.socket] = []
-
-    def make() -> socket.socket:
-        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        made.append(sock)
-        sock.bind(("127.0.0.1", 0))
-        sock.settimeout(0.3)
-        return sock
-
-    yield make
-    for sock in made:
-        sock.close()
 
 
 def drain(sock: socket.socket) -> list[bytes]:

@@ -9,12 +9,11 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 from daemon_support import (
-    MASTER,
     SIGNING_KEY,
     Airframe,
     Daemon,
@@ -23,8 +22,8 @@ from daemon_support import (
     free_udp_port,
     running,
     sealer,
+    three_airframe_node,
     wait_until,
-    write_key,
 )
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
@@ -34,50 +33,8 @@ from gateway.fleet.ingest import REJECT_LOG_INTERVAL_S
 pytestmark = pytest.mark.timeout(180)
 
 
-@pytest.fixture
-def udp() -> Iterator[Callable[[], socket.socket]]:
-    made: list[socket.socket] = []
-
-    def make() -> socket.socket:
-        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        made.append(sock)
-        sock.bind(("127.0.0.1", 0))
-        return sock
-
-    yield make
-    for sock in made:
-        sock.close()
-
-
-def node_config(tmp_path: Path, ports: dict[str, int], **health: object) -> Path:
-    archive = tmp_path / "archive.jsonl"
-    master = write_key(tmp_path / "master.key", MASTER)
-    signing = write_key(tmp_path / "signing.key", SIGNING_KEY)
-    extra = "".join(f", {key}: {value}" for key, value in health.items())
-    config = tmp_path / "node.yaml"
-    config.write_text(
-        f"""
-gateway: {{shutdown_deadline_s: 2}}
-health: {{port: 0{extra}}}
-tunnel: {{master_key_file: '{master}'}}
-airframes:
-  - id: TUN
-    sysid: 1
-    links: [{{uri: 'udp://127.0.0.1:{ports["tun"]}', security: tunnel, name: tun}}]
-  - id: SIG
-    sysid: 2
-    signing: {{key_file: '{signing}'}}
-    links: [{{uri: 'udp://127.0.0.1:{ports["sig"]}', security: signed, name: sig}}]
-  - id: OPEN
-    sysid: 3
-    links: [{{uri: 'udp://127.0.0.1:{ports["open"]}', security: unsecured, name: open}}]
-sinks:
-  - {{name: archive, type: jsonl, options: {{path: '{archive}'}}}}
-routes:
-  - {{sinks: [archive]}}
-"""
-    )
-    return config
+def node_config(tmp_path: Path, ports: dict[str, int]) -> Path:
+    return three_airframe_node(tmp_path, ports)[0]
 
 
 def ports() -> dict[str, int]:
@@ -93,7 +50,7 @@ def telemetry_count(archive: Path, airframe: str) -> int:
 
 
 def test_2000_idle_health_connections_neither_stop_telemetry_nor_the_daemon(
-    tmp_path: Path, udp: Callable[[], socket.socket]
+    tmp_path: Path, udp_socket: Callable[[], socket.socket]
 ) -> None:
     soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
     if hard != resource.RLIM_INFINITY and hard < 2200:
@@ -102,7 +59,7 @@ def test_2000_idle_health_connections_neither_stop_telemetry_nor_the_daemon(
     p = ports()
     config = node_config(tmp_path, p)
     archive = tmp_path / "archive.jsonl"
-    sender = udp()
+    sender = udp_socket()
     plane = Airframe(3)
     idle: list[socket.socket] = []
     # systemd's default soft limit, and no way to raise it: the daemon must hold with 1024.
@@ -199,11 +156,11 @@ def _bad_frames(sysid: int, *, signing: bool) -> dict[str, tuple[str, str, Calla
 
 
 def test_10000_bad_frames_of_each_class_are_all_counted_and_logged_boundedly(
-    tmp_path: Path, udp: Callable[[], socket.socket]
+    tmp_path: Path, udp_socket: Callable[[], socket.socket]
 ) -> None:
     p = ports()
     config = node_config(tmp_path, p)
-    sender = udp()
+    sender = udp_socket()
     with running(config) as daemon:
         started = time.monotonic()
         # The genuine SIG frame whose replays make the "replayed" class is accepted once.
@@ -257,12 +214,12 @@ def test_10000_bad_frames_of_each_class_are_all_counted_and_logged_boundedly(
 
 
 def test_frames_captured_before_a_kill_9_are_refused_after_restart(
-    tmp_path: Path, udp: Callable[[], socket.socket]
+    tmp_path: Path, udp_socket: Callable[[], socket.socket]
 ) -> None:
     p = ports()
     config = node_config(tmp_path, p)
     archive = tmp_path / "archive.jsonl"
-    sender = udp()
+    sender = udp_socket()
     seal = sealer("TUN")
     tun = Airframe(1)
     daemon = Daemon(config)
@@ -412,7 +369,7 @@ def _rss_mb(pid: int) -> float:
 
 
 def test_tcp_link_floods_and_squatters_neither_grow_memory_nor_lock_out_the_airframe(
-    tmp_path: Path, udp: Callable[[], socket.socket]
+    tmp_path: Path, udp_socket: Callable[[], socket.socket]
 ) -> None:
     """A flood on the TCP link stays in the kernel; strangers holding every slot are evicted."""
     p = ports()
