@@ -26,9 +26,12 @@ from pydantic import ValidationError
 from gateway.c2.sink import Sink, SinkConfig
 from gateway.events import (
     BlueForce,
+    Deconfliction,
     Detection,
+    EffectorOption,
     Event,
     EventKind,
+    Handoff,
     LinkState,
     Position,
     Sensor,
@@ -51,6 +54,18 @@ def sample_events(kinds: frozenset[EventKind]) -> list[Event]:
     """One valid event of each kind in ``kinds``, in ``EventKind`` order."""
     t = datetime(2026, 11, 22, 12, 0, 0, tzinfo=UTC)
     where = Position(lat_deg=65.8252, lon_deg=21.6886, alt_msl_m=250.0)
+    track = Track(
+        event_id="c-trk",
+        track_id="T1",
+        time=t,
+        object_class="uav",
+        confidence=0.8,
+        position=where,
+        cep50_m=10.0,
+        cep90_m=18.0,
+        first_seen=t,
+        last_seen=t,
+    )
     every: dict[EventKind, Event] = {
         EventKind.TELEMETRY: Telemetry(
             event_id="c-tel", airframe="F26E-001", time=t, position=where
@@ -75,22 +90,28 @@ def sample_events(kinds: frozenset[EventKind]) -> list[Event]:
             position=where,
             sigma_h_m=15.0,
         ),
-        EventKind.TRACK: Track(
-            event_id="c-trk",
-            track_id="T1",
-            time=t,
-            object_class="uav",
-            confidence=0.8,
-            position=where,
-            cep50_m=10.0,
-            cep90_m=18.0,
-            first_seen=t,
-            last_seen=t,
-        ),
+        EventKind.TRACK: track,
         EventKind.BLUE_FORCE: BlueForce(
             event_id="c-bf", uid="ANDROID-1", time=t, position=where, source="cot"
         ),
     }
+    every[EventKind.HANDOFF] = Handoff(
+        event_id="c-ho",
+        handoff_id="c-ho",
+        time=t,
+        battery="GUTE-1",
+        battery_position=Position(lat_deg=59.3400, lon_deg=18.0500),
+        track=track,
+        range_m=1200.0,
+        bearing_deg=45.0,
+        recommended_effector="TRACKFIRE_30MM",
+        options=(
+            EffectorOption(
+                effector="TRACKFIRE_30MM", deconfliction_clear=True, danger_close_m=400.0
+            ),
+        ),
+        deconfliction=Deconfliction(clear=True, blue_units_considered=0),
+    )
     return [every[kind] for kind in EventKind if kind in kinds]
 
 

@@ -23,9 +23,12 @@ __all__ = [
     "LATEST_WINS_KINDS",
     "Attitude",
     "BlueForce",
+    "Deconfliction",
     "Detection",
+    "EffectorOption",
     "Event",
     "EventKind",
+    "Handoff",
     "LinkState",
     "Position",
     "Sensor",
@@ -58,6 +61,7 @@ class EventKind(StrEnum):
     DETECTION = "detection"
     TRACK = "track"
     BLUE_FORCE = "blue_force"
+    HANDOFF = "handoff"
 
 
 #: Kinds where only the newest event per key matters: a slow sink gets fresh data, not a backlog.
@@ -185,7 +189,13 @@ class Detection(BaseModel):
 
 
 class Track(BaseModel):
-    """A fused track built from one or more detections."""
+    """A fused track built from one or more detections (``gateway.flow.tracker``).
+
+    One ``track_id`` for the track's whole life; each create, update and loss is its own
+    event (``status``). ``confidence`` is the Dempster-Shafer belief in ``object_class``;
+    ``class_conflict`` the conflict K of the latest combination (0: the sensors agreed).
+    ``detection_ids`` holds the newest contributing detections (at most 32).
+    """
 
     model_config = _FROZEN
 
@@ -193,15 +203,21 @@ class Track(BaseModel):
     event_id: str
     track_id: str
     time: AwareDatetime
+    status: Literal["created", "updated", "lost"] = "updated"
     object_class: str
     subtype: str = ""
     confidence: float = Field(ge=0.0, le=1.0)
+    class_conflict: float = Field(default=0.0, ge=0.0, le=1.0)
     position: Position
     cep50_m: float = Field(ge=0.0)
     cep90_m: float = Field(ge=0.0)
     velocity: Velocity | None = None
+    speed_mps: float | None = Field(default=None, ge=0.0)
+    course_deg: float | None = Field(default=None, ge=0.0, lt=360.0)
     detection_ids: tuple[str, ...] = ()
+    detection_count: int = Field(default=0, ge=0)
     airframes: tuple[str, ...] = ()
+    sensors: tuple[Sensor, ...] = ()
     first_seen: AwareDatetime
     last_seen: AwareDatetime
     hostility: Literal["hostile", "suspect", "unknown", "neutral", "friend"] = "unknown"
@@ -222,8 +238,61 @@ class BlueForce(BaseModel):
     source: str
 
 
+class EffectorOption(BaseModel):
+    """One effector the table offers for a cued track, and whether friendly units allow it."""
+
+    model_config = _FROZEN
+
+    effector: str
+    deconfliction_clear: bool
+    danger_close_m: float = Field(ge=0.0)
+
+
+class Deconfliction(BaseModel):
+    """The blue-force check of a cued track: the nearest current friendly unit, if any.
+
+    ``clear`` is True only when that unit is beyond the danger-close radius of every effector
+    offered (or no current friendly unit is known: ``blue_units_considered`` says how many
+    reports the check saw, so a receiver can tell "clear" from "nothing known").
+    """
+
+    model_config = _FROZEN
+
+    clear: bool
+    nearest_blue_uid: str | None = None
+    nearest_blue_callsign: str | None = None
+    nearest_blue_m: float | None = Field(default=None, ge=0.0)
+    blue_units_considered: int = Field(ge=0)
+
+
+class Handoff(BaseModel):
+    """A counter-UAS cue: a fused track handed to one GUTE II battery with a recommendation.
+
+    A cue, never an order: ``operator_authorisation_required`` is always True and there is no
+    field that could command an effector. ``recommended_effector`` is None whenever the
+    deconfliction is not clear; ``options`` still lists each effector with its own result so
+    the battery's operator sees why. ``event_id`` equals ``handoff_id`` (the idempotency key).
+    """
+
+    model_config = _FROZEN
+
+    kind: Literal[EventKind.HANDOFF] = EventKind.HANDOFF
+    event_id: str
+    handoff_id: str
+    time: AwareDatetime
+    battery: str
+    battery_position: Position
+    track: Track
+    range_m: float = Field(ge=0.0)
+    bearing_deg: float = Field(ge=0.0, lt=360.0)
+    recommended_effector: str | None = None
+    options: tuple[EffectorOption, ...] = ()
+    deconfliction: Deconfliction
+    operator_authorisation_required: Literal[True] = True
+
+
 Event = Annotated[
-    Telemetry | LinkState | Detection | Track | BlueForce,
+    Telemetry | LinkState | Detection | Track | BlueForce | Handoff,
     Field(discriminator="kind"),
 ]
 

@@ -29,6 +29,7 @@ from gateway.events import (
     Detection,
     Event,
     EventKind,
+    Handoff,
     LinkState,
     Position,
     Telemetry,
@@ -96,14 +97,30 @@ def describe(event: Event) -> str:
         )
     if isinstance(event, Track):
         return (
-            f"{head} {event.track_id} {event.object_class} {event.subtype or '-'}"
-            f" {event.hostility} conf {event.confidence:.2f} at {_where(event.position)}"
-            f" cep50 {event.cep50_m:.0f} m"
+            f"{head} {event.track_id} {event.status} {event.object_class}"
+            f" {event.subtype or '-'} {event.hostility} conf {event.confidence:.2f}"
+            f" at {_where(event.position)} cep50 {event.cep50_m:.0f} m"
         )
     if isinstance(event, BlueForce):
         return (
             f"{head} {event.uid} {event.callsign or '-'} at {_where(event.position)}"
             f" via {event.source}"
+        )
+    if isinstance(event, Handoff):
+        blue = event.deconfliction
+        nearest = (
+            "no blue force known"
+            if blue.nearest_blue_m is None
+            else (
+                f"nearest blue {blue.nearest_blue_callsign or blue.nearest_blue_uid}"
+                f" {blue.nearest_blue_m:.0f} m"
+            )
+        )
+        verdict = "deconfliction clear" if blue.clear else "deconfliction NOT clear"
+        return (
+            f"{head} {event.track.track_id} to {event.battery}"
+            f" {event.range_m:.0f} m brg {event.bearing_deg:.0f}°, {verdict} ({nearest}),"
+            f" recommend {event.recommended_effector or 'none'}; operator authorises"
         )
     assert_never(event)
 

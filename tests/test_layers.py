@@ -37,6 +37,7 @@ LAYERS: dict[str, tuple[int, str]] = {
     "gateway.contract": (3, "c2"),
     "sinks": (3, "sinks"),
     "sources": (3, "sources"),
+    "processors": (3, "processors"),
     "gateway.app": (4, "assembly"),
     "gateway.configcheck": (4, "assembly"),
     "gateway.configschema": (4, "assembly"),
@@ -59,6 +60,8 @@ ALLOWED_ACROSS: set[tuple[str, str]] = {
     ("sources", "c2"),
     ("sinks", "public"),
     ("sources", "public"),
+    ("processors", "flow"),
+    ("processors", "public"),
 }
 
 
@@ -78,7 +81,7 @@ def _layer(module: str) -> tuple[int, str] | None:
 
 def _modules() -> dict[str, Path]:
     found = {}
-    for package in ("gateway", "sinks", "sources"):
+    for package in ("gateway", "sinks", "sources", "processors"):
         for path in (ROOT / package).rglob("*.py"):
             parts = list(path.relative_to(ROOT).with_suffix("").parts)
             if parts[-1] == "__init__":
@@ -99,7 +102,7 @@ def _imports(module: str, path: Path) -> set[str]:
             names.add(node.module)
         elif isinstance(node, ast.Import):
             names.update(alias.name for alias in node.names)
-    return {n for n in names if n.split(".")[0] in ("gateway", "sinks", "sources")}
+    return {n for n in names if n.split(".")[0] in ("gateway", "sinks", "sources", "processors")}
 
 
 def test_every_module_has_a_layer() -> None:
@@ -134,6 +137,6 @@ def test_the_core_never_imports_a_plugin() -> None:
         for module, path in _modules().items()
         if module.split(".")[0] == "gateway"
         for imported in _imports(module, path)
-        if imported.split(".")[0] in ("sinks", "sources")
+        if imported.split(".")[0] in ("sinks", "sources", "processors")
     ]
     assert offenders == []

@@ -144,7 +144,7 @@ class TestText:
             BlueForce(event_id="2", uid="ANDROID-1", time=T0, position=HERE, source="cot"),
         )
         assert track == (
-            "12:00:01.234Z track      T-7 vehicle truck hostile conf 0.90"
+            "12:00:01.234Z track      T-7 updated vehicle truck hostile conf 0.90"
             " at 65.82520,21.68860 alt 250.0 m MSL cep50 10 m"
         )
         assert blue == (
