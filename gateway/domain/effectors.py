@@ -88,9 +88,19 @@ def load_effector_table(text: str | None = None, source: str = "effectors.yaml")
 
 
 def recommend(
-    table: EffectorTable, object_class: str, range_m: float, nearest_blue_m: float | None
+    table: EffectorTable,
+    object_class: str,
+    range_m: float,
+    nearest_blue_m: float | None,
+    *,
+    uncertainty_m: float = 0.0,
 ) -> list[Recommendation]:
-    """The effectors to recommend for a target at ``range_m``, best first; [] if none fits."""
+    """The effectors to recommend for a target at ``range_m``, best first; [] if none fits.
+
+    ``uncertainty_m`` (the track's CEP90, say) is taken off the distance to the nearest
+    friendly unit before it is compared with each danger-close radius: the target may be that
+    much closer to them than its reported position.
+    """
     for band in table.recommendations.get(object_class, ()):
         if range_m > band.up_to_m:
             continue
@@ -99,7 +109,9 @@ def recommend(
             effector = table.effectors[name]
             if range_m > effector.max_range_m:
                 continue
-            clear = nearest_blue_m is None or nearest_blue_m > effector.danger_close_m
+            clear = (
+                nearest_blue_m is None or nearest_blue_m - uncertainty_m > effector.danger_close_m
+            )
             out.append(Recommendation(name, clear, nearest_blue_m, effector.danger_close_m))
         return out
     return []

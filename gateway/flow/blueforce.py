@@ -4,7 +4,9 @@ Fed by BlueForce events (the CoT source, later NFFI, units fixed in the config);
 deconfliction: ``nearest(lat, lon)`` gives the closest current friendly unit and its geodesic
 distance (WGS-84, ``gateway.domain.geodesy``). A report older than ``max_age_s`` is not a
 current position and is never returned. At most ``max_units`` are kept (the unit heard from
-longest ago makes room), so reports from the network cannot grow it without bound.
+longest ago makes room), so reports from the network cannot grow it without bound. Units
+fixed in the config are ``pin``-ned: they never expire and no report from the network can
+move or evict them (a report under a pinned uid is ignored).
 """
 
 from __future__ import annotations
@@ -38,12 +40,20 @@ class BlueForceRegistry:
         self.max_age = timedelta(seconds=max_age_s)
         self.max_units = max_units
         self._units: OrderedDict[str, BlueForce] = OrderedDict()
+        self._pinned: dict[str, BlueForce] = {}
 
     def __len__(self) -> int:
-        return len(self._units)
+        return len(self._units) + len(self._pinned)
+
+    def pin(self, unit: BlueForce) -> None:
+        """A unit fixed in the config: always current, never moved by reports."""
+        self._pinned[unit.uid] = unit
+        self._units.pop(unit.uid, None)
 
     def update(self, report: BlueForce) -> bool:
         """Keep ``report`` if it is newer than what we have for its unit; True if kept."""
+        if report.uid in self._pinned:
+            return False
         known = self._units.get(report.uid)
         if known is not None and report.time <= known.time:
             return False
@@ -54,11 +64,11 @@ class BlueForceRegistry:
         return True
 
     def current(self) -> list[BlueForce]:
-        """Every report younger than ``max_age_s``; older ones are dropped on the way."""
+        """Pinned units and every report younger than ``max_age_s`` (older ones are dropped)."""
         cutoff = self._clock() - self.max_age
         for uid in [uid for uid, r in self._units.items() if r.time < cutoff]:
             del self._units[uid]
-        return list(self._units.values())
+        return [*self._pinned.values(), *self._units.values()]
 
     def nearest(self, lat_deg: float, lon_deg: float) -> NearestBlue | None:
         """The closest current friendly unit to the point, or None if there is none."""

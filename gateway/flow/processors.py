@@ -106,7 +106,9 @@ class ProcessorRunner:
             await self.processor.run(inbox, self.publish, task_status=task_status)
 
     def status(self) -> dict[str, object]:
-        """State and counters for /status."""
+        """State and counters for /status, and the processor's own under ``detail``."""
+        own = getattr(self.processor, "status", None)
+        detail = own() if callable(own) else None
         return {
             "processor": self.name,
             "type": self.type_name,
@@ -116,4 +118,5 @@ class ProcessorRunner:
             "events_in": int(self._in.value),
             "events_out": int(self._out.value),
             "dropped": int(self._dropped.value),
+            **({"detail": detail} if detail is not None else {}),
         }

@@ -1,0 +1,208 @@
+"""The counter-UAS cue desk: nearest able battery, deconfliction, once per track, never an order."""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime, timedelta
+
+import pytest
+
+from gateway.domain.effectors import load_effector_table
+from gateway.domain.geodesy import destination
+from gateway.events import BlueForce, Handoff, Position, Track
+from gateway.flow.blueforce import BlueForceRegistry
+from gateway.flow.cue import Battery, CueDesk
+
+NOW = datetime(2026, 11, 23, 12, 0, tzinfo=UTC)
+BATTERY = Position(lat_deg=65.80, lon_deg=21.70)
+ALL = frozenset({"TRIDON_MK2_40MM", "TRACKFIRE_30MM", "EW_COUNTERMEASURES", "GIRAFFE_1X_DESIGNATE"})
+
+
+def at(origin: Position, bearing_deg: float, distance_m: float) -> Position:
+    lat, lon = destination(origin.lat_deg, origin.lon_deg, bearing_deg, distance_m)
+    return Position(lat_deg=lat, lon_deg=lon)
+
+
+def track(
+    where: Position,
+    *,
+    track_id: str = "T-1",
+    cls: str = "loitering_munition",
+    confidence: float = 0.95,
+    status: str = "updated",
+    cep90_m: float = 20.0,
+) -> Track:
+    return Track.model_validate(
+        {
+            "event_id": f"{track_id}-x",
+            "track_id": track_id,
+            "time": NOW,
+            "status": status,
+            "object_class": cls,
+            "subtype": "LANCET-3",
+            "confidence": confidence,
+            "position": where,
+            "cep50_m": cep90_m / 1.8,
+            "cep90_m": cep90_m,
+            "first_seen": NOW,
+            "last_seen": NOW,
+        }
+    )
+
+
+def blue(uid: str, where: Position, time: datetime = NOW) -> BlueForce:
+    return BlueForce(
+        event_id=f"b-{uid}", uid=uid, time=time, callsign=uid, position=where, source="cot"
+    )
+
+
+def desk(
+    batteries: list[Battery] | None = None,
+    *,
+    clock: datetime = NOW,
+    min_confidence: float = 0.9,
+) -> CueDesk:
+    return CueDesk(
+        batteries or [Battery("GUTE-1", BATTERY, ALL)],
+        load_effector_table(),
+        BlueForceRegistry(lambda: clock, max_age_s=300),
+        classes=frozenset({"loitering_munition", "uav"}),
+        min_confidence=min_confidence,
+    )
+
+
+def test_a_munition_with_no_friend_near_is_cued_clear_with_the_preferred_effector() -> None:
+    cue = desk()
+    handoff = cue.consider(track(at(BATTERY, 90, 2000)))
+    assert isinstance(handoff, Handoff)
+    assert handoff.battery == "GUTE-1"
+    assert handoff.range_m == pytest.approx(2000, abs=0.01)
+    assert handoff.bearing_deg == pytest.approx(90, abs=0.01)
+    assert handoff.deconfliction.clear
+    assert handoff.deconfliction.blue_units_considered == 0
+    assert handoff.recommended_effector == "TRACKFIRE_30MM"
+    assert [o.effector for o in handoff.options] == [
+        "TRACKFIRE_30MM",
+        "TRIDON_MK2_40MM",
+        "EW_COUNTERMEASURES",
+    ]
+    assert handoff.operator_authorisation_required is True
+    assert handoff.handoff_id == handoff.event_id
+
+
+def test_a_track_within_danger_close_of_a_friend_is_not_clear_and_nothing_is_recommended() -> None:
+    cue = desk()
+    target = at(BATTERY, 90, 2000)
+    cue.blue.update(blue("PLT-2", at(target, 0, 250)))
+    handoff = cue.consider(track(target))
+    assert handoff is not None
+    assert not handoff.deconfliction.clear
+    assert handoff.recommended_effector is None
+    assert handoff.deconfliction.nearest_blue_uid == "PLT-2"
+    assert handoff.deconfliction.nearest_blue_m == pytest.approx(250, abs=0.01)
+    # Each offered effector with its own result: all inside their danger-close radius here.
+    assert {o.effector: o.deconfliction_clear for o in handoff.options} == {
+        "TRACKFIRE_30MM": False,
+        "TRIDON_MK2_40MM": False,
+        "EW_COUNTERMEASURES": False,
+    }
+    assert cue.counts.not_clear == 1
+
+
+def test_one_effector_inside_its_radius_is_enough_to_withhold_the_recommendation() -> None:
+    cue = desk()
+    target = at(BATTERY, 90, 2000)
+    cue.blue.update(blue("PLT-2", at(target, 180, 500)))  # 500 m: TRIDON's 600 m is not clear
+    handoff = cue.consider(track(target))
+    assert handoff is not None
+    options = {o.effector: o.deconfliction_clear for o in handoff.options}
+    assert options == {
+        "TRACKFIRE_30MM": True,
+        "TRIDON_MK2_40MM": False,
+        "EW_COUNTERMEASURES": True,
+    }
+    assert not handoff.deconfliction.clear
+    assert handoff.recommended_effector is None
+
+
+def test_the_tracks_uncertainty_is_taken_off_the_distance_to_the_friend() -> None:
+    target = at(BATTERY, 90, 3000)  # 3 km: TRIDON and EW only
+    near = desk()
+    near.blue.update(blue("PLT-2", at(target, 0, 700)))
+    assert near.consider(track(target, cep90_m=50)).deconfliction.clear  # type: ignore[union-attr]
+    vague = desk()
+    vague.blue.update(blue("PLT-2", at(target, 0, 700)))
+    handoff = vague.consider(track(target, cep90_m=150))  # 700 - 150 < 600
+    assert handoff is not None
+    assert not handoff.deconfliction.clear
+
+
+def test_the_cue_goes_to_the_nearest_battery_able_to_engage() -> None:
+    target = at(BATTERY, 90, 2000)
+    near_but_unable = Battery("GUTE-NEAR", at(target, 0, 500), frozenset({"GIRAFFE_1X_DESIGNATE"}))
+    able_far = Battery("GUTE-FAR", at(target, 180, 3500), ALL)
+    able_near = Battery("GUTE-MID", at(target, 270, 1500), frozenset({"TRACKFIRE_30MM"}))
+    cue = desk([near_but_unable, able_far, able_near])
+    handoff = cue.consider(track(target))
+    assert handoff is not None
+    assert handoff.battery == "GUTE-MID"
+    assert [o.effector for o in handoff.options] == ["TRACKFIRE_30MM"]
+
+
+def test_out_of_every_batterys_reach_is_no_cue_and_counted() -> None:
+    cue = desk([Battery("GUTE-1", BATTERY, frozenset({"TRACKFIRE_30MM"}))])
+    assert cue.consider(track(at(BATTERY, 0, 6000))) is None
+    assert cue.counts.out_of_reach == 1
+
+
+def test_once_per_track_until_it_is_lost() -> None:
+    cue = desk()
+    where = at(BATTERY, 45, 1500)
+    assert cue.consider(track(where, status="created")) is not None
+    assert cue.consider(track(where)) is None
+    assert cue.consider(track(where, track_id="T-2")) is not None
+    assert cue.consider(track(where, status="lost")) is None
+    assert cue.counts.handed_off == 2
+
+
+def test_a_weak_track_waits_for_fusion_and_other_classes_are_not_cued() -> None:
+    cue = desk()
+    where = at(BATTERY, 45, 1500)
+    assert cue.consider(track(where, confidence=0.8)) is None
+    assert cue.consider(track(where, cls="tank")) is None
+    assert cue.consider(track(where, confidence=0.95)) is not None
+    assert cue.counts.below_confidence == 1
+
+
+def test_stale_friendly_reports_are_not_used_but_pinned_units_are() -> None:
+    target = at(BATTERY, 90, 2000)
+    cue = desk()
+    cue.blue.update(blue("OLD", at(target, 0, 100), time=NOW - timedelta(seconds=301)))
+    handoff = cue.consider(track(target))
+    assert handoff is not None
+    assert handoff.deconfliction.clear
+    assert handoff.deconfliction.nearest_blue_uid is None
+    pinned = desk()
+    pinned.blue.pin(blue("HQ", at(target, 0, 100), time=NOW - timedelta(days=3)))
+    pinned.blue.update(blue("HQ", at(target, 0, 9000)))  # a report cannot move a pinned unit
+    held = pinned.consider(track(target))
+    assert held is not None
+    assert held.deconfliction.nearest_blue_uid == "HQ"
+    assert not held.deconfliction.clear
+
+
+def test_a_handoff_carries_no_field_that_could_command_an_effector() -> None:
+    handoff = desk().consider(track(at(BATTERY, 90, 2000)))
+    assert handoff is not None
+    words = " ".join(_keys(handoff.model_dump(mode="json"))).lower()
+    for command in ("fire", "engage", "launch", "weapons_free", "authorised", "authorized"):
+        assert command not in words
+    with pytest.raises(ValueError, match="operator_authorisation_required"):
+        Handoff.model_validate({**handoff.model_dump(), "operator_authorisation_required": False})
+
+
+def _keys(value: object) -> list[str]:
+    if isinstance(value, dict):
+        return [k for key, item in value.items() for k in (str(key), *_keys(item))]
+    if isinstance(value, list):
+        return [k for item in value for k in _keys(item)]
+    return []
