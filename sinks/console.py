@@ -35,6 +35,7 @@ from gateway.events import (
     Telemetry,
     Track,
 )
+from sinks._story import Story
 
 __all__ = ["ConsoleSink", "ConsoleSinkConfig", "describe"]
 
@@ -50,8 +51,11 @@ class ConsoleSinkConfig(SinkConfig):
     kinds: frozenset[EventKind] = Field(
         default=frozenset(EventKind), min_length=1, description="Event kinds this sink takes."
     )
-    format: Literal["text", "json"] = Field(
-        default="text", description="text: a line to read; json: one JSON object per line."
+    format: Literal["text", "json", "story"] = Field(
+        default="text",
+        description="text: a line per event; json: one JSON object per line; story: what "
+        "happened in the operation's words (new friendly units, first detections, fused "
+        "tracks, counter-UAS cues), not a line per event.",
     )
     output: Literal["stdout", "stderr"] | Path = Field(
         default="stdout", description="stdout, stderr, or a file path appended to."
@@ -142,6 +146,7 @@ class ConsoleSink:
         self._stream = stream
         self._file: TextIO | None = None
         self._writes_in_flight = 0
+        self._story = Story()
         # Its own limiter: a stuck write must not hold a token of the shared thread pool.
         self._limiter = anyio.CapacityLimiter(1)
 
@@ -177,6 +182,10 @@ class ConsoleSink:
             )
         if self.config.format == "json":
             text = "".join(event.model_dump_json() + "\n" for event in batch)
+        elif self.config.format == "story":
+            text = "".join(line + "\n" for event in batch for line in self._story.tell(event))
+            if not text:
+                return
         else:
             text = "".join(describe(event) + "\n" for event in batch)
         try:

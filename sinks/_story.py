@@ -1,0 +1,112 @@
+"""The console's ``story`` format: what happened, in the words of the operation, not per event.
+
+``Story.tell(event)`` returns the lines an event adds to the story, or none: a friendly unit
+when first registered, the first detection of each airframe, sensor and class (later ones are
+only counted), a track when created, when its fused class or confidence changes and when
+lost, and each counter-UAS cue with its deconfliction. Positions are MGRS. State is bounded:
+at most ``MAX_KEYS`` remembered keys per kind, the oldest forgotten first.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+
+from gateway.domain.geodesy import to_mgrs
+from gateway.errors import GatewayError
+from gateway.events import BlueForce, Detection, Event, Handoff, Position, Track
+
+__all__ = ["Story"]
+
+MAX_KEYS = 10_000
+
+
+def _mgrs(position: Position) -> str:
+    try:
+        return to_mgrs(position.lat_deg, position.lon_deg, 10, spaced=True)
+    except GatewayError:  # polar: MGRS has no UTM zone there
+        return f"{position.lat_deg:.5f},{position.lon_deg:.5f}"
+
+
+class _Seen:
+    def __init__(self) -> None:
+        self._keys: OrderedDict[str, str] = OrderedDict()
+
+    def changed(self, key: str, value: str) -> bool:
+        """True when ``key`` is new or its value differs from the last one seen."""
+        if self._keys.get(key) == value:
+            return False
+        self._keys[key] = value
+        self._keys.move_to_end(key)
+        while len(self._keys) > MAX_KEYS:
+            self._keys.popitem(last=False)
+        return True
+
+
+class Story:
+    """See the module docstring."""
+
+    def __init__(self) -> None:
+        self._blue = _Seen()
+        self._detections = _Seen()
+        self._tracks = _Seen()
+
+    def tell(self, event: Event) -> list[str]:
+        """The story lines ``event`` adds (often none)."""
+        if isinstance(event, BlueForce):
+            if not self._blue.changed(event.uid, ""):
+                return []
+            return [
+                f"blue force registered: {event.callsign or event.uid} ({event.uid})"
+                f" at {_mgrs(event.position)} via {event.source}"
+            ]
+        if isinstance(event, Detection):
+            key = f"{event.airframe}\x00{event.sensor.value}\x00{event.object_class}"
+            if not self._detections.changed(key, ""):
+                return []
+            return [
+                f"detection ingested: {event.airframe} {event.sensor.value.upper()} sees"
+                f" {event.object_class} {event.subtype or ''} conf {event.confidence:.2f}"
+                f" at {_mgrs(event.position)} ±{event.sigma_h_m:.0f} m".replace("  ", " ")
+            ]
+        if isinstance(event, Track):
+            return self._track(event)
+        if isinstance(event, Handoff):
+            return self._handoff(event)
+        return []
+
+    def _track(self, track: Track) -> list[str]:
+        if track.status == "lost":
+            return [f"track {track.track_id} lost: no detection since {track.last_seen:%H:%M:%SZ}"]
+        sensors = "+".join(sorted({s.value.upper() for s in track.sensors})) or "-"
+        summary = f"{track.object_class}|{track.confidence:.2f}|{sensors}"
+        if not self._tracks.changed(track.track_id, summary):
+            return []
+        verb = "created" if track.status == "created" else "fused"
+        motion = ""
+        if track.speed_mps is not None and track.course_deg is not None:
+            motion = f", {track.speed_mps:.0f} m/s course {track.course_deg:03.0f}°"
+        return [
+            f"track {track.track_id} {verb}: {track.object_class} {track.subtype or ''}"
+            f" confidence {track.confidence:.2f} (conflict {track.class_conflict:.2f})"
+            f" from {sensors} of {', '.join(track.airframes) or '-'}"
+            f" at {_mgrs(track.position)} CEP50 {track.cep50_m:.0f} m{motion}".replace("  ", " ")
+        ]
+
+    @staticmethod
+    def _handoff(handoff: Handoff) -> list[str]:
+        check = handoff.deconfliction
+        if check.nearest_blue_m is None:
+            nearest = f"no friendly unit known ({check.blue_units_considered} considered)"
+        else:
+            who = check.nearest_blue_callsign or check.nearest_blue_uid or "?"
+            nearest = f"nearest blue {who} at {check.nearest_blue_m:.0f} m"
+        verdict = "deconfliction clear" if check.clear else "deconfliction NOT clear"
+        advice = handoff.recommended_effector or "none (deconfliction not clear)"
+        held = [o.effector for o in handoff.options if not o.deconfliction_clear]
+        return [
+            f"{verdict} for track {handoff.track.track_id}: {nearest}"
+            + (f"; inside danger close of {', '.join(held)}" if held else ""),
+            f"GUTE II cue: track {handoff.track.track_id} to battery {handoff.battery}"
+            f" ({handoff.range_m:.0f} m, bearing {handoff.bearing_deg:03.0f}°),"
+            f" recommended effector {advice}; the battery's operator decides",
+        ]

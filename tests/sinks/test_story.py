@@ -1,0 +1,103 @@
+"""The console's story format: the operation's steps, once each, never "engagement authorised"."""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime
+
+from gateway.contract import sample_events
+from gateway.events import (
+    BlueForce,
+    Deconfliction,
+    Detection,
+    EventKind,
+    Handoff,
+    Position,
+    Sensor,
+    Track,
+)
+from sinks._story import Story
+
+T = datetime(2026, 11, 23, 12, 0, tzinfo=UTC)
+WHERE = Position(lat_deg=65.8252, lon_deg=21.6886)
+
+
+def detection(n: int, airframe: str = "F26E-001", sensor: Sensor = Sensor.EO) -> Detection:
+    return Detection(
+        event_id=f"d{n}",
+        airframe=airframe,
+        time=T,
+        sensor=sensor,
+        object_class="loitering_munition",
+        subtype="LANCET-3",
+        confidence=0.8,
+        position=WHERE,
+        sigma_h_m=12.0,
+    )
+
+
+def test_the_first_detection_per_airframe_sensor_and_class_is_told_then_only_counted() -> None:
+    story = Story()
+    first = story.tell(detection(1))
+    assert first == [
+        "detection ingested: F26E-001 EO sees loitering_munition LANCET-3 conf 0.80"
+        " at 34W EU 3146 0059 ±12 m"
+    ]
+    assert story.tell(detection(2)) == []
+    assert len(story.tell(detection(3, "F26E-002", Sensor.IR))) == 1
+
+
+def test_tracks_are_told_when_their_fused_picture_changes_and_when_lost() -> None:
+    story = Story()
+    base = sample_events(frozenset({EventKind.TRACK}))[0]
+    assert isinstance(base, Track)
+    created = base.model_copy(update={"status": "created", "sensors": (Sensor.EO,)})
+    fused = base.model_copy(
+        update={"confidence": 0.95, "sensors": (Sensor.EO, Sensor.IR), "airframes": ("A", "B")}
+    )
+    (line,) = story.tell(created)
+    assert line.startswith("track T1 created: uav confidence 0.80")
+    (line,) = story.tell(fused)
+    assert "track T1 fused: uav confidence 0.95" in line
+    assert "from EO+IR of A, B" in line
+    assert story.tell(fused.model_copy(update={"event_id": "again"})) == []
+    (line,) = story.tell(base.model_copy(update={"status": "lost"}))
+    assert line.startswith("track T1 lost")
+
+
+def test_a_cue_says_deconfliction_and_recommendation_and_leaves_the_decision_to_the_operator() -> (
+    None
+):
+    story = Story()
+    sample = sample_events(frozenset({EventKind.HANDOFF}))[0]
+    assert isinstance(sample, Handoff)
+    clear, cue = story.tell(sample)
+    assert clear.startswith("deconfliction clear for track T1: no friendly unit known")
+    assert "recommended effector TRACKFIRE_30MM; the battery's operator decides" in cue
+    held = sample.model_copy(
+        update={
+            "recommended_effector": None,
+            "deconfliction": Deconfliction(
+                clear=False,
+                nearest_blue_uid="PLT-2",
+                nearest_blue_callsign="2. pluton",
+                nearest_blue_m=250.0,
+                blue_units_considered=3,
+            ),
+        }
+    )
+    not_clear, cue = story.tell(held)
+    assert not_clear.startswith("deconfliction NOT clear for track T1: nearest blue 2. pluton")
+    assert "recommended effector none (deconfliction not clear)" in cue
+    for line in (clear, not_clear, cue):
+        assert "authorised" not in line
+        assert "engage" not in line
+
+
+def test_friendly_units_are_registered_once() -> None:
+    story = Story()
+    unit = BlueForce(event_id="b", uid="PLT-1", time=T, callsign="1. pluton", position=WHERE,
+                     source="cot")  # fmt: skip
+    assert story.tell(unit) == [
+        "blue force registered: 1. pluton (PLT-1) at 34W EU 3146 0059 via cot"
+    ]
+    assert story.tell(unit.model_copy(update={"event_id": "b2"})) == []
