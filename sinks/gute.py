@@ -29,6 +29,7 @@ from typing import Literal
 from urllib.parse import urlsplit
 
 import anyio
+import anyio.to_thread
 import httpx
 import structlog
 from pydantic import Field, ValidationInfo, field_validator, model_validator
@@ -108,13 +109,34 @@ class GuteSinkConfig(SinkConfig):
         )
 
 
+def _unreadable(files: TlsFiles) -> str | None:
+    """The first TLS file that cannot be read, and why; None if all can."""
+    for path in (
+        files.ca_file,
+        files.cert_file,
+        files.key_file,
+        files.pkcs12_file,
+        files.password_file,
+    ):
+        if path is None:
+            continue
+        try:
+            # The ssl module's loaders name no file when one is missing; this does.
+            with path.open("rb"):
+                pass
+        except OSError as exc:
+            return f"{path}: {exc.strerror or exc}"
+    return None
+
+
 def _tls_problem(files: TlsFiles) -> str | None:
     """Why the TLS material cannot be used, naming the file; None if it loads."""
+    if (unreadable := _unreadable(files)) is not None:
+        return unreadable
     try:
         tls_context(files)
     except OSError as exc:
-        name = exc.filename or files.ca_file
-        return f"{name}: {exc.strerror or exc}"
+        return f"{exc.filename or files.ca_file}: {exc.strerror or exc}"
     except ssl.SSLError as exc:  # only the CA is loaded without translation
         return f"{files.ca_file}: not a usable CA certificate ({exc.reason or exc})"
     except ValueError as exc:  # names the client certificate or PKCS#12 file
@@ -169,6 +191,9 @@ class GuteSink:
         if self._client is not None:
             return
         timeout_s = self.config.timeout_s
+        unreadable = await anyio.to_thread.run_sync(_unreadable, self._files)
+        if unreadable is not None:
+            raise self._fail(f"{self.url}: {unreadable}")
         try:
             self._client = await https_client(
                 self._files,

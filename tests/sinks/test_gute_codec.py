@@ -40,7 +40,9 @@ COMMAND_WORDS = re.compile(
 texts = st.text(st.characters(codec="utf-8", exclude_categories=("Cs",)), max_size=20)
 ids = st.text("ABCDEFGHJK0123456789-", min_size=1, max_size=16)
 times = st.datetimes(
-    min_value=datetime(2000, 1, 1), max_value=datetime(2100, 1, 1), timezones=st.just(UTC)
+    min_value=datetime(2000, 1, 1),  # noqa: DTZ001 - hypothesis takes naive bounds
+    max_value=datetime(2100, 1, 1),  # noqa: DTZ001 - the zone comes from timezones=
+    timezones=st.just(UTC),
 )
 positions = st.builds(
     Position,
