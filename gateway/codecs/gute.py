@@ -1,0 +1,122 @@
+"""GUTE II track handoff: the JSON document a counter-UAS battery receives for one cue.
+
+A handoff is a *cue*, never an order. The document carries the fused track, its range and
+bearing from the battery, the effector the table recommends (or none), each effector offered
+with its own danger-close deconfliction, and the blue-force check. It has no field that could
+command an effector: ``operator_authorisation_required`` is always ``true`` (a ``const`` in
+the schema), the schema forbids any property it does not list, and authorising an engagement
+stays with the battery's human operator.
+
+The schema ships as package data (``gateway/data/schemas/gute2-handoff.schema.json``, JSON
+Schema draft 2020-12); ``load_schema`` reads it. ``SCHEMA_ID`` versions the document: a change
+of shape is a new version, never a silent edit.
+"""
+
+from __future__ import annotations
+
+import json
+from datetime import UTC, datetime
+from importlib.resources import files
+from typing import Any
+
+from gateway.events import Deconfliction, EffectorOption, Handoff, Position, Track
+
+__all__ = ["SCHEMA_ID", "encode_handoff", "handoff_payload", "load_schema"]
+
+#: The ``schema`` member of every document; its last part is the version.
+SCHEMA_ID = "fischer-gateway/gute2-handoff/1"
+_SCHEMA_RESOURCE = "data/schemas/gute2-handoff.schema.json"
+
+
+def load_schema() -> dict[str, Any]:
+    """The handoff document's JSON Schema (draft 2020-12), read from package data."""
+    text = files("gateway").joinpath(_SCHEMA_RESOURCE).read_text(encoding="utf-8")
+    schema: dict[str, Any] = json.loads(text)
+    return schema
+
+
+def _time(value: datetime) -> str:
+    """UTC, ISO 8601, millisecond precision, ``Z``: ``2026-11-22T12:00:00.000Z``."""
+    return value.astimezone(UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
+
+
+def _position(position: Position) -> dict[str, Any]:
+    return {
+        "lat_deg": position.lat_deg,
+        "lon_deg": position.lon_deg,
+        "alt_msl_m": position.alt_msl_m,
+        "alt_hae_m": position.alt_hae_m,
+    }
+
+
+def _track(track: Track) -> dict[str, Any]:
+    return {
+        "track_id": track.track_id,
+        "object_class": track.object_class,
+        "subtype": track.subtype,
+        "confidence": track.confidence,
+        "class_conflict": track.class_conflict,
+        "position": _position(track.position),
+        "cep50_m": track.cep50_m,
+        "cep90_m": track.cep90_m,
+        "speed_mps": track.speed_mps,
+        "course_deg": track.course_deg,
+        "first_seen": _time(track.first_seen),
+        "last_seen": _time(track.last_seen),
+        "airframes": list(track.airframes),
+        "sensors": [sensor.value for sensor in track.sensors],
+    }
+
+
+def _option(option: EffectorOption) -> dict[str, Any]:
+    return {
+        "effector": option.effector,
+        "deconfliction_clear": option.deconfliction_clear,
+        "danger_close_m": option.danger_close_m,
+    }
+
+
+def _deconfliction(result: Deconfliction) -> dict[str, Any]:
+    return {
+        "clear": result.clear,
+        "nearest_blue_uid": result.nearest_blue_uid,
+        "nearest_blue_callsign": result.nearest_blue_callsign,
+        "nearest_blue_m": result.nearest_blue_m,
+        "blue_units_considered": result.blue_units_considered,
+    }
+
+
+def handoff_payload(handoff: Handoff) -> dict[str, Any]:
+    """The GUTE II document of ``handoff``: plain JSON types, keys exactly the schema's.
+
+    ``operator_authorisation_required`` is written as the constant ``True``, not copied from
+    the event, so no input can produce a document that does not ask for the operator.
+    """
+    return {
+        "schema": SCHEMA_ID,
+        "handoff_id": handoff.handoff_id,
+        "time": _time(handoff.time),
+        "battery": {"id": handoff.battery, "position": _position(handoff.battery_position)},
+        "track": _track(handoff.track),
+        "range_m": handoff.range_m,
+        "bearing_deg": handoff.bearing_deg,
+        "recommended_effector": handoff.recommended_effector,
+        "options": [_option(option) for option in handoff.options],
+        "deconfliction": _deconfliction(handoff.deconfliction),
+        "operator_authorisation_required": True,
+    }
+
+
+def encode_handoff(handoff: Handoff) -> bytes:
+    """The document as compact UTF-8 JSON.
+
+    Raises ``ValueError`` naming the handoff when a number is not finite (JSON has no NaN or
+    infinity), so a broken value is refused rather than sent as something it is not.
+    """
+    try:
+        text = json.dumps(
+            handoff_payload(handoff), allow_nan=False, ensure_ascii=False, separators=(",", ":")
+        )
+    except ValueError as exc:
+        raise ValueError(f"handoff {handoff.handoff_id}: cannot encode: {exc}") from None
+    return text.encode("utf-8")

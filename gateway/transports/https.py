@@ -1,0 +1,128 @@
+"""HTTPS to one C2 destination: the pinned CA, a client certificate, bounded everything.
+
+``https_client`` builds an ``httpx.AsyncClient`` whose TLS context is ``tls_context``'s (only
+the configured CA is trusted, the hostname is always checked, the client certificate is
+presented). It ignores the environment (no proxy variables, no ``SSL_CERT_FILE``, no netrc),
+never follows a redirect, keeps a small connection pool and has a deadline for each phase.
+``read_at_most`` reads a response body up to a bound, never more, and
+``describe_https_error`` turns what httpx or OpenSSL raised into one sentence naming the URL
+and, for TLS, the CA file, the hostname or the client certificate.
+"""
+
+from __future__ import annotations
+
+import ssl
+from urllib.parse import urlsplit
+
+import anyio.to_thread
+import httpx
+
+from gateway.transports.tls import TlsFiles, describe_tls_error, tls_context
+
+__all__ = ["describe_https_error", "https_client", "read_at_most"]
+
+# OpenSSL alert reasons a server sends when it refuses the client's certificate.
+_CLIENT_CERT_REFUSED = (
+    "CERTIFICATE_REQUIRED",
+    "BAD_CERTIFICATE",
+    "UNKNOWN_CA",
+    "CERTIFICATE_UNKNOWN",
+    "UNSUPPORTED_CERTIFICATE",
+    "ACCESS_DENIED",
+)
+
+
+async def https_client(
+    files: TlsFiles,
+    *,
+    connect_timeout_s: float,
+    read_timeout_s: float,
+    write_timeout_s: float,
+    pool_timeout_s: float,
+    max_connections: int = 4,
+) -> httpx.AsyncClient:
+    """A client for one HTTPS destination, its TLS material read in a worker thread.
+
+    Raises ``OSError`` for a missing or unreadable file and ``ssl.SSLError`` or ``ValueError``
+    for unusable contents (``tls_context``); the messages name the file, never a password.
+    """
+    context = await anyio.to_thread.run_sync(tls_context, files)
+    return httpx.AsyncClient(
+        verify=context,
+        trust_env=False,
+        follow_redirects=False,
+        timeout=httpx.Timeout(
+            connect=connect_timeout_s,
+            read=read_timeout_s,
+            write=write_timeout_s,
+            pool=pool_timeout_s,
+        ),
+        limits=httpx.Limits(
+            max_connections=max_connections,
+            max_keepalive_connections=max_connections,
+            keepalive_expiry=30.0,
+        ),
+    )
+
+
+async def read_at_most(response: httpx.Response, limit: int) -> bytes:
+    """At most ``limit`` bytes of a streamed ``response``'s body; the rest is never read.
+
+    The caller closes the response (``async with client.stream(...)``), which drops the
+    connection if the body was cut short.
+    """
+    body = bytearray()
+    async for chunk in response.aiter_raw():
+        body += chunk[: limit - len(body)]
+        if len(body) >= limit:
+            break
+    return bytes(body)
+
+
+def _ssl_cause(exc: BaseException) -> ssl.SSLError | None:
+    seen: BaseException | None = exc
+    while seen is not None:
+        if isinstance(seen, ssl.SSLError):
+            return seen
+        seen = seen.__cause__ or seen.__context__
+    return None
+
+
+def _client_certificate(files: TlsFiles) -> str | None:
+    path = files.cert_file or files.pkcs12_file
+    return None if path is None else str(path)
+
+
+def describe_https_error(exc: BaseException, url: str, files: TlsFiles) -> str:
+    """One sentence for a failed request to ``url``: what failed and, for TLS, whose fault.
+
+    Names the pinned CA file when the server's certificate is not trusted, the hostname when
+    the certificate is for another name, and the client certificate when the server refused
+    it. Never includes a password or a request body.
+    """
+    hostname = urlsplit(url).hostname or url
+    tls = _ssl_cause(exc)
+    if tls is not None:
+        reason = str(tls.reason or "")
+        if not isinstance(tls, ssl.SSLCertVerificationError) and any(
+            alert in reason for alert in _CLIENT_CERT_REFUSED
+        ):
+            mine = _client_certificate(files)
+            if mine is None:
+                return f"{url}: the server requires a client certificate and none is configured"
+            return f"{url}: the server refused the client certificate {mine} ({reason})"
+        return f"{url}: {describe_tls_error(tls, files, hostname)}"
+    if isinstance(exc, httpx.TimeoutException):
+        phase = {
+            httpx.ConnectTimeout: "connecting",
+            httpx.ReadTimeout: "waiting for the answer",
+            httpx.WriteTimeout: "sending the request",
+            httpx.PoolTimeout: "waiting for a free connection",
+        }.get(type(exc), "on the request")
+        return f"{url}: timed out {phase}"
+    text = str(exc) or type(exc).__name__
+    if isinstance(exc, httpx.ConnectError):
+        return f"{url}: cannot connect: {text}"
+    if isinstance(exc, httpx.RemoteProtocolError | httpx.ReadError | httpx.WriteError):
+        return f"{url}: connection lost: {text}"
+    return f"{url}: {type(exc).__name__}: {text}"
