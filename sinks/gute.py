@@ -10,8 +10,9 @@ battery's human operator.
 The sink holds no retry logic; its SinkRunner retries. The answer decides:
 
 - 2xx: delivered; 409: the battery already has that key, so delivered too;
-- 408, 425, 429, 5xx, a redirect (never followed), a timeout, a lost connection or a TLS
-  failure: ``TransientSinkError`` naming the URL; the idempotency key makes the retry safe;
+- 401, 403 (our certificate not accepted yet), 408, 425, 429, 5xx, a redirect (never
+  followed), a timeout, a lost connection or a TLS failure: ``TransientSinkError`` naming the
+  URL; the idempotency key makes the retry safe;
 - any other 4xx: the rest of the batch is delivered first, then ``PermanentSinkError`` with
   ``event_ids`` names the refused handoffs and the server's reason (at most 512 bytes).
 
@@ -47,7 +48,9 @@ log = structlog.get_logger(__name__)
 
 #: How much of a refusal's body is read and quoted, at most.
 MAX_REASON_BYTES = 512
-_RETRY_STATUSES = frozenset({408, 425, 429})
+# 401/403: the battery does not (yet) accept our certificate. Fixable by an operator (a renewed
+# or newly enrolled certificate), so the cues are kept and retried, never dead-lettered.
+_RETRY_STATUSES = frozenset({401, 403, 408, 425, 429})
 _KINDS = frozenset({EventKind.HANDOFF})
 
 
