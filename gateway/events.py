@@ -271,7 +271,13 @@ class Handoff(BaseModel):
     A cue, never an order: ``operator_authorisation_required`` is always True and there is no
     field that could command an effector. ``recommended_effector`` is None whenever the
     deconfliction is not clear; ``options`` still lists each effector with its own result so
-    the battery's operator sees why. ``event_id`` equals ``handoff_id`` (the idempotency key).
+    the battery's operator sees why.
+
+    ``handoff_id`` names the cue of one track to one battery for the track's life. When its
+    deconfliction or recommendation changes (a friendly unit comes within danger close, say)
+    the cue is sent again as the next ``revision``. Each revision is its own delivery:
+    ``event_id`` (the idempotency key) is ``handoff_id`` for revision 0 and
+    ``<handoff_id>-r<revision>`` after it.
     """
 
     model_config = _FROZEN
@@ -279,6 +285,7 @@ class Handoff(BaseModel):
     kind: Literal[EventKind.HANDOFF] = EventKind.HANDOFF
     event_id: str
     handoff_id: str
+    revision: int = Field(default=0, ge=0)
     time: AwareDatetime
     battery: str
     battery_position: Position

@@ -1,8 +1,9 @@
 """Processor ``counter_uas``: fused tracks to GUTE II cues, deconflicted against blue forces.
 
-Consumes Track and BlueForce events; publishes one ``Handoff`` per qualifying track (see
-``gateway.flow.cue``) and, once at start, a BlueForce event for each friendly unit fixed in
-its options, so every sink (CoT to ATAK, say) shows what deconfliction assumes.
+Consumes Track and BlueForce events; publishes one ``Handoff`` per qualifying track, and a
+revision of it when its deconfliction or recommendation changes (see ``gateway.flow.cue``);
+once at start, a BlueForce event for each friendly unit fixed in its options, so every sink
+(CoT to ATAK, say) shows what deconfliction assumes.
 
 A handoff is a cue with a recommendation: the GUTE II operator authorises any engagement.
 
@@ -15,6 +16,7 @@ Options (``processors: [{name: cuas, type: counter_uas, options: {...}}]``)::
     blue_forces:          # friendly units known from orders (never expire)
       - {uid: PLT-1, callsign: 1. pluton, lat_deg: 65.81, lon_deg: 21.66}
     blue_max_age_s: 300   # a reported friendly position older than this is not used
+    revision_interval_s: 5  # a cue that becomes clear again is revised at most this often
     effector_table: null  # a YAML file like gateway/data/effectors.yaml; the shipped one if null
 """
 
@@ -81,6 +83,13 @@ class CounterUasConfig(ProcessorConfig):
     min_confidence: float = Field(default=0.9, ge=0.0, le=1.0)
     blue_forces: tuple[FixedBlueOptions, ...] = Field(default=(), max_length=10_000)
     blue_max_age_s: float = Field(default=300.0, gt=0, le=86_400)
+    revision_interval_s: float = Field(
+        default=5.0,
+        ge=0,
+        le=3600,
+        description="Least time between revisions of a cue that become clear (or change "
+        "recommendation); a cue that stops being clear is revised at once.",
+    )
     effector_table: Path | None = Field(
         default=None, description="Effector table YAML; the shipped table when omitted."
     )
@@ -144,6 +153,7 @@ class CounterUasProcessor:
             self.blue,
             classes=frozenset(config.classes),
             min_confidence=config.min_confidence,
+            revision_interval_s=config.revision_interval_s,
         )
 
     @property
@@ -181,7 +191,8 @@ class CounterUasProcessor:
                         log.info(
                             "handoff",
                             processor=self.name,
-                            handoff=handoff.handoff_id,
+                            handoff=handoff.event_id,
+                            revision=handoff.revision,
                             battery=handoff.battery,
                             deconfliction_clear=handoff.deconfliction.clear,
                             recommended=handoff.recommended_effector,
@@ -195,6 +206,7 @@ class CounterUasProcessor:
             "batteries": [b.id for b in self.batteries],
             "blue_units": len(self.blue),
             "handed_off": counts.handed_off,
+            "revised": counts.revised,
             "not_clear": counts.not_clear,
             "out_of_reach": counts.out_of_reach,
             "below_confidence": counts.below_confidence,

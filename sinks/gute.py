@@ -1,11 +1,12 @@
 """The GUTE II sink: counter-UAS track handoffs to a battery, as JSON over HTTPS.
 
 Each ``Handoff`` is POSTed to ``url`` as the document of ``gateway.codecs.gute`` with
-``Idempotency-Key: <handoff_id>``, over TLS with a client certificate and the battery's CA
-pinned (the hostname is always checked). A handoff is a cue, never an order: the document
-always carries ``"operator_authorisation_required": true``, its schema allows nothing else,
-and nothing on this path can command an effector; authorising an engagement stays with the
-battery's human operator.
+``Idempotency-Key: <event_id>`` (the handoff id, with ``-r<n>`` for a revision), over TLS
+with a client certificate and the battery's CA pinned (the hostname is always checked). A
+handoff is a cue, never an order: the document always carries
+``"operator_authorisation_required": true``, its schema allows nothing else, and nothing on
+this path can command an effector; authorising an engagement stays with the battery's human
+operator.
 
 The sink holds no retry logic; its SinkRunner retries. The answer decides:
 
@@ -264,7 +265,7 @@ class GuteSink:
             )
 
     async def _post(self, client: httpx.AsyncClient, handoff: Handoff) -> _Outcome:
-        key = handoff.handoff_id
+        key = handoff.event_id
         try:
             body = encode_handoff(handoff)
         except ValueError as exc:

@@ -254,8 +254,8 @@ class GutePeer:
         if problems:
             where = "/".join(str(p) for p in problems[0].absolute_path)
             return 400, {"error": f"schema: /{where}: {problems[0].message}"}
-        if document["handoff_id"] != key:
-            return 400, {"error": "Idempotency-Key differs from handoff_id"}
+        if document["idempotency_key"] != key:
+            return 400, {"error": "Idempotency-Key differs from the document's idempotency_key"}
         if key in self.refuse:
             return self.refuse[key], {"error": f"handoff {key} refused by the test"}
         if key in self.accepted:

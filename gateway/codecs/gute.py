@@ -95,6 +95,8 @@ def handoff_payload(handoff: Handoff) -> dict[str, Any]:
     return {
         "schema": SCHEMA_ID,
         "handoff_id": handoff.handoff_id,
+        "revision": handoff.revision,
+        "idempotency_key": handoff.event_id,
         "time": _time(handoff.time),
         "battery": {"id": handoff.battery, "position": _position(handoff.battery_position)},
         "track": _track(handoff.track),
@@ -118,5 +120,5 @@ def encode_handoff(handoff: Handoff) -> bytes:
             handoff_payload(handoff), allow_nan=False, ensure_ascii=False, separators=(",", ":")
         )
     except ValueError as exc:
-        raise ValueError(f"handoff {handoff.handoff_id}: cannot encode: {exc}") from None
+        raise ValueError(f"handoff {handoff.event_id}: cannot encode: {exc}") from None
     return text.encode("utf-8")

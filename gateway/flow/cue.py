@@ -12,6 +12,12 @@
    cue is *clear* only when every offered effector is clear; then the first is recommended.
    When it is not clear, no effector is recommended and the operator sees each one's result.
 
+Once cued, a track stays with its battery. On each later update the check is made again for
+that battery; when the deconfliction or the recommendation changes, the cue goes out again as
+the next *revision* of the same handoff: at once when it stops being clear (a friendly unit
+now within danger close), otherwise at most every ``revision_interval_s``, so a track on the
+edge cannot flood the battery. A track out of its battery's reach keeps its last cue.
+
 The result is a ``Handoff``: a cue with a recommendation for the battery's human operator,
 who alone authorises an engagement. Nothing here can command an effector, and the event
 type has no field that could carry such a command.
@@ -21,6 +27,7 @@ from __future__ import annotations
 
 from collections import OrderedDict
 from dataclasses import dataclass
+from datetime import datetime
 
 from gateway.domain.effectors import EffectorTable, recommend
 from gateway.domain.geodesy import distance_bearing
@@ -32,7 +39,7 @@ from gateway.events import (
     Track,
     event_id,
 )
-from gateway.flow.blueforce import BlueForceRegistry
+from gateway.flow.blueforce import BlueForceRegistry, NearestBlue
 
 __all__ = ["Battery", "CueCounts", "CueDesk"]
 
@@ -51,9 +58,22 @@ class CueCounts:
     """What the desk did with the tracks it saw."""
 
     handed_off: int = 0
+    revised: int = 0
     not_clear: int = 0
     out_of_reach: int = 0
     below_confidence: int = 0
+
+
+@dataclass(slots=True)
+class _Cue:
+    """The last cue sent for one track."""
+
+    handoff_id: str
+    battery: Battery
+    revision: int
+    clear: bool
+    recommended: str | None
+    sent: datetime
 
 
 class CueDesk:
@@ -67,6 +87,7 @@ class CueDesk:
         *,
         classes: frozenset[str],
         min_confidence: float,
+        revision_interval_s: float = 5.0,
         max_remembered: int = 100_000,
     ) -> None:
         self.batteries = batteries
@@ -74,80 +95,136 @@ class CueDesk:
         self.blue = blue
         self.classes = classes
         self.min_confidence = min_confidence
+        self.revision_interval_s = revision_interval_s
         self.max_remembered = max_remembered
         self.counts = CueCounts()
-        self._cued: OrderedDict[str, str] = OrderedDict()  # track id -> handoff id
+        self._cued: OrderedDict[str, _Cue] = OrderedDict()  # by track id
 
     def forget(self, track_id: str) -> None:
         """The track is lost: it no longer holds a place among the cued."""
         self._cued.pop(track_id, None)
 
     def consider(self, track: Track) -> Handoff | None:
-        """The handoff for ``track`` if it is due now; None otherwise (see module docstring)."""
+        """The handoff (or revision) for ``track`` if one is due now; None otherwise."""
         if track.status == "lost":
             self.forget(track.track_id)
             return None
-        if track.track_id in self._cued or track.object_class not in self.classes:
+        if track.object_class not in self.classes:
             return None
+        last = self._cued.get(track.track_id)
+        if last is not None:
+            return self._revise(track, last)
         if track.confidence < self.min_confidence:
             self.counts.below_confidence += 1
             return None
-        where = track.position
-        nearest = self.blue.nearest(where.lat_deg, where.lon_deg)
-        nearest_m = None if nearest is None else nearest.distance_m
+        nearest = self._nearest(track)
         best: tuple[float, float, Battery, list[EffectorOption]] | None = None
         for battery in self.batteries:
-            range_m, bearing = distance_bearing(
-                battery.position.lat_deg, battery.position.lon_deg, where.lat_deg, where.lon_deg
-            )
-            offered = [
-                EffectorOption(
-                    effector=r.effector,
-                    deconfliction_clear=r.deconfliction_clear,
-                    danger_close_m=r.danger_close_m,
-                )
-                for r in recommend(
-                    self.table,
-                    track.object_class,
-                    range_m,
-                    nearest_m,
-                    uncertainty_m=track.cep90_m,
-                )
-                if r.effector in battery.effectors
-            ]
+            range_m, bearing, offered = self._offer(track, battery, nearest)
             if offered and (best is None or range_m < best[0]):
                 best = (range_m, bearing, battery, offered)
         if best is None:
             self.counts.out_of_reach += 1
             return None
         range_m, bearing, battery, offered = best
-        clear = all(option.deconfliction_clear for option in offered)
         handoff_id = event_id("HO", track.track_id, battery.id)
-        self._remember(track.track_id, handoff_id)
+        handoff = self._handoff(track, battery, handoff_id, 0, range_m, bearing, offered, nearest)
+        self._remember(track.track_id, _Cue(
+            handoff_id, battery, 0, handoff.deconfliction.clear,
+            handoff.recommended_effector, track.time,
+        ))  # fmt: skip
         self.counts.handed_off += 1
+        return handoff
+
+    def _revise(self, track: Track, last: _Cue) -> Handoff | None:
+        nearest = self._nearest(track)
+        range_m, bearing, offered = self._offer(track, last.battery, nearest)
+        if not offered:
+            return None  # out of its battery's reach for now: the last cue stands
+        clear = all(option.deconfliction_clear for option in offered)
+        recommended = offered[0].effector if clear else None
+        if (clear, recommended) == (last.clear, last.recommended):
+            return None
+        waited = (track.time - last.sent).total_seconds()
+        if clear and waited < self.revision_interval_s:
+            return None  # good news can wait; losing "clear" never does
+        revision = last.revision + 1
+        handoff = self._handoff(
+            track, last.battery, last.handoff_id, revision, range_m, bearing, offered, nearest
+        )
+        last.revision, last.clear, last.recommended, last.sent = (
+            revision, clear, recommended, track.time,
+        )  # fmt: skip
+        self._cued.move_to_end(track.track_id)
+        self.counts.revised += 1
+        return handoff
+
+    def _nearest(self, track: Track) -> NearestBlue | None:
+        return self.blue.nearest(track.position.lat_deg, track.position.lon_deg)
+
+    def _offer(
+        self, track: Track, battery: Battery, nearest: NearestBlue | None
+    ) -> tuple[float, float, list[EffectorOption]]:
+        """Range and bearing from ``battery``, and the effectors it has that the table offers."""
+        range_m, bearing = distance_bearing(
+            battery.position.lat_deg,
+            battery.position.lon_deg,
+            track.position.lat_deg,
+            track.position.lon_deg,
+        )
+        offered = [
+            EffectorOption(
+                effector=r.effector,
+                deconfliction_clear=r.deconfliction_clear,
+                danger_close_m=r.danger_close_m,
+            )
+            for r in recommend(
+                self.table,
+                track.object_class,
+                range_m,
+                None if nearest is None else nearest.distance_m,
+                uncertainty_m=track.cep90_m,
+            )
+            if r.effector in battery.effectors
+        ]
+        return range_m, bearing % 360.0 if bearing % 360.0 < 360.0 else 0.0, offered
+
+    def _handoff(
+        self,
+        track: Track,
+        battery: Battery,
+        handoff_id: str,
+        revision: int,
+        range_m: float,
+        bearing: float,
+        offered: list[EffectorOption],
+        nearest: NearestBlue | None,
+    ) -> Handoff:
+        clear = all(option.deconfliction_clear for option in offered)
         if not clear:
             self.counts.not_clear += 1
         return Handoff(
-            event_id=handoff_id,
+            event_id=handoff_id if revision == 0 else f"{handoff_id}-r{revision}",
             handoff_id=handoff_id,
+            revision=revision,
             time=track.time,
             battery=battery.id,
             battery_position=battery.position,
             track=track,
             range_m=range_m,
-            bearing_deg=bearing % 360.0 if bearing % 360.0 < 360.0 else 0.0,
+            bearing_deg=bearing,
             recommended_effector=offered[0].effector if clear else None,
             options=tuple(offered),
             deconfliction=Deconfliction(
                 clear=clear,
                 nearest_blue_uid=None if nearest is None else nearest.uid,
                 nearest_blue_callsign=None if nearest is None else nearest.callsign or None,
-                nearest_blue_m=nearest_m,
+                nearest_blue_m=None if nearest is None else nearest.distance_m,
                 blue_units_considered=len(self.blue),
             ),
         )
 
-    def _remember(self, track_id: str, handoff_id: str) -> None:
-        self._cued[track_id] = handoff_id
+    def _remember(self, track_id: str, cue: _Cue) -> None:
+        self._cued[track_id] = cue
         while len(self._cued) > self.max_remembered:
             self._cued.popitem(last=False)

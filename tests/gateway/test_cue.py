@@ -206,3 +206,39 @@ def _keys(value: object) -> list[str]:
     if isinstance(value, list):
         return [k for item in value for k in _keys(item)]
     return []
+
+
+def test_a_cue_is_revised_at_once_when_a_friend_comes_within_danger_close() -> None:
+    cue = desk()
+    target = at(BATTERY, 90, 2000)
+    first = cue.consider(track(target, status="created"))
+    assert first is not None
+    assert first.deconfliction.clear
+    assert (first.revision, first.event_id) == (0, first.handoff_id)
+    cue.blue.update(blue("PLT-2", at(target, 0, 200)))
+    second = cue.consider(track(target))  # the same instant: losing "clear" never waits
+    assert second is not None
+    assert (second.handoff_id, second.revision) == (first.handoff_id, 1)
+    assert second.event_id == f"{first.handoff_id}-r1"
+    assert not second.deconfliction.clear
+    assert second.recommended_effector is None
+    assert cue.consider(track(target)) is None  # unchanged: nothing new to say
+
+
+def test_a_cue_that_becomes_clear_again_waits_for_the_revision_interval() -> None:
+    target = at(BATTERY, 90, 2000)
+    times = iter([NOW, NOW, NOW + timedelta(seconds=1), NOW + timedelta(seconds=6)])
+    cue = desk()
+    cue.blue.update(blue("PLT-2", at(target, 0, 200)))
+    assert not cue.consider(
+        track(target).model_copy(update={"time": next(times)})
+    ).deconfliction.clear  # type: ignore[union-attr]
+    away = at(target, 0, 3000)
+    cue.blue.update(blue("PLT-2", away, time=NOW + timedelta(seconds=1)))
+    assert cue.consider(track(target).model_copy(update={"time": next(times)})) is None
+    assert cue.consider(track(target).model_copy(update={"time": next(times)})) is None
+    later = cue.consider(track(target).model_copy(update={"time": next(times)}))
+    assert later is not None
+    assert later.revision == 1
+    assert later.deconfliction.clear
+    assert later.recommended_effector == "TRACKFIRE_30MM"

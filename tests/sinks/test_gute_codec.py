@@ -89,6 +89,7 @@ handoffs = st.builds(
     Handoff,
     event_id=ids,
     handoff_id=ids,
+    revision=st.integers(0, 1000),
     time=times,
     battery=ids,
     battery_position=positions,
@@ -214,6 +215,8 @@ class TestPayload:
         assert_keys_match(document, SCHEMA)
         assert document["operator_authorisation_required"] is True
         assert document["handoff_id"] == handoff.handoff_id
+        assert document["revision"] == handoff.revision
+        assert document["idempotency_key"] == handoff.event_id
         assert document["time"].endswith("Z")
 
     def test_times_are_utc_whatever_the_events_zone(self) -> None:
