@@ -104,7 +104,7 @@ class SensorSpec(BaseModel):
         if self.classes is not None and object_class not in self.classes:
             return None
         if isinstance(self.confidence, dict):
-            by_class: dict[str, float] = dict(self.confidence)
+            by_class: dict[str, float] = {str(k): v for k, v in self.confidence.items()}
             return by_class.get(object_class)
         return self.confidence
 
