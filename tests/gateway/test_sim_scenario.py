@@ -226,3 +226,34 @@ class TestEncoding:
         assert (cot.uid, cot.type, cot.callsign) == ("BLUE-1", "a-f-G-U-C-I", "VIDAR 1")
         assert (cot.lat, cot.lon) == pytest.approx((65.83, 21.70))
         assert math.isclose(cot.hae, 42.0 + 22.0, abs_tol=3.0)  # EGM96 N ≈ 22 m at Boden
+
+
+class TestCli:
+    """``fischer-gateway simulate --scenario``: usage errors exit 2 naming the problem."""
+
+    def test_bad_scenario_exits_2_naming_file_line_and_key(
+        self, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    ) -> None:
+        from gateway.cli import main
+
+        bad = tmp_path / "bad.yaml"
+        bad.write_text(scenario_text().replace("class: tank", "class: helicopter"))
+        assert main(["simulate", "--scenario", str(bad), "--to", "udp://127.0.0.1:9"]) == 2
+        err = capsys.readouterr().err
+        assert f"{bad}:13 targets[0].class:" in err
+
+    @pytest.mark.parametrize(
+        ("extra", "option"),
+        [
+            (["--cot", "udp://127.0.0.1:9"], "--cot"),
+            (["--scenario", "brigade", "--airframes", "2"], "--airframes"),
+            (["--scenario", "brigade", "--cot", "127.0.0.1"], "--cot"),
+        ],
+    )
+    def test_usage_errors_exit_2(
+        self, extra: list[str], option: str, capsys: pytest.CaptureFixture[str]
+    ) -> None:
+        from gateway.cli import main
+
+        assert main(["simulate", "--to", "udp://127.0.0.1:9", *extra]) == 2
+        assert f"(command line) {option}:" in capsys.readouterr().err
