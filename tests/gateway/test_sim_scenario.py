@@ -5,6 +5,8 @@ from __future__ import annotations
 import itertools
 import math
 import statistics
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -228,19 +230,21 @@ class TestEncoding:
         assert math.isclose(cot.hae, 42.0 + 22.0, abs_tol=3.0)  # EGM96 N ≈ 22 m at Boden
 
 
+def simulate(*args: str) -> subprocess.CompletedProcess[str]:
+    """The CLI in a child process: it configures logging, which a test process must not."""
+    command = [sys.executable, "-m", "gateway", "simulate", "--to", "udp://127.0.0.1:9", *args]
+    return subprocess.run(command, capture_output=True, text=True, timeout=60, check=False)
+
+
 class TestCli:
     """``fischer-gateway simulate --scenario``: usage errors exit 2 naming the problem."""
 
-    def test_bad_scenario_exits_2_naming_file_line_and_key(
-        self, tmp_path: Path, capsys: pytest.CaptureFixture[str]
-    ) -> None:
-        from gateway.cli import main
-
+    def test_bad_scenario_exits_2_naming_file_line_and_key(self, tmp_path: Path) -> None:
         bad = tmp_path / "bad.yaml"
         bad.write_text(scenario_text().replace("class: tank", "class: helicopter"))
-        assert main(["simulate", "--scenario", str(bad), "--to", "udp://127.0.0.1:9"]) == 2
-        err = capsys.readouterr().err
-        assert f"{bad}:13 targets[0].class:" in err
+        done = simulate("--scenario", str(bad))
+        assert done.returncode == 2
+        assert f"{bad}:13 targets[0].class:" in done.stderr
 
     @pytest.mark.parametrize(
         ("extra", "option"),
@@ -250,10 +254,7 @@ class TestCli:
             (["--scenario", "brigade", "--cot", "127.0.0.1"], "--cot"),
         ],
     )
-    def test_usage_errors_exit_2(
-        self, extra: list[str], option: str, capsys: pytest.CaptureFixture[str]
-    ) -> None:
-        from gateway.cli import main
-
-        assert main(["simulate", "--to", "udp://127.0.0.1:9", *extra]) == 2
-        assert f"(command line) {option}:" in capsys.readouterr().err
+    def test_usage_errors_exit_2(self, extra: list[str], option: str) -> None:
+        done = simulate(*extra)
+        assert done.returncode == 2
+        assert f"(command line) {option}:" in done.stderr
