@@ -113,8 +113,20 @@ def _parser() -> argparse.ArgumentParser:
     )
     simulate = sub.add_parser("simulate", help="simulated airframes sending to a gateway")
     simulate.add_argument("--to", required=True, help="udp://HOST:PORT")
-    simulate.add_argument("--airframes", type=_airframes, default=2, help="1..255")
-    simulate.add_argument("--duration", type=_positive, default=None, help="seconds")
+    simulate.add_argument(
+        "--airframes", type=_airframes, default=None, help="1..255 (default 2; not with --scenario)"
+    )
+    simulate.add_argument("--duration", type=_positive, default=None, help="seconds (of sim time)")
+    simulate.add_argument(
+        "--scenario",
+        default=None,
+        help="a scenario YAML file, or a shipped one by name (brigade, danger-close, "
+        "loitering-munitions, t72-column)",
+    )
+    simulate.add_argument(
+        "--cot", default=None, help="udp://HOST:PORT of the gateway's CoT source (friendly units)"
+    )
+    simulate.add_argument("--speed", type=_positive, default=1.0, help="sim time runs X times real")
     for sub_parser in (replay, simulate):
         sub_parser.add_argument(
             "--key-dir", type=Path, default=None, help="day keys: seal frames in the tunnel"
@@ -141,13 +153,17 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _udp_target(text: str) -> tuple[str, int]:
+def _udp_target(text: str, option: str = "--to") -> tuple[str, int]:
     from gateway.fleet.tlog import parse_udp_target
 
     try:
         return parse_udp_target(text)
     except ValueError as exc:
-        raise ConfigError([ConfigIssue("(command line)", None, "--to", str(exc))]) from exc
+        raise ConfigError([ConfigIssue("(command line)", None, option, str(exc))]) from exc
+
+
+def _usage_error(option: str, message: str) -> ConfigError:
+    return ConfigError([ConfigIssue("(command line)", None, option, message)])
 
 
 def _sealers(args: argparse.Namespace, count: int) -> list[Sealer | None]:
@@ -405,12 +421,70 @@ def _simulate(args: argparse.Namespace) -> int:
     from gateway.sim.airframe import build_demo_fleet, run_fleet
 
     host, port = _udp_target(args.to)
-    fleet = build_demo_fleet(args.airframes)
+    if args.scenario is not None:
+        return _simulate_scenario(args, host, port)
+    if args.cot is not None:
+        raise _usage_error("--cot", "friendly units come from a scenario: add --scenario")
+    fleet = build_demo_fleet(args.airframes or 2)
     sealers = _sealers(args, len(fleet))
     _run_async(
         lambda: run_fleet(
-            fleet, host, [port] * len(fleet), duration_s=args.duration, speed=1.0, sealers=sealers
+            fleet,
+            host,
+            [port] * len(fleet),
+            duration_s=args.duration,
+            speed=args.speed,
+            sealers=sealers,
         )
+    )
+    return EXIT_OK
+
+
+def _simulate_scenario(args: argparse.Namespace, host: str, port: int) -> int:
+    from gateway.sim.runner import PlayStats, play_scenario
+    from gateway.sim.scenario import load_scenario
+
+    if args.airframes is not None:
+        raise _usage_error("--airframes", "the scenario names its airframes; drop --airframes")
+    scenario = load_scenario(args.scenario)
+    cot = _udp_target(args.cot, "--cot") if args.cot is not None else None
+    if cot is None and scenario.blue_forces:
+        log.warning(
+            "blue_forces_skipped",
+            scenario=scenario.name,
+            units=len(scenario.blue_forces),
+            reason="no --cot: friendly units are sent to the gateway's CoT source",
+        )
+    if args.key_dir is not None and args.airframe_id is None:
+        args.airframe_id = [airframe.id for airframe in scenario.airframes]
+    sealers = _sealers(args, len(scenario.airframes))
+    stats = PlayStats()
+    log.info(
+        "scenario_started",
+        scenario=scenario.name,
+        airframes=len(scenario.airframes),
+        duration_s=args.duration or scenario.duration_s,
+        speed=args.speed,
+    )
+    _run_async(
+        lambda: play_scenario(
+            scenario,
+            host,
+            port,
+            cot=cot,
+            duration_s=args.duration,
+            speed=args.speed,
+            sealers=sealers,
+            stats=stats,
+        )
+    )
+    log.info(
+        "scenario_finished",
+        scenario=scenario.name,
+        frames=stats.frames,
+        detections=stats.detections,
+        blue_force_reports=stats.reports,
+        blue_force_reports_refused=stats.reports_refused,
     )
     return EXIT_OK
 

@@ -22,7 +22,7 @@ import stat
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from types import UnionType
-from typing import Annotated, Any, Literal, Union, get_args, get_origin
+from typing import Annotated, Any, Literal, TypeVar, Union, get_args, get_origin
 
 import yaml
 from pydantic import BaseModel, ValidationError
@@ -42,10 +42,13 @@ __all__ = [
     "is_loopback_host",
     "load_config",
     "load_config_text",
+    "load_model_text",
+    "read_bounded_text",
     "validation_issues",
 ]
 
 Loc = tuple[str | int, ...]
+ModelT = TypeVar("ModelT", bound=BaseModel)
 
 #: Largest config file read; a brigade's config is a few kilobytes.
 MAX_CONFIG_BYTES = 1024 * 1024
@@ -404,33 +407,7 @@ def load_config_text(
     adds checks (``gateway.configcheck``: key files, devices, sink construction); what it
     reports as not an error goes, with its line, to ``warnings``.
     """
-    if len(text) > MAX_CONFIG_BYTES:
-        message = f"{len(text)} characters; a config file is at most {MAX_CONFIG_BYTES}"
-        raise ConfigError([ConfigIssue(source, None, "(file)", message)])
-    lines = _Lines()
-    loader: _BoundedLoader | None = None
-    try:
-        loader = _BoundedLoader(text)
-        node = loader.get_single_node()
-        if node is not None:
-            lines.walk(node, ())
-        data = loader.construct_document(node) if node is not None else None
-    except _TooBig as exc:
-        raise ConfigError([ConfigIssue(source, exc.line, "(yaml)", exc.message)]) from None
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        line = mark.line + 1 if mark is not None else None
-        problem = getattr(exc, "problem", None) or str(exc)
-        issue = ConfigIssue(source, line, "(yaml)", f"not valid YAML: {problem}")
-        raise ConfigError([issue]) from exc
-    finally:
-        if loader is not None:
-            loader.dispose()
-    if data is None:
-        data = {}
-    if not isinstance(data, dict):
-        issue = ConfigIssue(source, 1, "(top level)", "expected a mapping of sections")
-        raise ConfigError([issue])
+    data, lines = _parse_yaml(text, source)
     found: list[tuple[Loc, str]] = [
         (loc, "duplicate key; the later value would silently win") for loc, _ in lines.duplicates
     ]
@@ -475,6 +452,85 @@ def load_config(
     Refuses anything but a regular file of at most ``MAX_CONFIG_BYTES`` before reading it.
     ``check_sink``, ``extra`` and ``warnings`` are as for ``load_config_text``.
     """
+    text = read_bounded_text(path)
+    return load_config_text(text, str(path), check_sink=check_sink, extra=extra, warnings=warnings)
+
+
+def _parse_yaml(text: str, source: str) -> tuple[dict[str, Any], _Lines]:
+    """The top-level mapping of YAML ``text`` and the lines of its keys; ``ConfigError`` if
+    it is too big, not YAML or not a mapping."""
+    if len(text) > MAX_CONFIG_BYTES:
+        message = f"{len(text)} characters; a config file is at most {MAX_CONFIG_BYTES}"
+        raise ConfigError([ConfigIssue(source, None, "(file)", message)])
+    lines = _Lines()
+    loader: _BoundedLoader | None = None
+    try:
+        loader = _BoundedLoader(text)
+        node = loader.get_single_node()
+        if node is not None:
+            lines.walk(node, ())
+        data = loader.construct_document(node) if node is not None else None
+    except _TooBig as exc:
+        raise ConfigError([ConfigIssue(source, exc.line, "(yaml)", exc.message)]) from None
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        line = mark.line + 1 if mark is not None else None
+        problem = getattr(exc, "problem", None) or str(exc)
+        issue = ConfigIssue(source, line, "(yaml)", f"not valid YAML: {problem}")
+        raise ConfigError([issue]) from exc
+    finally:
+        if loader is not None:
+            loader.dispose()
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        issue = ConfigIssue(source, 1, "(top level)", "expected a mapping of sections")
+        raise ConfigError([issue])
+    return data, lines
+
+
+def load_model_text(
+    text: str,
+    source: str,
+    model: type[ModelT],
+    *,
+    checks: Callable[[dict[str, Any]], Iterable[tuple[Loc, str]]] | None = None,
+) -> ModelT:
+    """Parse YAML ``text`` into ``model`` with the config file's bounds and error reports.
+
+    For YAML files other than the config (simulator scenarios ...): every problem, each
+    naming ``source``, its line and key path, in one ``ConfigError``. ``checks`` adds checks
+    across items on the raw data, reported the same way.
+    """
+    data, lines = _parse_yaml(text, source)
+    found: list[tuple[Loc, str]] = [
+        (loc, "duplicate key; the later value would silently win") for loc, _ in lines.duplicates
+    ]
+    value: ModelT | None = None
+    try:
+        value = model.model_validate(data)
+    except ValidationError as exc:
+        found.extend(_issues_from_validation(exc, (), model))
+    reported = {loc for loc, _ in found}
+    found.extend(issue for issue in _number_checks(data, model, ()) if issue[0] not in reported)
+    if checks is not None:
+        found.extend(checks(data))
+    if found or value is None:
+        dup_lines = dict(lines.duplicates)
+        issues = [
+            ConfigIssue(source, dup_lines.get(loc) or lines.line(loc), format_loc(loc), message)
+            for loc, message in found
+        ]
+        issues.sort(key=lambda issue: (issue.line or 0, issue.key_path))
+        raise ConfigError(issues)
+    return value
+
+
+def read_bounded_text(path: Path) -> str:
+    """The UTF-8 text of the regular file at ``path``, at most ``MAX_CONFIG_BYTES``.
+
+    Refuses anything else before reading it, with a ``ConfigError`` naming the file.
+    """
     source = str(path)
     try:
         fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
@@ -503,11 +559,10 @@ def load_config(
         message = f"more than {MAX_CONFIG_BYTES} bytes; a config file is at most that"
         raise ConfigError([ConfigIssue(source, None, "(file)", message)])
     try:
-        text = raw.decode("utf-8")
+        return raw.decode("utf-8")
     except UnicodeDecodeError as exc:
         message = f"not UTF-8 text (byte {exc.start})"
         raise ConfigError([ConfigIssue(source, None, "(file)", message)]) from exc
-    return load_config_text(text, source, check_sink=check_sink, extra=extra, warnings=warnings)
 
 
 def _number_checks(raw: object, expected: object, loc: Loc) -> Iterator[tuple[Loc, str]]:

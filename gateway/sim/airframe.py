@@ -13,7 +13,7 @@ from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, fields
 from functools import partial
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import anyio
 import anyio.abc
@@ -25,7 +25,14 @@ from gateway.fleet.dialect import fischer_detection
 if TYPE_CHECKING:
     from gateway.fleet.security.tunnel import Sealer
 
-__all__ = ["SentPosition", "SimProfile", "SimulatedAirframe", "build_demo_fleet", "run_fleet"]
+__all__ = [
+    "MessageFeed",
+    "SentPosition",
+    "SimProfile",
+    "SimulatedAirframe",
+    "build_demo_fleet",
+    "run_fleet",
+]
 
 log = structlog.get_logger(__name__)
 
@@ -118,10 +125,24 @@ class _Schedule:
         return self.origin_s + self.slot * self.period_s
 
 
+class MessageFeed(Protocol):
+    """More messages for an airframe to send (a scenario's detections), on its own timeline."""
+
+    def next_due_s(self) -> float:
+        """The sim time of the next message (inf if none)."""
+        ...
+
+    def messages_at(self, t_s: float, unix_s: float) -> list[Any]:
+        """The pymavlink messages due by sim time ``t_s``; ``unix_s`` is its UTC (UNIX) time."""
+        ...
+
+
 class SimulatedAirframe:
     """One airframe: its MAVLink encoder, flight profile and message schedule.
 
     ``sent_positions`` keeps the last ``position_history`` GLOBAL_POSITION_INTs produced.
+    ``feed`` adds messages from elsewhere (a scenario's detections) to the same MAVLink
+    stream, in the same sequence numbering.
     """
 
     def __init__(
@@ -131,6 +152,7 @@ class SimulatedAirframe:
         *,
         phase_rad: float = 0.0,
         position_history: int = 100_000,
+        feed: MessageFeed | None = None,
     ) -> None:
         if not 1 <= sysid <= 255:
             raise ValueError(f"sysid: expected 1..255, got {sysid!r}")
@@ -154,8 +176,12 @@ class SimulatedAirframe:
             _Schedule(_period(p.status_hz), self._status),
             _Schedule(_period(p.detection_hz), self._detection),
         ]
+        self._feed = feed
         #: UNIX time of sim time 0, for FISCHER_DETECTION.time_usec (``run_udp`` sets it).
         self.boot_unix_s = 0.0
+        #: Sim seconds per real second (``run_udp`` sets it): sim time t is UNIX time
+        #: ``boot_unix_s + t / speed``.
+        self.speed = 1.0
         self._detections = 0
         self.sent_positions: deque[SentPosition] = deque(maxlen=position_history)
         self.frames_sent = 0
@@ -185,11 +211,25 @@ class SimulatedAirframe:
                 # pack() does not advance the sequence number (send() would); receivers
                 # count gaps in it as loss.
                 self._mav.seq = (self._mav.seq + 1) % 256
+        if self._feed is not None and self._feed.next_due_s() <= t_s + _EPS_S:
+            for msg in self._feed.messages_at(t_s, self.unix_s(t_s)):
+                frames.append(bytes(msg.pack(self._mav)))
+                self._mav.seq = (self._mav.seq + 1) % 256
         return frames
 
     def next_due_s(self) -> float:
         """The sim time at which ``frames_at`` will next return frames (inf if never)."""
-        return min(schedule.next_s for schedule in self._schedules)
+        due = min(schedule.next_s for schedule in self._schedules)
+        return due if self._feed is None else min(due, self._feed.next_due_s())
+
+    def unix_s(self, t_s: float) -> float:
+        """The UNIX time of sim time ``t_s`` (the real time it is sent)."""
+        return self.boot_unix_s + t_s / self.speed
+
+    def position_at(self, t_s: float) -> tuple[float, float]:
+        """Latitude and longitude (degrees) on the orbit at sim time ``t_s``."""
+        lat_deg, lon_deg, _ = self._state(t_s)
+        return lat_deg, lon_deg
 
     def _state(self, t_s: float) -> tuple[float, float, float]:
         """Latitude and longitude (degrees), and track (radians from north, clockwise)."""
@@ -259,7 +299,7 @@ class SimulatedAirframe:
         lat = p.centre_lat_deg + math.degrees(1000.0 / self._m_per_rad_lat)
         return [
             fischer_detection(
-                time_usec=round((self.boot_unix_s + t_s) * 1e6),
+                time_usec=round(self.unix_s(t_s) * 1e6),
                 detection_id=self._detections,
                 lat_e7=round(lat * 1e7),
                 lon_e7=round(p.centre_lon_deg * 1e7),
@@ -327,6 +367,7 @@ class SimulatedAirframe:
             task_status.started()
             start = anyio.current_time()
             self.boot_unix_s = time.time()
+            self.speed = speed
             t_s = 0.0
             while duration_s is None or t_s <= duration_s + _EPS_S:
                 for frame in self.frames_at(t_s):
