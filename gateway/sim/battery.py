@@ -10,6 +10,7 @@ is not simulated, because the gateway never makes it.
 from __future__ import annotations
 
 import json
+import socket
 import ssl
 from collections.abc import Callable
 from typing import Any
@@ -28,7 +29,7 @@ _MAX_BODY = 256 * 1024
 
 
 class SimulatedBattery:
-    """See the module docstring; ``port`` is known once ``serve`` has started."""
+    """See the module docstring; its loopback port is bound (``port``) when it is made."""
 
     def __init__(self, pki: DemoPki, on_handoff: Callable[[dict[str, Any]], None]) -> None:
         self._context = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH, cafile=pki.ca_file)
@@ -36,17 +37,20 @@ class SimulatedBattery:
         self._context.verify_mode = ssl.CERT_REQUIRED
         self._on_handoff = on_handoff
         self.keys: set[str] = set()
-        self.port = 0
+        self._socket = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        self._socket.bind(("127.0.0.1", 0))
+        self._socket.listen(16)
+        self.port = int(self._socket.getsockname()[1])
 
     async def serve(
-        self, *, task_status: anyio.abc.TaskStatus[int] = anyio.TASK_STATUS_IGNORED
+        self, *, task_status: anyio.abc.TaskStatus[None] = anyio.TASK_STATUS_IGNORED
     ) -> None:
-        """Accept connections until cancelled; ``task_status.started(port)``."""
-        tcp = await anyio.create_tcp_listener(local_host="127.0.0.1", local_port=0)
-        self.port = int(tcp.extra(anyio.abc.SocketAttribute.local_port))
+        """Accept connections until cancelled."""
+        tcp = await anyio.abc.SocketListener.from_socket(self._socket)
         listener = TLSListener(tcp, self._context, standard_compatible=False)
-        task_status.started(self.port)
-        await listener.serve(self._connection)
+        task_status.started()
+        async with listener:
+            await listener.serve(self._connection)
 
     async def _connection(self, stream: anyio.abc.ByteStream) -> None:
         async with stream:
