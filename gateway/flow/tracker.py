@@ -119,7 +119,7 @@ class Tracker:
         self._grid: GridIndex[str] = GridIndex(s.cell_m)
         self._plane: GridPlane | None = None
         self._sigma_max_m = MIN_SIGMA_M
-        self._sigma_v_max = max(s.process_noise_mps, 0.5 * s.max_speed_mps)
+        self._sigma_v_max = math.hypot(0.5 * s.max_speed_mps, s.process_noise_mps)
 
     def __len__(self) -> int:
         return len(self._tracks)
@@ -262,7 +262,7 @@ class Tracker:
             object_class=best,
             confidence=belief,
         )
-        state.history.append((at_s, lat, lon))
+        state.history.append((at_s, lat, lon, sigma_m))
         state.alt_msl_m = detection.position.alt_msl_m
         if detection.subtype:
             state.subtypes[best] = detection.subtype

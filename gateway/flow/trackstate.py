@@ -2,16 +2,19 @@
 
 **Position** is fused by inverse variance in the local tangent plane about the track. Between
 updates it is predicted at constant velocity and its per-axis σ grows with the time since
-the update, σ² + (σᵥ·Δt)², where σᵥ is ``process_noise_mps`` once a velocity is known and
-half of ``max_speed_mps`` before then (a target seen once could be moving at any plausible
-speed, so the second detection of a fast target still falls inside the gate).
+the update: (σ + σᵥ·Δt)² + (q·Δt)², where σᵥ is the velocity estimate's own σ (added linearly:
+it was fitted to the same positions, so the errors are correlated) and q is
+``process_noise_mps`` (manoeuvres). Before a velocity is known σᵥ is half of
+``max_speed_mps`` (a target seen once could be moving at any plausible speed, so the second
+detection of a fast target still falls inside the gate).
 
 **Velocity** is a least-squares straight line through the newest ``velocity_window`` fused
 positions against time. It is chosen over an alpha-beta filter because detections arrive
 irregularly and from several airframes at once: a regression needs no gains tuned to an
 update rate, copes with two reports a few milliseconds apart, and a short window still
-follows a turning target. Its speed is clamped to ``max_speed_mps`` (physics, and the bound
-the spatial index relies on).
+follows a turning target. Its σ is the fit's, σ_pos/√Σ(t − t̄)² (two fixes 1 s apart with σ 8 m
+give 11 m/s, which the gate must allow for), at most half of ``max_speed_mps``. Its speed is
+clamped to ``max_speed_mps`` (physics, and the bound the spatial index relies on).
 
 **Class** evidence keeps the newest mass function of each source (airframe, sensor) and
 combines the sources with Dempster's rule (``gateway.domain.evidence``): a repeated report
@@ -75,8 +78,9 @@ class TrackState:
     alt_msl_m: float | None = None
     east_mps: float | None = None
     north_mps: float | None = None
+    velocity_sigma_mps: float = 0.0
     subtypes: dict[str, str] = field(default_factory=dict)
-    history: deque[tuple[float, float, float]] = field(default_factory=deque)
+    history: deque[tuple[float, float, float, float]] = field(default_factory=deque)
     detection_ids: deque[str] = field(default_factory=lambda: deque(maxlen=32))
     detection_count: int = 0
     airframes: set[str] = field(default_factory=set)
@@ -91,12 +95,15 @@ class TrackState:
         """Predicted (lat, lon, per-axis σ m) at ``at_s`` (never predicted backwards)."""
         dt = max(0.0, at_s - self.updated_s)
         if self.east_mps is None or self.north_mps is None:
-            sigma_v = 0.5 * max_speed_mps
+            velocity_var = (0.5 * max_speed_mps) ** 2
             lat, lon = self.lat_deg, self.lon_deg
         else:
-            sigma_v = process_noise_mps
+            velocity_var = self.velocity_sigma_mps**2
             lat, lon = displace(self.lat_deg, self.lon_deg, self.east_mps * dt, self.north_mps * dt)
-        return lat, lon, math.sqrt(self.sigma_m**2 + (sigma_v * dt) ** 2)
+        # The velocity was fitted to the fused positions, so its error and the position's are
+        # correlated: their σ add linearly (the bound of full correlation), not in quadrature.
+        spread = self.sigma_m + math.sqrt(velocity_var) * dt
+        return lat, lon, math.sqrt(spread * spread + (process_noise_mps * dt) ** 2)
 
     def fuse_position(
         self,
@@ -117,18 +124,19 @@ class TrackState:
         self.lat_deg, self.lon_deg = displace(p_lat, p_lon, gain * east, gain * north)
         self.sigma_m = math.sqrt(p_var * m_var / (p_var + m_var))
         self.updated_s = max(self.updated_s, at_s)
-        self.history.append((at_s, self.lat_deg, self.lon_deg))
+        self.history.append((at_s, self.lat_deg, self.lon_deg, self.sigma_m))
         while len(self.history) > velocity_window:
             self.history.popleft()
         self._estimate_velocity(max_speed_mps)
 
     def _estimate_velocity(self, max_speed_mps: float) -> None:
         points = list(self.history)
-        times = [t for t, _, _ in points]
+        times = [t for t, _, _, _ in points]
         if len(points) < 2 or max(times) - min(times) < MIN_VELOCITY_SPAN_S:
             return
-        _, lat0, lon0 = points[-1]
-        offsets = [offset_m(lat0, lon0, lat, lon) for _, lat, lon in points]
+        _, lat0, lon0, _ = points[-1]
+        offsets = [offset_m(lat0, lon0, lat, lon) for _, lat, lon, _ in points]
+        sigma_pos = math.sqrt(sum(sigma**2 for _, _, _, sigma in points) / len(points))
         t_mean = sum(times) / len(times)
         e_mean = sum(e for e, _ in offsets) / len(offsets)
         n_mean = sum(n for _, n in offsets) / len(offsets)
@@ -142,6 +150,7 @@ class TrackState:
         if speed > max_speed_mps:
             east, north = east * max_speed_mps / speed, north * max_speed_mps / speed
         self.east_mps, self.north_mps = east, north
+        self.velocity_sigma_mps = min(0.5 * max_speed_mps, sigma_pos / math.sqrt(s_tt))
 
     def set_classes(
         self, sources: dict[Source, MassFunction], masses: MassFunction, k: float
