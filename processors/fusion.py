@@ -67,7 +67,7 @@ class FusionConfig(ProcessorConfig):
         default="grid", description="Association candidates: spatial grid, or every track."
     )
     cell_m: float = Field(
-        default=500.0, ge=10, le=100_000, description="Grid cell size (m) of the spatial index."
+        default=2000.0, ge=10, le=100_000, description="Grid cell size (m) of the spatial index."
     )
     loitering_munition: Literal["uav_attack", "missile"] = Field(
         default="uav_attack", description="The symbol a loitering munition's SIDC uses."

@@ -74,7 +74,7 @@ class TrackerSettings:
     max_speed_mps: float = 100.0
     velocity_window: int = 6
     index: Index = "grid"
-    cell_m: float = 500.0
+    cell_m: float = 2000.0
     loitering_munition: Literal["uav_attack", "missile"] = "uav_attack"
 
 
