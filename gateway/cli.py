@@ -18,7 +18,6 @@ import sys
 from collections.abc import Callable, Coroutine, Sequence
 from datetime import date, timedelta
 from functools import partial
-from importlib.resources import files
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -34,12 +33,11 @@ from gateway.c2.plugins import (
     load_plugin,
 )
 from gateway.clock import utc_now
-from gateway.config import Config
 from gateway.configcheck import NodeCheck
-from gateway.configfile import load_config, load_config_text
+from gateway.configfile import load_config
 from gateway.errors import ConfigError, ConfigIssue, GatewayError
 from gateway.fleet.security.keys import load_day_keys, read_key_file, write_day_keys
-from gateway.fleet.security.tunnel import DayKeys, Sealer, derive_day_key
+from gateway.fleet.security.tunnel import DayKeys, Sealer
 from gateway.ops.logsetup import configure_logging, install_loop_exception_handler
 from gateway.ops.version import package_version
 from gateway.transports.listener import raise_open_files_limit
@@ -87,8 +85,13 @@ def _parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
     run = sub.add_parser("run", help="run the daemon")
     run.add_argument("--config", type=Path, required=True, help="YAML config file")
-    demo = sub.add_parser("demo", help="the gateway and two simulated airframes, on loopback")
+    demo = sub.add_parser(
+        "demo", help="the brigade operation end to end: simulator, gateway, GUTE II, ATAK"
+    )
     demo.add_argument("--duration", type=_positive, default=None, help="stop after S seconds")
+    demo.add_argument(
+        "--speed", type=_positive, default=1.0, help="play the scenario X times faster"
+    )
     demo.add_argument("--udp-port", type=_port, default=None, help="override the demo's UDP port")
     demo.add_argument("--health-port", type=_port, default=None, help="override the health port")
     demo.add_argument("--archive", type=Path, default=None, help="where the JSONL archive goes")
@@ -321,62 +324,14 @@ def _run_async(fn: Any, *args: Any) -> None:
     anyio.run(fn, *args, backend="asyncio", backend_options=options)
 
 
-def _demo_config(args: argparse.Namespace) -> Config:
-    text = files("gateway").joinpath("defaults/demo.yaml").read_text(encoding="utf-8")
-    data = load_config_text(text, "demo.yaml").model_dump(mode="json")
-    if args.udp_port is not None:
-        for airframe in data["airframes"]:
-            for link in airframe["links"]:
-                link["uri"] = f"udp://127.0.0.1:{args.udp_port}"
-    if args.health_port is not None:
-        data["health"]["port"] = args.health_port
-    archive = Path(args.archive or "fischer-demo/archive.jsonl")
-    for sink in data["sinks"]:
-        if sink["type"] == "jsonl":
-            sink["options"]["path"] = str(archive)
-    # The demo's tunnel master key lives next to its archive, created on first run.
-    master = archive.parent / "demo-master.key"
-    if not master.exists():
-        archive.parent.mkdir(parents=True, exist_ok=True)
-        fd = os.open(master, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-        with os.fdopen(fd, "w", encoding="ascii") as handle:
-            handle.write(secrets.token_hex(32) + "\n")
-    data["tunnel"]["master_key_file"] = str(master)
-    return Config.model_validate(data)
-
-
 def _demo(args: argparse.Namespace) -> int:
-    from gateway.sim.airframe import build_demo_fleet, run_fleet
+    from gateway.demo import prepare_demo
 
-    config = _demo_config(args)
-    gateway = Gateway(config, source="demo.yaml")
-    fleet = build_demo_fleet(len(config.airframes))
-    assert config.tunnel.master_key_file is not None  # noqa: S101 - set by _demo_config
-    master = read_key_file(config.tunnel.master_key_file)
-    today = utc_now().date()
-    # Each simulated airframe gets only its own day keys (today and tomorrow), as in the field.
-    sealers: list[Sealer | None] = [
-        Sealer(
-            airframe.id,
-            DayKeys(
-                keys={
-                    (airframe.id, day): derive_day_key(master, airframe.id, day)
-                    for day in (today, today + timedelta(days=1))
-                }
-            ),
-            utc_now,
-        )
-        for airframe in config.airframes
-    ]
-
-    async def simulate() -> None:
-        link = next(iter(gateway.links.values()))
-        port = getattr(link, "local_port", 0) or link.endpoint.port
-        await run_fleet(
-            fleet, "127.0.0.1", [port] * len(fleet), duration_s=None, speed=1.0, sealers=sealers
-        )
-
-    _run_async(_serve, gateway, args.duration, simulate)
+    demo = prepare_demo(
+        args.archive, udp_port=args.udp_port, health_port=args.health_port, speed=args.speed
+    )
+    gateway = Gateway(demo.config, source="demo.yaml")
+    _run_async(_serve, gateway, args.duration, demo.player(gateway))
     return EXIT_OK
 
 

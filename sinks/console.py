@@ -183,7 +183,11 @@ class ConsoleSink:
         if self.config.format == "json":
             text = "".join(event.model_dump_json() + "\n" for event in batch)
         elif self.config.format == "story":
-            text = "".join(line + "\n" for event in batch for line in self._story.tell(event))
+            text = "".join(
+                f"{event.time.astimezone(UTC):%H:%M:%S}Z {line}\n"
+                for event in batch
+                for line in self._story.tell(event)
+            )
             if not text:
                 return
         else:

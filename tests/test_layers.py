@@ -42,6 +42,7 @@ LAYERS: dict[str, tuple[int, str]] = {
     "gateway.configcheck": (4, "assembly"),
     "gateway.configschema": (4, "assembly"),
     "gateway.reload": (4, "assembly"),
+    "gateway.demo": (4, "assembly"),
     "gateway.cli": (5, "entry"),
     "gateway.__main__": (5, "entry"),
     # The package's public face (``from gateway import Sink``): for plugin authors. It only
