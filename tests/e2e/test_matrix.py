@@ -3,8 +3,11 @@
 One ``fischer-gateway run --config FILE`` subprocess (``python -m gateway``) carries every sink
 at once: jsonl, console, memory, null and the CoT sink over UDP unicast (XML), UDP unicast
 mesh protobuf, UDP multicast on loopback, TCP, TLS with a client certificate (trustme) and
-TCP with TAK protocol v1 negotiation, plus a UDP and a TCP CoT source. The simulator
-(``fischer-gateway simulate``) feeds it for more than ten seconds while every peer here decodes
+TCP with TAK protocol v1 negotiation, the GUTE II sink to an HTTPS battery (client
+certificate, JSON Schema checked) fed by the fusion and counter_uas processors, plus a UDP and
+a TCP CoT source. The simulator
+(``fischer-gateway simulate --scenario loitering-munitions``: two airframes, two Lancets seen
+on EO and IR) feeds it for more than ten seconds while every peer here decodes
 what it receives with takproto and /readyz is sampled; then SIGTERM must stop it cleanly.
 
 The run happens once (module fixture); each test checks one leg of it. Loopback only.
@@ -31,6 +34,7 @@ import anyio.abc
 import pytest
 import trustme
 from anyio.streams.tls import TLSListener
+from gute_peer import GutePeer
 
 from gateway.codecs.cot.proto import read_varint
 
@@ -177,6 +181,8 @@ class MatrixRun:
     """The daemon's JSON log lines (logs go to stderr)."""
     returncode: int | None = None
     stop_s: float = 0.0
+    gute: GutePeer | None = None
+    """The GUTE II battery the gute2 sink posts handoff cues to."""
 
 
 def write_config(run: MatrixRun, ports: dict[str, int], pki: dict[str, str]) -> Path:
@@ -210,17 +216,37 @@ def write_config(run: MatrixRun, ports: dict[str, int], pki: dict[str, str]) -> 
             {"name": "mesh_in", "uri": f"udp://127.0.0.1:{ports['source_udp']}"},
             {"name": "stream_in", "uri": f"tcp://127.0.0.1:{ports['source_tcp']}"},
         ],
+        # The scenario's two Lancets (EO 0.80 + IR 0.75) are fused and cued to its battery.
+        "processors": [
+            {"name": "fusion", "type": "fusion", "options": {"max_speed_mps": 300}},
+            {
+                "name": "cuas",
+                "type": "counter_uas",
+                "options": {
+                    "batteries": [
+                        {
+                            "id": "GUTE-E2E",
+                            "lat_deg": 65.8235,
+                            "lon_deg": 21.6955,
+                            "effectors": ["TRACKFIRE_30MM", "TRIDON_MK2_40MM"],
+                        }
+                    ],
+                },
+            },
+        ],
         "sinks": [
             {"name": "archive", "type": "jsonl", "options": {"path": str(run.tmp / "a.jsonl")}},
             {"name": "console", "type": "console", "options": {"format": "json"}},
             {"name": "mem", "type": "memory"},
             {"name": "null", "type": "null"},
+            {"name": "gute", "type": "gute2", "options": run.gute.sink_options()},
             *cot,
         ],
         "routes": [
             {"sinks": ["archive", "mem", "null"]},
             {"sinks": ["console"], "kinds": ["telemetry"], "max_rate_hz": 1},
             {"sinks": [c["name"] for c in cot], "kinds": ["telemetry", "detection"]},
+            {"sinks": ["gute"], "kinds": ["handoff"]},
         ],
     }
     path = run.tmp / "config.yaml"
@@ -276,7 +302,8 @@ async def scenario(run: MatrixRun, pki_files: dict[str, str], server_tls: ssl.SS
         for name, receiver in receivers.items():
             ports[name] = receiver.getsockname()[1]
             run.datagrams[name] = []
-        async with anyio.create_task_group() as tg:
+        async with anyio.create_task_group() as tg, GutePeer(run.tmp / "gute") as gute:
+            run.gute = gute
             for peer in run.peers.values():
                 await tg.start(peer.run)
             for name, receiver in receivers.items():
@@ -299,8 +326,9 @@ async def scenario(run: MatrixRun, pki_files: dict[str, str], server_tls: ssl.SS
                         await anyio.sleep(0.05)
                 target = f"udp://127.0.0.1:{ports['link']}"
                 simulate = [
-                    sys.executable, "-m", "gateway", "simulate",
-                    "--to", target, "--airframes", "2", "--duration", str(RUN_S),
+                    sys.executable, "-m", "gateway", "simulate", "--scenario",
+                    "loitering-munitions", "--to", target, "--duration", str(RUN_S * 3),
+                    "--speed", "3",
                 ]  # fmt: skip
                 async with await anyio.open_process(simulate) as simulator:
                     await feed_sources(ports)
@@ -450,3 +478,33 @@ class TestCotSource:
         lines = [json.loads(line) for line in (matrix.tmp / "a.jsonl").read_text().splitlines()]
         uids = {line["uid"] for line in lines if line["kind"] == "blue_force"}
         assert uids == {"ANDROID-MESH", "ANDROID-TCP"}
+
+
+class TestCounterUas:
+    """Detections fused into tracks, cued to a GUTE II battery over HTTPS with client certs."""
+
+    def test_the_battery_got_each_cue_once_and_valid(self, matrix: MatrixRun) -> None:
+        gute = matrix.gute
+        assert gute is not None
+        assert gute.accepted, f"no handoff reached the battery: {matrix.status['processors']}"
+        assert [r.status for r in gute.posts] == [201] * len(gute.accepted)
+        by_track: dict[str, set[str]] = {}
+        for document in gute.accepted.values():
+            assert document["operator_authorisation_required"] is True
+            assert document["battery"]["id"] == "GUTE-E2E"
+            assert document["track"]["object_class"] == "loitering_munition"
+            assert document["track"]["confidence"] >= 0.95 - 1e-9
+            by_track.setdefault(document["track"]["track_id"], set()).add(document["handoff_id"])
+        assert all(len(ids) == 1 for ids in by_track.values())
+
+    def test_the_tracks_and_cues_are_archived_and_processors_report(
+        self, matrix: MatrixRun
+    ) -> None:
+        lines = [json.loads(line) for line in (matrix.tmp / "a.jsonl").read_text().splitlines()]
+        kinds = {line["kind"] for line in lines}
+        assert {"track", "handoff"} <= kinds
+        processors = {p["processor"]: p for p in matrix.status["processors"]}
+        assert processors["fusion"]["state"] == "running"
+        detail = processors["cuas"]["detail"]
+        assert matrix.gute is not None
+        assert detail["handed_off"] + detail["revised"] == len(matrix.gute.accepted)
