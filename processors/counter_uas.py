@@ -52,9 +52,11 @@ class BatteryOptions(BaseModel):
     model_config = _STRICT
 
     id: str = Field(pattern=_ID, description="The battery's id, as GUTE II knows it.")
-    lat_deg: float = Field(ge=-90, le=90)
-    lon_deg: float = Field(ge=-180, le=180)
-    alt_msl_m: float | None = Field(default=None, ge=-500, le=9000)
+    lat_deg: float = Field(ge=-90, le=90, description="Latitude, WGS 84 degrees.")
+    lon_deg: float = Field(ge=-180, le=180, description="Longitude, WGS 84 degrees.")
+    alt_msl_m: float | None = Field(
+        default=None, ge=-500, le=9000, description="Altitude above mean sea level, metres."
+    )
     effectors: tuple[str, ...] = Field(min_length=1, description="Effector names it has.")
 
 
@@ -63,10 +65,10 @@ class FixedBlueOptions(BaseModel):
 
     model_config = _STRICT
 
-    uid: str = Field(pattern=_ID)
-    callsign: str = Field(default="", max_length=64)
-    lat_deg: float = Field(ge=-90, le=90)
-    lon_deg: float = Field(ge=-180, le=180)
+    uid: str = Field(pattern=_ID, description="The unit's id, as its CoT uid would be.")
+    callsign: str = Field(default="", max_length=64, description="The unit's callsign.")
+    lat_deg: float = Field(ge=-90, le=90, description="Latitude, WGS 84 degrees.")
+    lon_deg: float = Field(ge=-180, le=180, description="Longitude, WGS 84 degrees.")
 
 
 class CounterUasConfig(ProcessorConfig):
@@ -74,15 +76,28 @@ class CounterUasConfig(ProcessorConfig):
 
     model_config = _STRICT
 
-    batteries: tuple[BatteryOptions, ...] = Field(min_length=1, max_length=256)
+    batteries: tuple[BatteryOptions, ...] = Field(
+        min_length=1, max_length=256, description="The GUTE II batteries cues may go to."
+    )
     classes: tuple[str, ...] = Field(
         default=("loitering_munition", "uav", "helicopter"),
         min_length=1,
         description="Track classes cued to a battery.",
     )
-    min_confidence: float = Field(default=0.9, ge=0.0, le=1.0)
-    blue_forces: tuple[FixedBlueOptions, ...] = Field(default=(), max_length=10_000)
-    blue_max_age_s: float = Field(default=300.0, gt=0, le=86_400)
+    min_confidence: float = Field(
+        default=0.9, ge=0.0, le=1.0, description="Fused belief in the class before a cue."
+    )
+    blue_forces: tuple[FixedBlueOptions, ...] = Field(
+        default=(),
+        max_length=10_000,
+        description="Friendly units fixed by orders: never expire, announced once at start.",
+    )
+    blue_max_age_s: float = Field(
+        default=300.0,
+        gt=0,
+        le=86_400,
+        description="A reported friendly position older than this is not used.",
+    )
     revision_interval_s: float = Field(
         default=5.0,
         ge=0,
