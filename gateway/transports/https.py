@@ -11,6 +11,7 @@ and, for TLS, the CA file, the hostname or the client certificate.
 
 from __future__ import annotations
 
+import importlib
 import ssl
 from urllib.parse import urlsplit
 
@@ -47,6 +48,9 @@ async def https_client(
     for unusable contents (``tls_context``); the messages name the file, never a password.
     """
     context = await anyio.to_thread.run_sync(tls_context, files)
+    # httpcore imports its network backend on the first request, on the event loop; import it
+    # here, off the loop, so a first POST on a busy node does not hold the loop for it.
+    await anyio.to_thread.run_sync(importlib.import_module, "httpcore._backends.anyio")
     return httpx.AsyncClient(
         verify=context,
         trust_env=False,
