@@ -11,6 +11,7 @@ move or evict them (a report under a pinned uid is ignored).
 
 from __future__ import annotations
 
+import math
 from collections import OrderedDict
 from dataclasses import dataclass
 from datetime import datetime, timedelta
@@ -71,12 +72,40 @@ class BlueForceRegistry:
         return [*self._pinned.values(), *self._units.values()]
 
     def nearest(self, lat_deg: float, lon_deg: float) -> NearestBlue | None:
-        """The closest current friendly unit to the point, or None if there is none."""
+        """The closest current friendly unit to the point, or None if there is none.
+
+        A great-circle distance on the mean sphere (within 0.6 % of the ellipsoid's) ranks
+        every unit cheaply; only units that could still be the nearest on the ellipsoid get
+        the geodesic (geographiclib), so thousands of units cost milliseconds, not seconds.
+        """
+        units = self.current()
+        if not units:
+            return None
+        rough = [
+            (_sphere_m(lat_deg, lon_deg, u.position.lat_deg, u.position.lon_deg), u) for u in units
+        ]
+        closest = min(distance for distance, _ in rough)
         best: NearestBlue | None = None
-        for report in self.current():
+        for distance, report in rough:
+            if distance > closest * (1.0 + _SPHERE_ERROR) + 1.0:
+                continue
             distance_m, _ = distance_bearing(
                 lat_deg, lon_deg, report.position.lat_deg, report.position.lon_deg
             )
             if best is None or distance_m < best.distance_m:
                 best = NearestBlue(report.uid, report.callsign, distance_m, report.time)
         return best
+
+
+#: The mean Earth radius (IUGG), and a bound on a spherical distance's relative error against
+#: the WGS-84 geodesic (about 0.56 % at worst), doubled for safety.
+_EARTH_M = 6_371_008.8
+_SPHERE_ERROR = 0.012
+
+
+def _sphere_m(lat1: float, lon1: float, lat2: float, lon2: float) -> float:
+    """Haversine distance on the mean sphere, metres."""
+    p1, p2 = math.radians(lat1), math.radians(lat2)
+    dp, dl = p2 - p1, math.radians(lon2 - lon1)
+    h = math.sin(dp / 2) ** 2 + math.cos(p1) * math.cos(p2) * math.sin(dl / 2) ** 2
+    return 2 * _EARTH_M * math.asin(min(1.0, math.sqrt(h)))

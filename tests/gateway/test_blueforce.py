@@ -6,6 +6,8 @@ from datetime import UTC, datetime, timedelta
 
 import pytest
 from geographiclib.geodesic import Geodesic
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from gateway.events import BlueForce, Position
 from gateway.flow.blueforce import BlueForceRegistry
@@ -51,3 +53,34 @@ def test_the_registry_is_bounded() -> None:
 
 def test_no_unit_no_nearest() -> None:
     assert BlueForceRegistry(lambda: NOW).nearest(65.0, 21.0) is None
+
+
+lats = st.floats(-89.9, 89.9, allow_nan=False)
+lons = st.floats(-180.0, 180.0, allow_nan=False)
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.tuples(lats, lons),
+    st.lists(st.tuples(lats, lons), min_size=1, max_size=30),
+    st.floats(0.0, 0.2),
+)
+def test_the_cheap_ranking_never_misses_the_geodesic_nearest(
+    point: tuple[float, float], units: list[tuple[float, float]], spread: float
+) -> None:
+    """The sphere pre-filter keeps every unit that could be nearest on the ellipsoid."""
+    registry = BlueForceRegistry(lambda: NOW, max_age_s=300, max_units=100)
+    lat, lon = point
+    for i, (ulat, ulon) in enumerate(units):
+        # Half the units clustered near the point, so near-ties are common.
+        if i % 2:
+            ulat = max(-89.9, min(89.9, lat + (ulat / 90.0) * spread))
+            ulon = ((lon + (ulon / 180.0) * spread) + 180.0) % 360.0 - 180.0
+        registry.update(report(f"U{i}", ulat, ulon))
+    nearest = registry.nearest(lat, lon)
+    assert nearest is not None
+    expected = min(
+        Geodesic.WGS84.Inverse(lat, lon, u.position.lat_deg, u.position.lon_deg)["s12"]
+        for u in registry.current()
+    )
+    assert nearest.distance_m == pytest.approx(expected, abs=1e-6)
