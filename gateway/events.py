@@ -253,7 +253,9 @@ class Deconfliction(BaseModel):
 
     ``clear`` is True only when that unit is beyond the danger-close radius of every effector
     offered (or no current friendly unit is known: ``blue_units_considered`` says how many
-    reports the check saw, so a receiver can tell "clear" from "nothing known").
+    reports the check saw, so a receiver can tell "clear" from "nothing known"), and the
+    blue-force picture is complete: ``blue_picture_complete`` is False when the gateway had
+    to drop friendly reports for room lately, and then ``clear`` is always False.
     """
 
     model_config = _FROZEN
@@ -263,6 +265,7 @@ class Deconfliction(BaseModel):
     nearest_blue_callsign: str | None = None
     nearest_blue_m: float | None = Field(default=None, ge=0.0)
     blue_units_considered: int = Field(ge=0)
+    blue_picture_complete: bool = True
 
 
 class Handoff(BaseModel):

@@ -101,6 +101,8 @@ class Story:
             who = check.nearest_blue_callsign or check.nearest_blue_uid or "?"
             nearest = f"nearest blue {who} at {check.nearest_blue_m:.0f} m"
         verdict = "deconfliction clear" if check.clear else "deconfliction NOT clear"
+        if not check.blue_picture_complete:
+            nearest += "; blue-force picture incomplete (reports dropped for room)"
         advice = handoff.recommended_effector or "none (deconfliction not clear)"
         held = [o.effector for o in handoff.options if not o.deconfliction_clear]
         return [

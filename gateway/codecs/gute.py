@@ -83,6 +83,7 @@ def _deconfliction(result: Deconfliction) -> dict[str, Any]:
         "nearest_blue_callsign": result.nearest_blue_callsign,
         "nearest_blue_m": result.nearest_blue_m,
         "blue_units_considered": result.blue_units_considered,
+        "blue_picture_complete": result.blue_picture_complete,
     }
 
 

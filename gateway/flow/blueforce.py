@@ -4,7 +4,9 @@ Fed by BlueForce events (the CoT source, later NFFI, units fixed in the config);
 deconfliction: ``nearest(lat, lon)`` gives the closest current friendly unit and its geodesic
 distance (WGS-84, ``gateway.domain.geodesy``). A report older than ``max_age_s`` is not a
 current position and is never returned. At most ``max_units`` are kept (the unit heard from
-longest ago makes room), so reports from the network cannot grow it without bound. Units
+longest ago makes room), so reports from the network cannot grow it without bound; but a
+dropped unit may be a real one pushed out by a flood of reports, so for ``max_age_s`` after a
+drop the picture is not ``complete`` (deconfliction then never reads "clear"). Units
 fixed in the config are ``pin``-ned: they never expire and no report from the network can
 move or evict them (a report under a pinned uid is ignored).
 """
@@ -42,6 +44,13 @@ class BlueForceRegistry:
         self.max_units = max_units
         self._units: OrderedDict[str, BlueForce] = OrderedDict()
         self._pinned: dict[str, BlueForce] = {}
+        self._dropped_at: datetime | None = None
+        self.dropped = 0
+
+    @property
+    def complete(self) -> bool:
+        """False while a unit dropped for room within ``max_age_s`` might still be current."""
+        return self._dropped_at is None or self._clock() - self._dropped_at > self.max_age
 
     def __len__(self) -> int:
         return len(self._units) + len(self._pinned)
@@ -62,6 +71,8 @@ class BlueForceRegistry:
         self._units.move_to_end(report.uid)
         while len(self._units) > self.max_units:
             self._units.popitem(last=False)
+            self._dropped_at = self._clock()
+            self.dropped += 1
         return True
 
     def current(self) -> list[BlueForce]:

@@ -11,6 +11,8 @@
    checked against each offered effector's danger-close radius, less the track's CEP90. The
    cue is *clear* only when every offered effector is clear; then the first is recommended.
    When it is not clear, no effector is recommended and the operator sees each one's result.
+   Nor is it clear while the blue-force picture is incomplete (friendly reports dropped for
+   room lately: a flood may have pushed a real unit out).
 
 Once cued, a track stays with its battery. On each later update the check is made again for
 that battery; when the deconfliction or the recommendation changes, the cue goes out again as
@@ -141,7 +143,7 @@ class CueDesk:
         range_m, bearing, offered = self._offer(track, last.battery, nearest)
         if not offered:
             return None  # out of its battery's reach for now: the last cue stands
-        clear = all(option.deconfliction_clear for option in offered)
+        clear = self.blue.complete and all(o.deconfliction_clear for o in offered)
         recommended = offered[0].effector if clear else None
         if (clear, recommended) == (last.clear, last.recommended):
             return None
@@ -200,7 +202,8 @@ class CueDesk:
         offered: list[EffectorOption],
         nearest: NearestBlue | None,
     ) -> Handoff:
-        clear = all(option.deconfliction_clear for option in offered)
+        complete = self.blue.complete
+        clear = complete and all(option.deconfliction_clear for option in offered)
         if not clear:
             self.counts.not_clear += 1
         return Handoff(
@@ -221,6 +224,7 @@ class CueDesk:
                 nearest_blue_callsign=None if nearest is None else nearest.callsign or None,
                 nearest_blue_m=None if nearest is None else nearest.distance_m,
                 blue_units_considered=len(self.blue),
+                blue_picture_complete=complete,
             ),
         )
 

@@ -242,3 +242,24 @@ def test_a_cue_that_becomes_clear_again_waits_for_the_revision_interval() -> Non
     assert later.revision == 1
     assert later.deconfliction.clear
     assert later.recommended_effector == "TRACKFIRE_30MM"
+
+
+def test_a_flood_of_friendly_reports_makes_the_picture_incomplete_and_nothing_clear() -> None:
+    target = at(BATTERY, 90, 2000)
+    cue = CueDesk(
+        [Battery("GUTE-1", BATTERY, ALL)],
+        load_effector_table(),
+        BlueForceRegistry(lambda: NOW, max_age_s=300, max_units=3),
+        classes=frozenset({"loitering_munition"}),
+        min_confidence=0.9,
+    )
+    cue.blue.update(blue("PLT-2", at(target, 0, 200)))  # the real platoon, near the track
+    for n in range(3):  # then three spoofed units far away push it out
+        cue.blue.update(blue(f"FAKE-{n}", at(target, 0, 20_000 + n)))
+    handoff = cue.consider(track(target))
+    assert handoff is not None
+    assert handoff.deconfliction.nearest_blue_uid == "FAKE-0"
+    assert not handoff.deconfliction.blue_picture_complete
+    assert not handoff.deconfliction.clear
+    assert handoff.recommended_effector is None
+    assert cue.blue.dropped == 1
