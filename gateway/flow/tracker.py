@@ -40,7 +40,7 @@ from gateway.domain.sidc import Hostility, symbol_codes
 from gateway.domain.targeting import cep50_m, cep90_m
 from gateway.events import BOOT_ID, Detection, Position, Track, Velocity, event_id
 from gateway.flow.gridindex import GridIndex
-from gateway.flow.localplane import GridPlane, offset_m
+from gateway.flow.localplane import GridPlane, displace, offset_m
 from gateway.flow.trackstate import MIN_SIGMA_M, Source, TrackState, fuse_sources
 
 __all__ = ["DEFAULT_CLASSES", "OTHER", "Tracker", "TrackerCounts", "TrackerSettings"]
@@ -87,6 +87,7 @@ class TrackerCounts:
     refused_full: int = 0
     total_conflict: int = 0
     lost: int = 0
+    merged: int = 0
 
 
 @cache
@@ -98,6 +99,10 @@ def _sidc(object_class: str, hostility: Hostility, loitering_munition: str) -> s
         return symbol_codes(object_class, hostility, loitering_munition=variant).sidc_2525c
     except KeyError:
         return None  # "other" and classes the symbol table lacks: the sink picks a generic one
+
+
+#: Detections a track needs before it may be merged with a twin.
+_ESTABLISHED = 3
 
 
 @dataclass(slots=True)
@@ -153,7 +158,8 @@ class Tracker:
             self.counts.associated += 1
             state.set_classes(sources, masses, k)
             self._absorb(state, detection, at_s, sigma_m)
-            return self._updated(state, at_s)
+            survivor, lost = self._merge_twin(state, at_s, detection.time)
+            return lost + self._updated(survivor, at_s)
         if conflicted:
             self.counts.total_conflict += 1
         if len(self._tracks) >= s.max_tracks:
@@ -181,6 +187,80 @@ class Tracker:
                 self._pending.discard(track_id)
                 out.append(self._emit(state, "updated", now_s))
         return out
+
+    def _merge_twin(
+        self, state: TrackState, at_s: float, time: datetime
+    ) -> tuple[TrackState, list[Track]]:
+        """Merge the live track that ``state`` has just come within the gate of, if any.
+
+        Two tracks of one target happen when a detection misses the gate (a 3σ gate passes
+        98.9 % of true matches) and starts a second track that then follows the same target.
+        Once the two estimates lie within ``gate_sigma`` of each other (combined σ) and their
+        class evidence does not exclude each other, the younger is folded into the older: the
+        older id lives on, the younger is published once as lost. Returns the survivor and the
+        lost event (none if no twin).
+        """
+        s = self.settings
+        for other_id in self._candidates(state.lat_deg, state.lon_deg, state.sigma_m):
+            other = self._tracks[other_id]
+            if other is state or abs(at_s - other.updated_s) > s.max_gap_s:
+                continue
+            if min(state.detection_count, other.detection_count) < _ESTABLISHED:
+                continue  # one or two reports are no evidence that two tracks are one target
+            dt = abs(at_s - other.updated_s)
+            if other.east_mps is None and dt > 1.0:
+                continue  # no velocity yet: where it is now is anybody's guess
+            # Its estimate carried to now, with its own σ and process noise only: the
+            # velocity prior's width says where a target *could* be, not that two are one.
+            o_lat, o_lon, _ = other.predict(at_s, s.process_noise_mps, s.max_speed_mps)
+            o_sigma = math.hypot(other.sigma_m, s.process_noise_mps * dt)
+            east, north = offset_m(o_lat, o_lon, state.lat_deg, state.lon_deg)
+            if math.hypot(east, north) > s.gate_sigma * math.hypot(state.sigma_m, o_sigma):
+                continue
+            sources = {**other.sources, **state.sources}  # state holds the newest report
+            try:
+                masses, k = fuse_sources(sources)
+            except TotalConflict:
+                continue
+            order = list(self._tracks)
+            old, young = (
+                (state, other) if order.index(state.track_id) < order.index(other_id)
+                else (other, state)
+            )  # fmt: skip
+            old.set_classes(sources, masses, k)
+            # The two estimates, inverse-variance weighted, at the newest time.
+            p_var, q_var = o_sigma**2, state.sigma_m**2
+            gain = p_var / (p_var + q_var)
+            lat, lon = displace(o_lat, o_lon, gain * east, gain * north)
+            old.lat_deg, old.lon_deg = lat, lon
+            old.sigma_m = math.sqrt(p_var * q_var / (p_var + q_var))
+            old.updated_s = max(old.updated_s, young.updated_s)
+            if young.east_mps is not None and (
+                old.east_mps is None or young.velocity_sigma_mps < old.velocity_sigma_mps
+            ):
+                old.east_mps, old.north_mps = young.east_mps, young.north_mps
+                old.velocity_sigma_mps = young.velocity_sigma_mps
+            old.history.append((old.updated_s, lat, lon, old.sigma_m))
+            for name, subtype in young.subtypes.items():
+                old.subtypes.setdefault(name, subtype)
+            old.detection_ids.extend(young.detection_ids)
+            old.detection_count += young.detection_count
+            old.airframes |= young.airframes
+            old.sensors |= young.sensors
+            old.first_seen = min(old.first_seen, young.first_seen)
+            old.last_seen = max(old.last_seen, young.last_seen)
+            if young.alt_msl_m is not None and young.last_seen >= old.last_seen:
+                old.alt_msl_m = young.alt_msl_m
+            del self._tracks[young.track_id]
+            self._pending.discard(young.track_id)
+            if young.track_id in self._grid:
+                self._grid.remove(young.track_id)
+            if self._plane is not None:
+                self._grid.move(old.track_id, *self._plane.forward(lat, lon))
+            self.counts.merged += 1
+            old.emitted_class = ""  # its picture changed: the next update goes out at once
+            return old, [self._event(young, "lost", time)]
+        return state, []
 
     def _gate(self, lat: float, lon: float, at_s: float, sigma_m: float) -> list[_Gated]:
         s = self.settings

@@ -326,3 +326,45 @@ def test_grid_and_all_pairs_give_identical_tracks(
         assert grid.update(d) == pairs.update(d)
         assert grid.tick(at(t)) == pairs.tick(at(t))
     assert grid.counts == pairs.counts
+
+
+class TestTwins:
+    """A second track on one target (a gate miss) is folded into the first once they meet."""
+
+    def test_twin_tracks_of_one_target_merge_into_the_older(self) -> None:
+        tracker = Tracker(TrackerSettings(update_interval_s=0.0))
+        (first,) = tracker.update(detection(sigma_m=8.0))
+        # The same target seen by another airframe 70 m off: outside the gate, a second track.
+        (second,) = tracker.update(
+            detection(airframe="B", sensor=Sensor.IR, sigma_m=8.0, east_m=70)
+        )
+        assert first.track_id != second.track_id
+        for i in (1, 2):  # each airframe keeps its own estimate for a moment: two tracks
+            tracker.update(detection(t_s=0.2 * i, sigma_m=8.0))
+            tracker.update(
+                detection(
+                    t_s=0.2 * i + 0.05, airframe="B", sensor=Sensor.IR, sigma_m=8.0, east_m=70
+                )
+            )
+        assert len(tracker) == 2
+        events: list[Track] = []
+        for i in range(3, 14):  # both sensors now report it between the two, where it is
+            events += tracker.update(
+                detection(t_s=0.5 * i, airframe="AB"[i % 2], sensor=[Sensor.EO, Sensor.IR][i % 2],
+                          sigma_m=8.0, east_m=35.0)
+            )  # fmt: skip
+        assert tracker.counts.merged == 1
+        assert tracker.track_ids == [first.track_id]
+        (lost,) = [e for e in events if e.status == "lost"]
+        assert lost.track_id == second.track_id
+        final = [e for e in events if e.track_id == first.track_id][-1]
+        assert set(final.airframes) == {"A", "B"}
+        assert final.confidence == pytest.approx(1 - 0.2 * 0.2)  # EO 0.8 and IR 0.8, one each
+
+    def test_two_targets_side_by_side_are_never_merged(self) -> None:
+        tracker = Tracker(TrackerSettings(update_interval_s=0.0))
+        for i in range(20):
+            tracker.update(detection(t_s=0.5 * i, airframe="A", sigma_m=5.0))
+            tracker.update(detection(t_s=0.5 * i + 0.1, airframe="B", sigma_m=5.0, east_m=60.0))
+        assert len(tracker) == 2
+        assert tracker.counts.merged == 0
