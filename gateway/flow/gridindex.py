@@ -81,7 +81,6 @@ class GridIndex(Generic[K]):
             return []
         i0, j0 = self._cell(x_m - radius_m, y_m - radius_m)
         i1, j1 = self._cell(x_m + radius_m, y_m + radius_m)
-        limit = radius_m * radius_m
         found: list[K] = []
         if (i1 - i0 + 1) * (j1 - j0 + 1) > len(self._cells):
             cells: Iterator[set[K]] = (
@@ -98,6 +97,6 @@ class GridIndex(Generic[K]):
             for key in bucket:
                 kx, ky, _ = self._where[key]
                 dx, dy = kx - x_m, ky - y_m
-                if dx * dx + dy * dy <= limit:
+                if math.hypot(dx, dy) <= radius_m:  # no underflow, unlike dx² + dy²
                     found.append(key)
         return found

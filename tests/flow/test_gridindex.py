@@ -101,7 +101,5 @@ def test_within_agrees_with_brute_force(
             del truth[key]
     assert len(grid) == len(truth)
     for qx, qy, radius in queries:
-        expected = {
-            k for k, (x, y) in truth.items() if (x - qx) ** 2 + (y - qy) ** 2 <= radius * radius
-        }
+        expected = {k for k, (x, y) in truth.items() if math.hypot(x - qx, y - qy) <= radius}
         assert sorted(grid.within(qx, qy, radius)) == sorted(expected)
