@@ -252,10 +252,10 @@ class Deconfliction(BaseModel):
     """The blue-force check of a cued track: the nearest current friendly unit, if any.
 
     ``clear`` is True only when that unit is beyond the danger-close radius of every effector
-    offered (or no current friendly unit is known: ``blue_units_considered`` says how many
-    reports the check saw, so a receiver can tell "clear" from "nothing known"), and the
-    blue-force picture is complete: ``blue_picture_complete`` is False when the gateway had
-    to drop friendly reports for room lately, and then ``clear`` is always False.
+    offered and the blue-force picture is complete. ``blue_picture_complete`` is False when
+    no friendly position is current at all (nothing known is not "clear") or the gateway had
+    to drop friendly reports for room lately; ``clear`` is then always False.
+    ``blue_units_considered`` says how many units the check saw.
     """
 
     model_config = _FROZEN

@@ -32,11 +32,13 @@ from anyio.streams.memory import MemoryObjectReceiveStream
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from gateway.clock import utc_now
-from gateway.domain.effectors import load_effector_table
+from gateway.configfile import load_model_text, read_bounded_text
+from gateway.domain.effectors import EffectorTable, check_effector_table, load_effector_table
 from gateway.events import BlueForce, Event, EventKind, Position, Track, event_id
 from gateway.flow.blueforce import BlueForceRegistry
 from gateway.flow.cue import Battery, CueDesk
 from gateway.flow.processor import ProcessorConfig, Publish
+from gateway.ops.logsetup import RateLimit
 
 __all__ = ["CounterUasConfig", "CounterUasProcessor"]
 
@@ -130,12 +132,15 @@ class CounterUasProcessor:
     def __init__(self, name: str, config: CounterUasConfig) -> None:
         self.name = name
         self.config = config
-        text = None
         source = "gateway/data/effectors.yaml"
-        if config.effector_table is not None:
+        if config.effector_table is None:
+            table = load_effector_table()
+        else:
+            # An operator's file: read and parsed with the config file's bounds (a regular
+            # file, size, depth, aliases), errors naming its line and key.
             source = str(config.effector_table)
-            text = config.effector_table.read_text(encoding="utf-8")
-        table = load_effector_table(text, source)
+            text = read_bounded_text(config.effector_table)
+            table = check_effector_table(load_model_text(text, source, EffectorTable), source)
         unknown = sorted({e for b in config.batteries for e in b.effectors} - set(table.effectors))
         if unknown:
             raise ValueError(f"batteries name effectors not in {source}: {unknown}")
@@ -162,6 +167,7 @@ class CounterUasProcessor:
         ]
         for unit in self.fixed:
             self.blue.pin(unit)
+        self._log_limit = RateLimit(interval_s=1.0)
         self.desk = CueDesk(
             self.batteries,
             table,
@@ -202,7 +208,11 @@ class CounterUasProcessor:
                     self.blue.update(event)
                 elif isinstance(event, Track):
                     handoff = self.desk.consider(event)
-                    if handoff is not None:
+                    if handoff is None:
+                        continue
+                    # One line a second at most: a flood of spoofed tracks (an unsecured link)
+                    # must not become a log line per packet; every cue is in the archive.
+                    if self._log_limit.allow("handoff"):
                         log.info(
                             "handoff",
                             processor=self.name,
@@ -211,8 +221,9 @@ class CounterUasProcessor:
                             battery=handoff.battery,
                             deconfliction_clear=handoff.deconfliction.clear,
                             recommended=handoff.recommended_effector,
+                            handed_off=self.desk.counts.handed_off,
                         )
-                        publish(handoff)
+                    publish(handoff)
 
     def status(self) -> dict[str, Any]:
         """Counters for /status."""

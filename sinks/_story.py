@@ -102,13 +102,13 @@ class Story:
             nearest = f"nearest blue {who} at {check.nearest_blue_m:.0f} m"
         verdict = "deconfliction clear" if check.clear else "deconfliction NOT clear"
         if not check.blue_picture_complete:
-            nearest += "; blue-force picture incomplete (reports dropped for room)"
+            nearest += "; blue-force picture incomplete (no friendly position, or reports dropped)"
         advice = handoff.recommended_effector or "none (deconfliction not clear)"
         held = [o.effector for o in handoff.options if not o.deconfliction_clear]
         return [
             f"{verdict} for track {handoff.track.track_id}: {nearest}"
             + (f"; inside danger close of {', '.join(held)}" if held else ""),
             f"GUTE II cue: track {handoff.track.track_id} to battery {handoff.battery}"
-            f" ({handoff.range_m:.0f} m, bearing {handoff.bearing_deg:03.0f}°),"
+            f" ({handoff.range_m:.0f} m from it, bearing {handoff.bearing_deg:03.0f}°),"
             f" recommended effector {advice}; the battery's operator decides",
         ]

@@ -19,7 +19,13 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from gateway.errors import ConfigError, ConfigIssue
 
-__all__ = ["EffectorTable", "Recommendation", "load_effector_table", "recommend"]
+__all__ = [
+    "EffectorTable",
+    "Recommendation",
+    "check_effector_table",
+    "load_effector_table",
+    "recommend",
+]
 
 _FROZEN = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
@@ -70,6 +76,11 @@ def load_effector_table(text: str | None = None, source: str = "effectors.yaml")
         table = EffectorTable.model_validate(data)
     except (yaml.YAMLError, ValidationError) as exc:
         raise ConfigError([ConfigIssue(source, None, "(effectors)", str(exc))]) from exc
+    return check_effector_table(table, source)
+
+
+def check_effector_table(table: EffectorTable, source: str) -> EffectorTable:
+    """``table`` if its bands name known effectors and ascend; ``ConfigError`` otherwise."""
     problems = [
         f"recommendations.{cls}: unknown effector {name!r}"
         for cls, bands in table.recommendations.items()

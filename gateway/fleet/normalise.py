@@ -239,13 +239,18 @@ class AirframeState:
 
 
 _DAY_US = 86_400_000_000
+#: A horizontal σ beyond this is no position at all (and would widen fusion's search for all).
+MAX_SIGMA_M = 10_000.0
+#: An observation time ahead of ours by more than this is not believed (clock skew allows a
+#: little): a detection dated hours ahead would keep its track from ever ageing out.
+_AHEAD_US = 60_000_000
 
 
 def detection_from(airframe: str, msg: MavMessage, now: datetime) -> Detection | None:
     """A Detection from a FISCHER_DETECTION message; None if its values are not physical.
 
-    The observation time is the airframe's ``time_usec`` when it is within a day of ours
-    (airframes have GPS time), else our receive time.
+    The observation time is the airframe's ``time_usec`` when it is at most a day behind ours
+    or a minute ahead (airframes have GPS time), else our receive time.
     """
     lat, lon = msg.lat / 1e7, msg.lon / 1e7
     sigma = msg.sigma_h
@@ -254,15 +259,16 @@ def detection_from(airframe: str, msg: MavMessage, now: datetime) -> Detection |
         not (-90 <= lat <= 90 and -180 <= lon <= 180)
         or (msg.lat == 0 and msg.lon == 0)
         or not math.isfinite(sigma)
-        or sigma < 0
+        or not 0 <= sigma <= MAX_SIGMA_M
         or sensor is None
         or msg.confidence > 100
     ):
         return None
     observed = now
     now_us = int(now.timestamp() * 1_000_000)
-    if abs(msg.time_usec - now_us) <= _DAY_US:
-        observed = now + timedelta(microseconds=msg.time_usec - now_us)
+    ahead_us = msg.time_usec - now_us
+    if -_DAY_US <= ahead_us <= _AHEAD_US:
+        observed = now + timedelta(microseconds=ahead_us)
     subtype = msg.subtype.decode("ascii", "replace") if isinstance(msg.subtype, bytes) else ""
     return Detection(
         event_id=event_id(airframe, "det", msg.detection_id, msg.time_usec),

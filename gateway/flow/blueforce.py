@@ -6,7 +6,8 @@ distance (WGS-84, ``gateway.domain.geodesy``). A report older than ``max_age_s``
 current position and is never returned. At most ``max_units`` are kept (the unit heard from
 longest ago makes room), so reports from the network cannot grow it without bound; but a
 dropped unit may be a real one pushed out by a flood of reports, so for ``max_age_s`` after a
-drop the picture is not ``complete`` (deconfliction then never reads "clear"). Units
+drop the picture is not ``complete`` (deconfliction then never reads "clear"); nor is it
+while no unit is current at all. Units
 fixed in the config are ``pin``-ned: they never expire and no report from the network can
 move or evict them (a report under a pinned uid is ignored).
 """
@@ -49,7 +50,13 @@ class BlueForceRegistry:
 
     @property
     def complete(self) -> bool:
-        """False while a unit dropped for room within ``max_age_s`` might still be current."""
+        """False when no unit is current, or while one dropped for room might still be.
+
+        With no friendly position at all the gateway cannot say a target is clear of them,
+        only that it does not know where they are.
+        """
+        if not self.current():
+            return False
         return self._dropped_at is None or self._clock() - self._dropped_at > self.max_age
 
     def __len__(self) -> int:

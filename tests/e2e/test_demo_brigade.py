@@ -49,7 +49,7 @@ def test_the_steps_come_in_the_operations_order(story: list[str]) -> None:
         r"detection ingested: F26E-00\d (EO|IR) sees loitering_munition LANCET-3",
         r"track T-\w+-\d+ fused: loitering_munition LANCET-3 confidence 0\.95 .* from EO\+IR",
         r"deconfliction clear for track T-\S+: nearest blue VIDAR \d at \d+ m",
-        r"GUTE II cue: track T-\S+ to battery GUTE-1 \(\d+ m, bearing \d{3}°\), recommended"
+        r"GUTE II cue: track T-\S+ to battery GUTE-1 \(\d+ m from it, bearing \d{3}°\), recommended"
         r" effector (TRIDON_MK2_40MM|TRACKFIRE_30MM)",
         r"published: GUTE II battery GUTE-1 received cue HO-T-\S+ revision 0 over HTTPS",
     ]

@@ -55,16 +55,21 @@ def blue(uid: str, where: Position, time: datetime = NOW) -> BlueForce:
     )
 
 
+FAR = at(BATTERY, 180, 9000)  # a friendly unit far from every track here
+
+
 def desk(
     batteries: list[Battery] | None = None,
     *,
     clock: datetime = NOW,
     min_confidence: float = 0.9,
 ) -> CueDesk:
+    registry = BlueForceRegistry(lambda: clock, max_age_s=300)
+    registry.pin(blue("HQ-FAR", FAR))
     return CueDesk(
         batteries or [Battery("GUTE-1", BATTERY, ALL)],
         load_effector_table(),
-        BlueForceRegistry(lambda: clock, max_age_s=300),
+        registry,
         classes=frozenset({"loitering_munition", "uav"}),
         min_confidence=min_confidence,
     )
@@ -78,7 +83,8 @@ def test_a_munition_with_no_friend_near_is_cued_clear_with_the_preferred_effecto
     assert handoff.range_m == pytest.approx(2000, abs=0.01)
     assert handoff.bearing_deg == pytest.approx(90, abs=0.01)
     assert handoff.deconfliction.clear
-    assert handoff.deconfliction.blue_units_considered == 0
+    assert handoff.deconfliction.blue_units_considered == 1
+    assert handoff.deconfliction.nearest_blue_uid == "HQ-FAR"
     assert handoff.recommended_effector == "TRACKFIRE_30MM"
     assert [o.effector for o in handoff.options] == [
         "TRACKFIRE_30MM",
@@ -180,7 +186,7 @@ def test_stale_friendly_reports_are_not_used_but_pinned_units_are() -> None:
     handoff = cue.consider(track(target))
     assert handoff is not None
     assert handoff.deconfliction.clear
-    assert handoff.deconfliction.nearest_blue_uid is None
+    assert handoff.deconfliction.nearest_blue_uid == "HQ-FAR"
     pinned = desk()
     pinned.blue.pin(blue("HQ", at(target, 0, 100), time=NOW - timedelta(days=3)))
     pinned.blue.update(blue("HQ", at(target, 0, 9000)))  # a report cannot move a pinned unit
@@ -263,3 +269,20 @@ def test_a_flood_of_friendly_reports_makes_the_picture_incomplete_and_nothing_cl
     assert not handoff.deconfliction.clear
     assert handoff.recommended_effector is None
     assert cue.blue.dropped == 1
+
+
+def test_with_no_friendly_position_known_nothing_is_clear() -> None:
+    cue = CueDesk(
+        [Battery("GUTE-1", BATTERY, ALL)],
+        load_effector_table(),
+        BlueForceRegistry(lambda: NOW, max_age_s=300),
+        classes=frozenset({"loitering_munition"}),
+        min_confidence=0.9,
+    )
+    handoff = cue.consider(track(at(BATTERY, 90, 2000)))
+    assert handoff is not None
+    assert handoff.deconfliction.blue_units_considered == 0
+    assert not handoff.deconfliction.blue_picture_complete
+    assert not handoff.deconfliction.clear
+    assert handoff.recommended_effector is None
+    assert all(o.deconfliction_clear for o in handoff.options)  # no unit inside any radius
