@@ -82,11 +82,11 @@ class GuteSinkConfig(SinkConfig):
         except ValueError:
             port = -1
         if parts.scheme != "https" or not parts.hostname or port == -1:
-            raise ValueError(f"url: expected https://HOST[:PORT]/PATH, got {value!r}")
+            raise ValueError("expected https://HOST[:PORT]/PATH")
         if parts.username is not None or parts.password is not None:
-            raise ValueError("url: no credentials in the URL; the client certificate identifies us")
+            raise ValueError("no credentials in the URL; the client certificate identifies us")
         if parts.fragment:
-            raise ValueError(f"url: a fragment is never sent, drop it from {value!r}")
+            raise ValueError("a fragment is never sent: drop it")
         return value
 
     @model_validator(mode="after")

@@ -218,7 +218,7 @@ class TestConfig:
     """Mistakes are config errors that name the option or the file."""
 
     def test_plain_http_is_refused_naming_the_option(self, tmp_path: Path) -> None:
-        with pytest.raises(ValidationError, match=r"url\n.*url: expected https://") as caught:
+        with pytest.raises(ValidationError, match=r"url\n.*expected https://") as caught:
             GuteSinkConfig.model_validate(
                 {"url": "http://battery:8443/h", "ca_file": "ca.pem", "cert_file": "c.pem"}
             )
