@@ -55,7 +55,9 @@ def test_the_steps_come_in_the_operations_order(story: list[str]) -> None:
     ]
     at = [first(story, step) for step in steps]
     assert at[0] < at[2], at
-    assert at[1] < at[3] < at[4] < at[5] < at[6], at
+    # The story sink's lines come in the bus's order; the battery's receipt is told by the
+    # battery, concurrently with the story sink's write, so it may come just before its cue.
+    assert at[1] < at[3] < at[4] < at[5], at
     first(story, r"published: CoT to ATAK \(udp 127\.0\.0\.1:\d+\) fischer-trk-T-\S+ a-h-A")
     first(story, r"track T-\S+ created: tank T-72B3")
     first(story, r"scenario complete; stopping")
