@@ -408,16 +408,7 @@ def load_config_text(
     reports as not an error goes, with its line, to ``warnings``.
     """
     data, lines = _parse_yaml(text, source)
-    found: list[tuple[Loc, str]] = [
-        (loc, "duplicate key; the later value would silently win") for loc, _ in lines.duplicates
-    ]
-    config: Config | None = None
-    try:
-        config = Config.model_validate(data)
-    except ValidationError as exc:
-        found.extend(_issues_from_validation(exc, (), Config))
-    reported = {loc for loc, _ in found}
-    found.extend(issue for issue in _number_checks(data, Config, ()) if issue[0] not in reported)
+    config, found = _validate(data, lines, Config)
     found.extend(_cross_check(data))
     found.extend(_link_checks(data))
     found.extend(_bind_checks(data))
@@ -430,13 +421,7 @@ def load_config_text(
             elif warnings is not None:
                 warnings.append(ConfigIssue(source, lines.line(loc), format_loc(loc), message))
     if found or config is None:
-        dup_lines = dict(lines.duplicates)
-        issues = [
-            ConfigIssue(source, dup_lines.get(loc) or lines.line(loc), format_loc(loc), message)
-            for loc, message in found
-        ]
-        issues.sort(key=lambda issue: (issue.line or 0, issue.key_path))
-        raise ConfigError(issues)
+        raise _config_error(found, lines, source)
     return config
 
 
@@ -503,6 +488,18 @@ def load_model_text(
     across items on the raw data, reported the same way.
     """
     data, lines = _parse_yaml(text, source)
+    value, found = _validate(data, lines, model)
+    if checks is not None:
+        found.extend(checks(data))
+    if found or value is None:
+        raise _config_error(found, lines, source)
+    return value
+
+
+def _validate(
+    data: dict[str, Any], lines: _Lines, model: type[ModelT]
+) -> tuple[ModelT | None, list[tuple[Loc, str]]]:
+    """``model`` from parsed YAML (None if invalid) and the problems found so far."""
     found: list[tuple[Loc, str]] = [
         (loc, "duplicate key; the later value would silently win") for loc, _ in lines.duplicates
     ]
@@ -513,17 +510,18 @@ def load_model_text(
         found.extend(_issues_from_validation(exc, (), model))
     reported = {loc for loc, _ in found}
     found.extend(issue for issue in _number_checks(data, model, ()) if issue[0] not in reported)
-    if checks is not None:
-        found.extend(checks(data))
-    if found or value is None:
-        dup_lines = dict(lines.duplicates)
-        issues = [
-            ConfigIssue(source, dup_lines.get(loc) or lines.line(loc), format_loc(loc), message)
-            for loc, message in found
-        ]
-        issues.sort(key=lambda issue: (issue.line or 0, issue.key_path))
-        raise ConfigError(issues)
-    return value
+    return value, found
+
+
+def _config_error(found: list[tuple[Loc, str]], lines: _Lines, source: str) -> ConfigError:
+    """Every problem, each with its line (a duplicate key's own line), sorted by line."""
+    dup_lines = dict(lines.duplicates)
+    issues = [
+        ConfigIssue(source, dup_lines.get(loc) or lines.line(loc), format_loc(loc), message)
+        for loc, message in found
+    ]
+    issues.sort(key=lambda issue: (issue.line or 0, issue.key_path))
+    return ConfigError(issues)
 
 
 def read_bounded_text(path: Path) -> str:

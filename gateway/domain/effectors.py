@@ -11,6 +11,7 @@ nothing here or downstream can command an effector.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cache
 from importlib.resources import files
 from typing import Any
 
@@ -70,13 +71,20 @@ class Recommendation:
 def load_effector_table(text: str | None = None, source: str = "effectors.yaml") -> EffectorTable:
     """Parse a table (the shipped one when ``text`` is None); ``ConfigError`` if it is wrong."""
     if text is None:
-        text = files("gateway").joinpath("data/effectors.yaml").read_text(encoding="utf-8")
+        return _shipped_table()
     try:
         data: Any = yaml.safe_load(text)
         table = EffectorTable.model_validate(data)
     except (yaml.YAMLError, ValidationError) as exc:
         raise ConfigError([ConfigIssue(source, None, "(effectors)", str(exc))]) from exc
     return check_effector_table(table, source)
+
+
+@cache
+def _shipped_table() -> EffectorTable:
+    """The shipped table, read and checked once (it is frozen, so it can be shared)."""
+    text = files("gateway").joinpath("data/effectors.yaml").read_text(encoding="utf-8")
+    return load_effector_table(text, "gateway/data/effectors.yaml")
 
 
 def check_effector_table(table: EffectorTable, source: str) -> EffectorTable:

@@ -130,7 +130,10 @@ class CueDesk:
             return None
         range_m, bearing, battery, offered = best
         handoff_id = event_id("HO", track.track_id, battery.id)
-        handoff = self._handoff(track, battery, handoff_id, 0, range_m, bearing, offered, nearest)
+        handoff = self._handoff(
+            track, battery, handoff_id, 0, range_m, bearing, offered, nearest,
+            complete=self.blue.complete,
+        )  # fmt: skip
         self._remember(track.track_id, _Cue(
             handoff_id, battery, 0, handoff.deconfliction.clear,
             handoff.recommended_effector, track.time,
@@ -143,7 +146,8 @@ class CueDesk:
         range_m, bearing, offered = self._offer(track, last.battery, nearest)
         if not offered:
             return None  # out of its battery's reach for now: the last cue stands
-        clear = self.blue.complete and all(o.deconfliction_clear for o in offered)
+        complete = self.blue.complete
+        clear = complete and all(o.deconfliction_clear for o in offered)
         recommended = offered[0].effector if clear else None
         if (clear, recommended) == (last.clear, last.recommended):
             return None
@@ -152,8 +156,9 @@ class CueDesk:
             return None  # good news can wait; losing "clear" never does
         revision = last.revision + 1
         handoff = self._handoff(
-            track, last.battery, last.handoff_id, revision, range_m, bearing, offered, nearest
-        )
+            track, last.battery, last.handoff_id, revision, range_m, bearing, offered, nearest,
+            complete=complete,
+        )  # fmt: skip
         last.revision, last.clear, last.recommended, last.sent = (
             revision, clear, recommended, track.time,
         )  # fmt: skip
@@ -201,8 +206,9 @@ class CueDesk:
         bearing: float,
         offered: list[EffectorOption],
         nearest: NearestBlue | None,
+        *,
+        complete: bool,
     ) -> Handoff:
-        complete = self.blue.complete
         clear = complete and all(option.deconfliction_clear for option in offered)
         if not clear:
             self.counts.not_clear += 1
