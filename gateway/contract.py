@@ -31,8 +31,11 @@ from gateway.events import (
     EffectorOption,
     Event,
     EventKind,
+    FiveLineOrder,
     Handoff,
     LinkState,
+    OrderArea,
+    OrderTask,
     Position,
     Sensor,
     Telemetry,
@@ -111,6 +114,14 @@ def sample_events(kinds: frozenset[EventKind]) -> list[Event]:
             ),
         ),
         deconfliction=Deconfliction(clear=True, blue_units_considered=0),
+    )
+    every[EventKind.ORDER] = FiveLineOrder(
+        event_id="slb-order-c-1",
+        order_id="c-1",
+        source="slb",
+        time=t,
+        task=OrderTask.OBSERVE_POINT,
+        location=OrderArea(point=where),
     )
     return [every[kind] for kind in EventKind if kind in kinds]
 

@@ -6,6 +6,8 @@ receives events, never MAVLink messages.
 
 Each event has a ``kind`` discriminator and a stable ``event_id``: a receiver that gets the
 same event twice (delivery is at-least-once for durable kinds) can de-duplicate on it.
+Durable kinds have ``late_by_s``: None, unless the spool delivers the event after its kind's
+stale threshold, when it says how many seconds the event waited.
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ from collections.abc import Callable
 from enum import StrEnum
 from typing import Annotated, Any, Literal
 
-from pydantic import AwareDatetime, BaseModel, ConfigDict, Field, TypeAdapter
+from pydantic import AwareDatetime, BaseModel, ConfigDict, Field, TypeAdapter, model_validator
 
 __all__ = [
     "BOOT_ID",
@@ -28,8 +30,12 @@ __all__ = [
     "EffectorOption",
     "Event",
     "EventKind",
+    "FiveLineOrder",
     "Handoff",
     "LinkState",
+    "OrderArea",
+    "OrderPriority",
+    "OrderTask",
     "Position",
     "Sensor",
     "Telemetry",
@@ -62,6 +68,7 @@ class EventKind(StrEnum):
     TRACK = "track"
     BLUE_FORCE = "blue_force"
     HANDOFF = "handoff"
+    ORDER = "order"
 
 
 #: Kinds where only the newest event per key matters: a slow sink gets fresh data, not a backlog.
@@ -186,6 +193,7 @@ class Detection(BaseModel):
     confidence: float = Field(ge=0.0, le=1.0)
     position: Position
     sigma_h_m: float = Field(ge=0.0)
+    late_by_s: float | None = Field(default=None, ge=0.0)
 
 
 class Track(BaseModel):
@@ -222,6 +230,7 @@ class Track(BaseModel):
     last_seen: AwareDatetime
     hostility: Literal["hostile", "suspect", "unknown", "neutral", "friend"] = "unknown"
     sidc: str | None = None
+    late_by_s: float | None = Field(default=None, ge=0.0)
 
 
 class BlueForce(BaseModel):
@@ -299,10 +308,91 @@ class Handoff(BaseModel):
     options: tuple[EffectorOption, ...] = ()
     deconfliction: Deconfliction
     operator_authorisation_required: Literal[True] = True
+    late_by_s: float | None = Field(default=None, ge=0.0)
+
+
+class OrderTask(StrEnum):
+    """Line 1 of a five-line order: reconnaissance tasking only, nothing that arms or releases."""
+
+    RECON_AREA = "recon_area"
+    OBSERVE_POINT = "observe_point"
+    TRACK_TARGET = "track_target"
+    RETURN_TO_BASE = "return_to_base"
+
+
+class OrderPriority(StrEnum):
+    """Line 4's precedence, highest first."""
+
+    FLASH = "flash"
+    IMMEDIATE = "immediate"
+    PRIORITY = "priority"
+    ROUTINE = "routine"
+
+
+class OrderArea(BaseModel):
+    """Line 2 of a five-line order: a point, or an area as a closed polygon of 3..64 corners.
+
+    ``mgrs`` keeps the grid reference as the issuer wrote it (the point is its decoded
+    position); None when the issuer gave latitude and longitude.
+    """
+
+    model_config = _FROZEN
+
+    point: Position | None = None
+    polygon: tuple[Position, ...] = Field(default=(), max_length=64)
+    mgrs: str | None = Field(default=None, max_length=32)
+
+    @model_validator(mode="after")
+    def _one_shape(self) -> OrderArea:
+        if (self.point is None) == (not self.polygon):
+            raise ValueError("give a point or a polygon of at least 3 corners, not both")
+        if self.polygon and len(self.polygon) < 3:
+            raise ValueError("an area needs at least 3 corners")
+        return self
+
+
+class FiveLineOrder(BaseModel):
+    """A reconnaissance order from a C2 system (SLB, SWECCIS) or a local operator.
+
+    The five lines: 1 ``task``; 2 ``location``; 3 the time window ``not_before`` ..
+    ``not_after``; 4 ``target`` and ``priority``; 5 ``reporting`` and ``control_measures``.
+    ``order_id`` is the issuer's id; ``event_id`` is ``<source>-order-<order_id>`` so the same
+    order received twice is one event. ``airframe`` is the airframe the issuer tasked, or None
+    for "any suitable". Taking it in does not accept it: the orders processor checks and
+    answers it.
+    """
+
+    model_config = _FROZEN
+
+    kind: Literal[EventKind.ORDER] = EventKind.ORDER
+    event_id: str
+    order_id: str = Field(min_length=1, max_length=128)
+    source: str = Field(min_length=1, max_length=64)
+    issuer: str | None = Field(default=None, max_length=128)
+    time: AwareDatetime
+    airframe: str | None = Field(default=None, max_length=64)
+    task: OrderTask
+    location: OrderArea
+    not_before: AwareDatetime | None = None
+    not_after: AwareDatetime | None = None
+    target: str | None = Field(default=None, max_length=256)
+    track_id: str | None = Field(default=None, max_length=128)
+    priority: OrderPriority = OrderPriority.ROUTINE
+    reporting: str | None = Field(default=None, max_length=512)
+    control_measures: tuple[Annotated[str, Field(max_length=256)], ...] = Field(
+        default=(), max_length=16
+    )
+    late_by_s: float | None = Field(default=None, ge=0.0)
+
+    @model_validator(mode="after")
+    def _window(self) -> FiveLineOrder:
+        if self.not_before and self.not_after and self.not_after < self.not_before:
+            raise ValueError("not_after is before not_before")
+        return self
 
 
 Event = Annotated[
-    Telemetry | LinkState | Detection | Track | BlueForce | Handoff,
+    Telemetry | LinkState | Detection | Track | BlueForce | Handoff | FiveLineOrder,
     Field(discriminator="kind"),
 ]
 

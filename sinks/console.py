@@ -29,6 +29,7 @@ from gateway.events import (
     Detection,
     Event,
     EventKind,
+    FiveLineOrder,
     Handoff,
     LinkState,
     Position,
@@ -125,6 +126,15 @@ def describe(event: Event) -> str:
             f"{head} {event.track.track_id} to {event.battery}"
             f" {event.range_m:.0f} m brg {event.bearing_deg:.0f}°, {verdict} ({nearest}),"
             f" recommend {event.recommended_effector or 'none'}; operator authorises"
+        )
+    if isinstance(event, FiveLineOrder):
+        where = event.location
+        place = where.mgrs or (
+            _where(where.point) if where.point else f"area of {len(where.polygon)} corners"
+        )
+        return (
+            f"{head} {event.source} {event.order_id} {event.priority.value} {event.task.value}"
+            f" {place} for {event.airframe or 'any airframe'}"
         )
     assert_never(event)
 
