@@ -174,9 +174,9 @@ class Gateway:
         self._links_up = False
         self.log = log.bind(node=config.gateway.node_id)
 
-    def _publish(self, event: Event) -> None:
+    def _publish(self, event: Event) -> bool:
         """What processors publish goes on the bus like ingest's events."""
-        self.bus.publish(event)
+        return self.bus.publish(event)
 
     def _queue_depths(self) -> list[tuple[tuple[str, ...], float]]:
         depths: list[tuple[tuple[str, ...], float]] = []

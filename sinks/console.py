@@ -128,9 +128,9 @@ def describe(event: Event) -> str:
             f" recommend {event.recommended_effector or 'none'}; operator authorises"
         )
     if isinstance(event, FiveLineOrder):
-        where = event.location
-        place = where.mgrs or (
-            _where(where.point) if where.point else f"area of {len(where.polygon)} corners"
+        area = event.location
+        place = area.mgrs or (
+            _where(area.point) if area.point else f"area of {len(area.polygon)} corners"
         )
         return (
             f"{head} {event.source} {event.order_id} {event.priority.value} {event.task.value}"

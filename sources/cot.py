@@ -110,7 +110,7 @@ class CotSource:
         self,
         name: str,
         config: CotSourceConfig,
-        publish: Callable[[Event], None],
+        publish: Callable[[Event], bool],
         *,
         clock: Callable[[], datetime] = utc_now,
     ) -> None:

@@ -4,7 +4,9 @@ A source is found through the entry-point group ``fischer_gateway.sources`` and 
 under ``sources:`` (``name``, ``type`` and its own options beside them). Built in: ``cot``
 (``sources/cot.py``: friendly positions from ATAK/WinTAK/iTAK); NFFI, order intake and NATS
 come the same way. A source binds in ``run`` and calls ``task_status.started()`` once bound;
-it publishes events with the given ``publish`` (synchronous, never blocks), must never raise
+it publishes events with the given ``publish`` (synchronous, never blocks; True once the event
+is held durably, False if the spool refused it, so a source whose peer can send again
+acknowledges only on True), must never raise
 on bad input (count it instead), and reports itself on ``/status`` through ``status()``.
 """
 
@@ -49,7 +51,7 @@ class SourceClass(Protocol):
         self,
         name: str,
         config: Any,
-        publish: Callable[[Event], None],
+        publish: Callable[[Event], bool],
         *,
         clock: Callable[[], datetime],
     ) -> Source: ...

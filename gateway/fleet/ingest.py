@@ -89,7 +89,7 @@ class Ingest:
     def __init__(
         self,
         airframes: Iterable[AirframeConfig],
-        publish: Callable[[Event], None],
+        publish: Callable[[Event], bool],
         instruments: Instruments,
         clock: Clock,
         *,

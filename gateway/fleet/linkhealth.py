@@ -52,7 +52,7 @@ class LinkHealth:
     def __init__(
         self,
         config: AirframeConfig,
-        publish: Callable[[Event], None],
+        publish: Callable[[Event], bool],
         clock: Clock,
         instruments: Instruments,
         *,

@@ -130,8 +130,11 @@ class Bus:
                 targets.append(target)
         return targets
 
-    def publish(self, event: Event) -> None:
-        """Hand ``event`` to every runner its routes select; never blocks, never raises."""
+    def publish(self, event: Event) -> bool:
+        """Hand ``event`` to every runner its routes select; never blocks, never raises.
+
+        True once the event is held durably for every sink it goes to (or needs no spool).
+        """
         self._event_counters[event.kind].inc()
         consumers = self._by_kind[event.kind]
         if consumers:
@@ -148,7 +151,7 @@ class Bus:
                 self._cache.clear()
             self._cache[key] = targets
         if not targets:
-            return
+            return True
         now = time.monotonic()
         slot = latest_key(event)
         for target in targets:
@@ -160,3 +163,4 @@ class Bus:
                     continue
                 target.last_sent[slot] = now
             target.runner.offer_slot(event, now, slot)
+        return True

@@ -22,7 +22,10 @@ from gateway.events import Event, EventKind
 
 __all__ = ["Processor", "ProcessorClass", "ProcessorConfig", "Publish"]
 
-Publish = Callable[[Event], None]
+Publish = Callable[[Event], bool]
+"""Puts an event on the bus; True once it is held durably (in the spool for every durable sink
+it is routed to, or it needs no spool), False if the spool refused it (full). A caller that can
+have its input sent again (an order source, an airframe's detection) acknowledges only on True."""
 """Puts an event on the bus: synchronous, never blocks, never raises."""
 
 

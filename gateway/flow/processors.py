@@ -75,14 +75,15 @@ class ProcessorRunner:
         else:
             self._in.inc()
 
-    def publish(self, event: Event) -> None:
+    def publish(self, event: Event) -> bool:
         """Put one of the processor's events on the bus."""
         self._publishing = True
         try:
-            self._publish(event)
+            held = self._publish(event)
         finally:
             self._publishing = False
         self._out.inc()
+        return held
 
     async def run(
         self, *, task_status: anyio.abc.TaskStatus[None] = anyio.TASK_STATUS_IGNORED
