@@ -171,6 +171,12 @@ def _parser() -> argparse.ArgumentParser:
         help="at most HZ re-sends a second per airframe (default 20)",
     )
     simulate.add_argument(
+        "--resend-before-ack",
+        action="store_true",
+        help="re-send even before the gateway has acknowledged any detection (one without "
+        "acknowledgements then receives every detection several times)",
+    )
+    simulate.add_argument(
         "--linger",
         type=_non_negative,
         default=2.0,
@@ -429,7 +435,12 @@ def _resend_policy(args: argparse.Namespace) -> ResendPolicy | None:
             "--resend-max",
             f"expected at least --resend-first ({args.resend_first:g}), got {args.resend_max:g}",
         )
-    return ResendPolicy(first_s=args.resend_first, max_s=args.resend_max, rate_hz=args.resend_rate)
+    return ResendPolicy(
+        first_s=args.resend_first,
+        max_s=args.resend_max,
+        rate_hz=args.resend_rate,
+        needs_ack_heard=not args.resend_before_ack,
+    )
 
 
 def _print_summaries(airframes: dict[str, SimulatedAirframe]) -> None:

@@ -67,6 +67,12 @@ def test_version_is_the_installed_distributions() -> None:
         (["simulate", "--to", "udp://127.0.0.1:9", "--airframes", "300"], "expected 1..255"),
         (["simulate", "--to", "udp://127.0.0.1:9", "--airframes", "0"], "8-bit MAVLink system id"),
         (["simulate", "--to", "udp://127.0.0.1:9", "--duration", "-1"], "--duration: expected"),
+        (["simulate", "--to", "udp://127.0.0.1:9", "--resend-rate", "0"], "--resend-rate: exp"),
+        (["simulate", "--to", "udp://127.0.0.1:9", "--linger", "-1"], "--linger: expected"),
+        (
+            ["simulate", "--to", "udp://127.0.0.1:9", "--resend-first", "2", "--resend-max", "1"],
+            "--resend-max: expected at least --resend-first (2), got 1",
+        ),
         (["demo", "--udp-port", "70000"], "--udp-port: expected a port 0..65535"),
     ],
 )

@@ -3,20 +3,13 @@ detections through the gateway."""
 
 from __future__ import annotations
 
-import contextlib
-import importlib.util
-import io
-import shutil
 from datetime import UTC, datetime
-from pathlib import Path
 from types import ModuleType
 
 import anyio
-import pymavlink
 import pytest
+from ack_peer import generate_dialect
 from pymavlink.dialects.v20 import ardupilotmega as apm
-from pymavlink.generator import mavgen
-from pymavlink.generator.mavparse import PROTOCOL_2_0
 from test_ingest import make_ingest
 
 from gateway.app import Gateway
@@ -34,31 +27,11 @@ from gateway.fleet.dialect import (
 from gateway.sim.airframe import SimProfile, SimulatedAirframe
 from gateway.testing import MemorySink, eventually
 
-ROOT = Path(__file__).resolve().parents[2]
-
 
 @pytest.fixture(scope="module")
 def generated(tmp_path_factory: pytest.TempPathFactory) -> ModuleType:
     """The dialect module mavgen makes from gateway/fleet/fischer_dialect.xml: the oracle."""
-    out = tmp_path_factory.mktemp("mavgen")
-    source = Path(pymavlink.__file__).parent / "dialects" / "v20"
-    for name in ("common.xml", "standard.xml", "minimal.xml"):
-        shutil.copy(source / name, out / name)
-    shutil.copy(ROOT / "gateway" / "fleet" / "fischer_dialect.xml", out / "fischer.xml")
-    with contextlib.redirect_stdout(io.StringIO()):
-        opts = mavgen.Opts(
-            output=str(out / "fischer.py"),
-            wire_protocol=PROTOCOL_2_0,
-            language="Python3",
-            validate=False,
-        )
-        assert mavgen.mavgen(opts, [str(out / "fischer.xml")])
-    spec = importlib.util.spec_from_file_location("fischer_generated", out / "fischer.py")
-    assert spec is not None
-    assert spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return generate_dialect(tmp_path_factory.mktemp("mavgen"))
 
 
 ARGS = (1_763_800_000_000_000, 7, 658_352_000, 216_886_000, 150.5, 8.0, 1, 1, 91)
