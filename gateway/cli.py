@@ -19,7 +19,7 @@ from collections.abc import Callable, Coroutine, Sequence
 from datetime import date, timedelta
 from functools import partial
 from pathlib import Path
-from typing import Any, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
 
 import anyio
 import structlog
@@ -42,6 +42,10 @@ from gateway.ops.logsetup import configure_logging, install_loop_exception_handl
 from gateway.ops.version import package_version
 from gateway.transports.listener import raise_open_files_limit
 
+if TYPE_CHECKING:
+    from gateway.sim.airframe import SimulatedAirframe
+    from gateway.sim.resend import ResendPolicy
+
 __all__ = ["main"]
 
 log = structlog.get_logger(__name__)
@@ -58,6 +62,16 @@ def _positive(text: str) -> float:
         value = math.nan
     if not (math.isfinite(value) and value > 0):
         raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
+    return value
+
+
+def _non_negative(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value >= 0):
+        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}")
     return value
 
 
@@ -130,6 +144,39 @@ def _parser() -> argparse.ArgumentParser:
         "--cot", default=None, help="udp://HOST:PORT of the gateway's CoT source (friendly units)"
     )
     simulate.add_argument("--speed", type=_positive, default=1.0, help="sim time runs X times real")
+    simulate.add_argument(
+        "--no-resend",
+        action="store_true",
+        help="never re-send a detection (for a gateway that does not acknowledge them)",
+    )
+    simulate.add_argument(
+        "--resend-first",
+        type=_positive,
+        default=1.0,
+        metavar="S",
+        help="first re-send of an unacknowledged detection after S seconds (default 1)",
+    )
+    simulate.add_argument(
+        "--resend-max",
+        type=_positive,
+        default=8.0,
+        metavar="S",
+        help="the re-send interval doubles up to S seconds (default 8)",
+    )
+    simulate.add_argument(
+        "--resend-rate",
+        type=_positive,
+        default=20.0,
+        metavar="HZ",
+        help="at most HZ re-sends a second per airframe (default 20)",
+    )
+    simulate.add_argument(
+        "--linger",
+        type=_non_negative,
+        default=2.0,
+        metavar="S",
+        help="after --duration, wait up to S seconds for the last acknowledgements (default 2)",
+    )
     for sub_parser in (replay, simulate):
         sub_parser.add_argument(
             "--key-dir", type=Path, default=None, help="day keys: seal frames in the tunnel"
@@ -389,6 +436,25 @@ def _replay(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _resend_policy(args: argparse.Namespace) -> ResendPolicy | None:
+    from gateway.sim.resend import ResendPolicy
+
+    if args.no_resend:
+        return None
+    if args.resend_max < args.resend_first:
+        raise _usage_error(
+            "--resend-max",
+            f"expected at least --resend-first ({args.resend_first:g}), got {args.resend_max:g}",
+        )
+    return ResendPolicy(first_s=args.resend_first, max_s=args.resend_max, rate_hz=args.resend_rate)
+
+
+def _print_summaries(airframes: dict[str, SimulatedAirframe]) -> None:
+    """One line per airframe on stdout: what became of its detections."""
+    for name, airframe in airframes.items():
+        print(f"{name} (sysid {airframe.sysid}): {airframe.summary()}")  # noqa: T201 - the output
+
+
 def _simulate(args: argparse.Namespace) -> int:
     from gateway.sim.airframe import build_demo_fleet, run_fleet
 
@@ -397,18 +463,22 @@ def _simulate(args: argparse.Namespace) -> int:
         return _simulate_scenario(args, host, port)
     if args.cot is not None:
         raise _usage_error("--cot", "friendly units come from a scenario: add --scenario")
-    fleet = build_demo_fleet(args.airframes or 2)
+    fleet = build_demo_fleet(args.airframes or 2, resend=_resend_policy(args))
     sealers = _sealers(args, len(fleet))
-    _run_async(
-        lambda: run_fleet(
-            fleet,
-            host,
-            [port] * len(fleet),
-            duration_s=args.duration,
-            speed=args.speed,
-            sealers=sealers,
+    try:
+        _run_async(
+            lambda: run_fleet(
+                fleet,
+                host,
+                [port] * len(fleet),
+                duration_s=args.duration,
+                speed=args.speed,
+                sealers=sealers,
+                linger_s=args.linger,
+            )
         )
-    )
+    finally:
+        _print_summaries({f"airframe {a.sysid}": a for a in fleet})
     return EXIT_OK
 
 
@@ -430,6 +500,7 @@ def _simulate_scenario(args: argparse.Namespace, host: str, port: int) -> int:
     if args.key_dir is not None and args.airframe_id is None:
         args.airframe_id = [airframe.id for airframe in scenario.airframes]
     sealers = _sealers(args, len(scenario.airframes))
+    resend = _resend_policy(args)
     stats = PlayStats()
     log.info(
         "scenario_started",
@@ -438,18 +509,23 @@ def _simulate_scenario(args: argparse.Namespace, host: str, port: int) -> int:
         duration_s=args.duration or scenario.duration_s,
         speed=args.speed,
     )
-    _run_async(
-        lambda: play_scenario(
-            scenario,
-            host,
-            port,
-            cot=cot,
-            duration_s=args.duration,
-            speed=args.speed,
-            sealers=sealers,
-            stats=stats,
+    try:
+        _run_async(
+            lambda: play_scenario(
+                scenario,
+                host,
+                port,
+                cot=cot,
+                duration_s=args.duration,
+                speed=args.speed,
+                sealers=sealers,
+                stats=stats,
+                resend=resend,
+                linger_s=args.linger,
+            )
         )
-    )
+    finally:
+        _print_summaries(stats.airframes)
     log.info(
         "scenario_finished",
         scenario=scenario.name,

@@ -1,15 +1,20 @@
-"""The project's MAVLink dialect: FISCHER_DETECTION (61000), added to pymavlink at import.
+"""The project's MAVLink dialect: FISCHER_DETECTION (61000) and FISCHER_DETECTION_ACK (61001),
+added to pymavlink at import.
 
 No upstream dialect has an object-detection message (common.xml and ardupilotmega.xml have
 none), so the airframes send ours. It is defined here as pymavlink's generator would write
 it, and registered in the ``ardupilotmega`` dialect's message map, so one parser reads
 common, ArduPilot and our messages. ``gateway/fleet/fischer_dialect.xml`` is the source of truth;
-the tests check this class against the module ``mavgen`` generates from that XML (same
+the tests check these classes against the module ``mavgen`` generates from that XML (same
 CRC_EXTRA, same bytes).
 
-Wire order (sorted by size, then the extension): time_usec u64, detection_id u32, lat i32,
-lon i32 (degE7), alt_msl f32 (m), sigma_h f32 (m), class_id u16, sensor u8, confidence u8 (%),
-subtype char[16] (extension).
+FISCHER_DETECTION wire order (sorted by size, then the extension): time_usec u64,
+detection_id u32, lat i32, lon i32 (degE7), alt_msl f32 (m), sigma_h f32 (m), class_id u16,
+sensor u8, confidence u8 (%), subtype char[16] (extension).
+
+FISCHER_DETECTION_ACK wire order: time_usec u64, detection_id u32 (the detection's identity,
+echoed), target_system u8, target_component u8, result u8 (FISCHER_DETECTION_ACK_RESULT: 0
+HELD, 1 DUPLICATE; both mean "stop re-sending"). docs/detection-ack.md has the protocol.
 """
 
 from __future__ import annotations
@@ -20,12 +25,19 @@ from typing import Any, ClassVar
 from pymavlink.dialects.v20 import ardupilotmega as _mav
 
 __all__ = [
+    "ACK_RESULT_NAMES",
     "CLASS_NAMES",
+    "FISCHER_DETECTION_ACK_CRC_EXTRA",
+    "FISCHER_DETECTION_ACK_RESULT_DUPLICATE",
+    "FISCHER_DETECTION_ACK_RESULT_HELD",
     "FISCHER_DETECTION_CRC_EXTRA",
     "MAVLINK_MSG_ID_FISCHER_DETECTION",
+    "MAVLINK_MSG_ID_FISCHER_DETECTION_ACK",
     "SENSOR_NAMES",
     "FischerDetection",
+    "FischerDetectionAck",
     "fischer_detection",
+    "fischer_detection_ack",
 ]
 
 MAVLINK_MSG_ID_FISCHER_DETECTION = 61000
@@ -41,6 +53,18 @@ CLASS_NAMES: dict[int, str] = {
 }
 #: FISCHER_SENSOR enum.
 SENSOR_NAMES: dict[int, str] = {0: "eo", 1: "ir", 2: "rf"}
+
+MAVLINK_MSG_ID_FISCHER_DETECTION_ACK = 61001
+#: CRC_EXTRA of FISCHER_DETECTION_ACK (what mavgen computes from the XML).
+FISCHER_DETECTION_ACK_CRC_EXTRA = 224
+#: FISCHER_DETECTION_ACK_RESULT enum: the detection is now held in the gateway's spool ...
+FISCHER_DETECTION_ACK_RESULT_HELD = 0
+#: ... or was already held (this copy was a re-send). Both mean "stop re-sending".
+FISCHER_DETECTION_ACK_RESULT_DUPLICATE = 1
+ACK_RESULT_NAMES: dict[int, str] = {
+    FISCHER_DETECTION_ACK_RESULT_HELD: "held",
+    FISCHER_DETECTION_ACK_RESULT_DUPLICATE: "duplicate",
+}
 
 
 class FischerDetection(_mav.MAVLink_message):  # type: ignore[misc]
@@ -128,5 +152,67 @@ def fischer_detection(
     )  # fmt: skip
 
 
-# Registered in the dialect pymavlink decodes with, so every parser in the process knows it.
+class FischerDetectionAck(_mav.MAVLink_message):  # type: ignore[misc]
+    """The gateway's acknowledgement of one detection (FISCHER_DETECTION_ACK)."""
+
+    id = MAVLINK_MSG_ID_FISCHER_DETECTION_ACK
+    msgname = "FISCHER_DETECTION_ACK"
+    fieldnames: ClassVar[list[str]] = [
+        "time_usec", "detection_id", "target_system", "target_component", "result",
+    ]  # fmt: skip
+    ordered_fieldnames = fieldnames
+    fieldtypes: ClassVar[list[str]] = ["uint64_t", "uint32_t", "uint8_t", "uint8_t", "uint8_t"]
+    fielddisplays_by_name: ClassVar[dict[str, str]] = {}
+    fieldenums_by_name: ClassVar[dict[str, str]] = {"result": "FISCHER_DETECTION_ACK_RESULT"}
+    fieldunits_by_name: ClassVar[dict[str, str]] = {"time_usec": "us"}
+    native_format = bytearray(b"<QIBBB")
+    orders: ClassVar[list[int]] = list(range(5))
+    lengths: ClassVar[list[int]] = [1] * 5
+    array_lengths: ClassVar[list[int]] = [0] * 5
+    crc_extra = FISCHER_DETECTION_ACK_CRC_EXTRA
+    unpacker = struct.Struct("<QIBBB")
+    instance_field = None
+    instance_offset = -1
+
+    def __init__(
+        self,
+        time_usec: int,
+        detection_id: int,
+        target_system: int,
+        target_component: int,
+        result: int,
+    ) -> None:
+        _mav.MAVLink_message.__init__(self, self.id, self.msgname)
+        self._fieldnames = self.fieldnames
+        self._instance_field = None
+        self._instance_offset = -1
+        self.time_usec = time_usec
+        self.detection_id = detection_id
+        self.target_system = target_system
+        self.target_component = target_component
+        self.result = result
+
+    def pack(self, mav: Any, force_mavlink1: bool = False) -> bytes:
+        """The frame bytes, as pymavlink packs every message."""
+        payload = self.unpacker.pack(
+            self.time_usec, self.detection_id, self.target_system, self.target_component,
+            self.result,
+        )  # fmt: skip
+        return bytes(self._pack(mav, self.crc_extra, payload, force_mavlink1=force_mavlink1))
+
+
+def fischer_detection_ack(
+    time_usec: int,
+    detection_id: int,
+    target_system: int,
+    target_component: int,
+    result: int = FISCHER_DETECTION_ACK_RESULT_HELD,
+) -> FischerDetectionAck:
+    """A FISCHER_DETECTION_ACK for the detection (``detection_id``, ``time_usec``) of
+    ``target_system``/``target_component``, ready to ``pack``."""
+    return FischerDetectionAck(time_usec, detection_id, target_system, target_component, result)
+
+
+# Registered in the dialect pymavlink decodes with, so every parser in the process knows them.
 _mav.mavlink_map[MAVLINK_MSG_ID_FISCHER_DETECTION] = FischerDetection
+_mav.mavlink_map[MAVLINK_MSG_ID_FISCHER_DETECTION_ACK] = FischerDetectionAck

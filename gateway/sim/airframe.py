@@ -2,7 +2,10 @@
 
 ``frames_at`` has no I/O and no clock of its own (sim time in, frames out), so tests can
 compare what the gateway delivers with what was sent. ``run_udp`` paces it on the event
-loop's clock and sends one frame per datagram, sealed in the tunnel when given a ``Sealer``.
+loop's clock and sends one frame per datagram, sealed in the tunnel when given a ``Sealer``
+(and signed when the airframe has a signing key). It reads the uplink in every link mode:
+it answers commands, and it keeps each FISCHER_DETECTION it sent in a ``ResendStore``,
+re-sending it until the gateway's FISCHER_DETECTION_ACK for it arrives.
 """
 
 from __future__ import annotations
@@ -20,7 +23,10 @@ import anyio.abc
 import structlog
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
-from gateway.fleet.dialect import fischer_detection
+from gateway.fleet.dialect import FischerDetection, FischerDetectionAck, fischer_detection
+from gateway.fleet.security.signing import mavlink_timestamp_now
+from gateway.sim.datalink import AirframeLink, LinkCounts
+from gateway.sim.resend import ResendPolicy, ResendStore
 
 if TYPE_CHECKING:
     from gateway.fleet.security.tunnel import Sealer
@@ -98,6 +104,7 @@ class SimProfile:
 
 
 _DEFAULT_PROFILE = SimProfile()
+_DEFAULT_RESEND = ResendPolicy()
 
 
 @dataclass(frozen=True, slots=True)
@@ -142,7 +149,9 @@ class SimulatedAirframe:
 
     ``sent_positions`` keeps the last ``position_history`` GLOBAL_POSITION_INTs produced.
     ``feed`` adds messages from elsewhere (a scenario's detections) to the same MAVLink
-    stream, in the same sequence numbering.
+    stream, in the same sequence numbering. ``resend`` is how unacknowledged detections are
+    re-sent (None: never, for a gateway that does not acknowledge). With ``signing_key``
+    (32 bytes) every frame is signed and only validly signed uplink frames are read.
     """
 
     def __init__(
@@ -153,6 +162,8 @@ class SimulatedAirframe:
         phase_rad: float = 0.0,
         position_history: int = 100_000,
         feed: MessageFeed | None = None,
+        resend: ResendPolicy | None = _DEFAULT_RESEND,
+        signing_key: bytes | None = None,
     ) -> None:
         if not 1 <= sysid <= 255:
             raise ValueError(f"sysid: expected 1..255, got {sysid!r}")
@@ -191,6 +202,17 @@ class SimulatedAirframe:
         self.commands: list[tuple[int, int]] = []
         self._parser = mav.MAVLink(None, srcSystem=sysid, srcComponent=1)
         self._parser.robust_parsing = True
+        if signing_key is not None:
+            stamp = mavlink_timestamp_now(time.time())
+            for end in (self._mav, self._parser):
+                end.signing.secret_key = signing_key
+                end.signing.timestamp = stamp
+            self._mav.signing.sign_outgoing = True
+        #: The detections sent and not yet acknowledged, and what became of them all.
+        self.resend = ResendStore(sysid, resend)
+        #: What the UDP link saw (refusals while nothing listened, uplink rejected).
+        self.link = LinkCounts()
+        self._acked: anyio.Event | None = None  # set by each acknowledgement, wakes the sender
 
     def frames_at(self, t_s: float) -> list[bytes]:
         """The frames due at sim time ``t_s`` (seconds since boot), in a fixed order.
@@ -199,23 +221,39 @@ class SimulatedAirframe:
         all are due at the first call. Calls must not go back in time. After a gap longer
         than a period the missed slots are skipped, not sent in a burst. No I/O, no clock.
         """
-        frames: list[bytes] = []
+        return [self._pack(msg) for msg in self.messages_at(t_s)]
+
+    def messages_at(self, t_s: float) -> list[Any]:
+        """The messages ``frames_at(t_s)`` would pack, as pymavlink message objects."""
+        messages: list[Any] = []
         for schedule in self._schedules:
             if t_s + _EPS_S < schedule.next_s:
                 continue
             schedule.slot += 1
             if schedule.next_s <= t_s + _EPS_S:
                 schedule.origin_s, schedule.slot = t_s, 1
-            for msg in schedule.emit(t_s):
-                frames.append(bytes(msg.pack(self._mav)))
-                # pack() does not advance the sequence number (send() would); receivers
-                # count gaps in it as loss.
-                self._mav.seq = (self._mav.seq + 1) % 256
+            messages.extend(schedule.emit(t_s))
         if self._feed is not None and self._feed.next_due_s() <= t_s + _EPS_S:
-            for msg in self._feed.messages_at(t_s, self.unix_s(t_s)):
-                frames.append(bytes(msg.pack(self._mav)))
-                self._mav.seq = (self._mav.seq + 1) % 256
-        return frames
+            messages.extend(self._feed.messages_at(t_s, self.unix_s(t_s)))
+        return messages
+
+    def _pack(self, msg: Any) -> bytes:
+        frame = bytes(msg.pack(self._mav))
+        # pack() does not advance the sequence number (send() would); receivers count gaps
+        # in it as loss. A re-send is a new frame, so it takes the next number too.
+        self._mav.seq = (self._mav.seq + 1) % 256
+        return frame
+
+    def summary(self) -> str:
+        """One line: what became of the detections, and what the link refused or rejected."""
+        counts = self.resend.counts
+        off = "" if self.resend.policy is not None else " (re-send off)"
+        return (
+            f"detections sent {counts.sent}, re-sent {counts.resent}, acknowledged "
+            f"{counts.acknowledged}, dropped {counts.dropped}, unacknowledged "
+            f"{len(self.resend)}{off}; sends refused {self.link.refused}, uplink rejected "
+            f"{self.link.uplink_rejected}"
+        )
 
     def next_due_s(self) -> float:
         """The sim time at which ``frames_at`` will next return frames (inf if never)."""
@@ -346,73 +384,115 @@ class SimulatedAirframe:
         duration_s: float | None = None,
         speed: float = 1.0,
         sealer: Sealer | None = None,
+        linger_s: float = 0.0,
         task_status: anyio.abc.TaskStatus[None] = anyio.TASK_STATUS_IGNORED,
     ) -> None:
         """Fly from sim time 0, sending each frame as one UDP datagram to ``host:port``.
 
         Pacing follows ``anyio.current_time()``: sim time ``t`` is sent at ``start + t / speed``.
-        ``task_status.started()`` is called once the socket exists. Returns after
-        ``duration_s`` of sim time (never if None); cancellation-safe. Raises ``ValueError``
-        for a speed that is not positive and finite, ``OSError`` if the socket cannot open.
+        Re-sends of unacknowledged detections follow the same clock, in real seconds. The
+        uplink is read throughout. A gateway that is down (sends refused) or silent is not an
+        error: the airframe flies on and counts. ``task_status.started()`` is called once the
+        socket exists. Returns after ``duration_s`` of sim time (never if None), after waiting
+        up to ``linger_s`` real seconds for the acknowledgements of the detections still held
+        if the gateway has acknowledged any at all. Cancellation-safe. Raises ``ValueError``
+        for a speed or linger out of range, ``OSError`` if the socket cannot open.
         """
         if not (math.isfinite(speed) and speed > 0):
             raise ValueError(f"speed: expected a positive finite number, got {speed!r}")
+        if not (math.isfinite(linger_s) and linger_s >= 0):
+            raise ValueError(f"linger_s: expected a finite number >= 0, got {linger_s!r}")
         async with (
-            await anyio.create_connected_udp_socket(remote_host=host, remote_port=port) as sock,
+            await AirframeLink.connect(host, port, sealer=sealer, counts=self.link) as link,
             anyio.create_task_group() as tg,
         ):
-            sending = anyio.Lock()  # the position loop and the command answers share the socket
-            if sealer is None:  # a tunnel airframe would need its opener: plain MAVLink only
-                tg.start_soon(self._answer_commands, sock, sending)
+            tg.start_soon(self._read_uplink, link)
             task_status.started()
             start = anyio.current_time()
             self.boot_unix_s = time.time()
             self.speed = speed
+            end_s = math.inf if duration_s is None else duration_s + _EPS_S
             t_s = 0.0
-            while duration_s is None or t_s <= duration_s + _EPS_S:
-                for frame in self.frames_at(t_s):
-                    async with sending:
-                        await sock.send(sealer.seal(frame) if sealer else frame)
-                    self.frames_sent += 1
-                t_s = self.next_due_s()
-                if duration_s is not None:
-                    t_s = min(t_s, duration_s + 2 * _EPS_S)
-                if math.isinf(t_s):  # every rate is 0: nothing will ever be due
-                    await anyio.sleep_forever()
-                await anyio.sleep(max(start + t_s / speed - anyio.current_time(), 0.0))
+            while t_s <= end_s:
+                await self._send_new(link, t_s)
+                t_s = min(self.next_due_s(), end_s + _EPS_S)
+                await self._resend_until(link, start + t_s / speed)
+            if linger_s > 0 and self.resend.has_heard_ack:
+                with anyio.move_on_after(linger_s):
+                    await self._resend_until(link, math.inf, until_empty=True)
             tg.cancel_scope.cancel()
-        log.debug("simulation_finished", sysid=self.sysid, frames_sent=self.frames_sent)
+        log.debug(
+            "simulation_finished",
+            sysid=self.sysid,
+            frames_sent=self.frames_sent,
+            detections_sent=self.resend.counts.sent,
+            unacknowledged=len(self.resend),
+        )
 
-    async def _answer_commands(
-        self, sock: anyio.abc.ConnectedUDPSocket, sending: anyio.Lock
+    async def _send_new(self, link: AirframeLink, t_s: float) -> None:
+        for msg in self.messages_at(t_s):
+            frame = self._pack(msg)
+            if isinstance(msg, FischerDetection):
+                dropped = self.resend.counts.dropped
+                self.resend.add(msg, anyio.current_time())
+                if dropped == 0 and self.resend.counts.dropped:
+                    log.warning("detections_dropped", sysid=self.sysid, reason="re-send store full")
+            if await link.send(frame):
+                self.frames_sent += 1
+
+    async def _resend(self, link: AirframeLink) -> None:
+        for msg in self.resend.take_due(anyio.current_time()):
+            if await link.send(self._pack(msg)):
+                self.frames_sent += 1
+
+    async def _resend_until(
+        self, link: AirframeLink, until: float, *, until_empty: bool = False
     ) -> None:
-        """Read what the gateway sends; acknowledge each COMMAND_LONG meant for us."""
-        async for datagram in sock:
+        """Re-send what falls due until loop time ``until`` (or, with ``until_empty``, until
+        nothing is held). An acknowledgement wakes it: the first one can start re-sending."""
+        while not (until_empty and not self.resend):
+            acked = self._acked = anyio.Event()
+            with anyio.move_on_after(min(until, self.resend.next_due_s()) - anyio.current_time()):
+                await acked.wait()
+            await self._resend(link)
+            if anyio.current_time() >= until:
+                return
+
+    async def _read_uplink(self, link: AirframeLink) -> None:
+        """Read what the gateway sends: acknowledgements of our detections, commands for us."""
+        while True:
+            payload = await link.receive()
             try:
-                messages = self._parser.parse_buffer(datagram) or []
+                messages = self._parser.parse_buffer(payload) or []
             except mav.MAVError:
                 continue
             for msg in messages:
-                if msg.get_type() != "COMMAND_LONG" or msg.target_system != self.sysid:
-                    continue
-                self.commands.append((int(msg.command), int(msg.confirmation)))
-                if self.ack_commands:
-                    ack = self._mav.command_ack_encode(
-                        msg.command,
-                        mav.MAV_RESULT_ACCEPTED,
-                        target_system=msg.get_srcSystem(),
-                        target_component=msg.get_srcComponent(),
-                    )
-                    async with sending:
-                        await sock.send(bytes(ack.pack(self._mav)))
+                if isinstance(msg, FischerDetectionAck):
+                    self.resend.acknowledge(msg)
+                    if self._acked is not None:
+                        self._acked.set()
+                elif msg.get_type() == "COMMAND_LONG" and msg.target_system == self.sysid:
+                    self.commands.append((int(msg.command), int(msg.confirmation)))
+                    if self.ack_commands:
+                        ack = self._mav.command_ack_encode(
+                            msg.command,
+                            mav.MAV_RESULT_ACCEPTED,
+                            target_system=msg.get_srcSystem(),
+                            target_component=msg.get_srcComponent(),
+                        )
+                        if await link.send(self._pack(ack)):
+                            self.frames_sent += 1
 
 
 def _period(rate_hz: float) -> float:
     return 1.0 / rate_hz if rate_hz > 0 else math.inf
 
 
-def build_demo_fleet(n: int = 2) -> list[SimulatedAirframe]:
-    """``n`` airframes (sysids 1..n) on neighbouring circles around Boden, at different phases."""
+def build_demo_fleet(
+    n: int = 2, *, resend: ResendPolicy | None = _DEFAULT_RESEND
+) -> list[SimulatedAirframe]:
+    """``n`` airframes (sysids 1..n) on neighbouring circles around Boden, at different phases,
+    re-sending unacknowledged detections as ``resend`` says."""
     if not 1 <= n <= 255:
         raise ValueError(f"n: expected 1..255 airframes, got {n!r}")
     return [
@@ -424,6 +504,7 @@ def build_demo_fleet(n: int = 2) -> list[SimulatedAirframe]:
                 detection_hz=0.2,  # a FISCHER_DETECTION every 5 s
             ),
             phase_rad=i * 2.0,
+            resend=resend,
         )
         for i in range(n)
     ]
@@ -437,10 +518,12 @@ async def run_fleet(
     duration_s: float | None = None,
     speed: float = 1.0,
     sealers: Sequence[Sealer | None] | None = None,
+    linger_s: float = 0.0,
     task_status: anyio.abc.TaskStatus[None] = anyio.TASK_STATUS_IGNORED,
 ) -> None:
     """Run several airframes in one task group, airframe ``i`` sending to ``ports[i]``.
 
+    ``linger_s`` is each airframe's wait for its last acknowledgements (``run_udp``).
     ``task_status.started()`` is called once every airframe's socket exists. Raises
     ``ValueError`` if ``ports`` (or ``sealers``) does not match ``airframes`` in length.
     """
@@ -453,7 +536,13 @@ async def run_fleet(
         for airframe, port, sealer in zip(airframes, ports, seals, strict=True):
             await tg.start(
                 partial(
-                    airframe.run_udp, host, port, duration_s=duration_s, speed=speed, sealer=sealer
+                    airframe.run_udp,
+                    host,
+                    port,
+                    duration_s=duration_s,
+                    speed=speed,
+                    sealer=sealer,
+                    linger_s=linger_s,
                 )
             )
         task_status.started()

@@ -4,14 +4,15 @@ Each scenario airframe is a ``SimulatedAirframe`` flying its orbit (real telemet
 scenario's detections for it fed into the same MAVLink stream as FISCHER_DETECTION frames,
 ``time_usec`` the UTC time the observation is sent. Friendly units' reports go as CoT XML
 datagrams (``gateway.codecs.cot``: what ATAK sends on its SA mesh) to the gateway's CoT source.
-Sim time ``t`` is played at ``start + t / speed``.
+Sim time ``t`` is played at ``start + t / speed``. Each airframe keeps the detections it sent
+until the gateway acknowledges them, re-sending as its ``ResendPolicy`` says.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import UTC, datetime, timedelta
 from functools import partial
 from typing import TYPE_CHECKING, Any
@@ -26,6 +27,7 @@ from gateway.codecs.cot.validate import UNKNOWN
 from gateway.domain.geoid import bundled_geoid
 from gateway.fleet.dialect import fischer_detection
 from gateway.sim.airframe import SimulatedAirframe
+from gateway.sim.resend import ResendPolicy
 from gateway.sim.schedule import BlueReport, SimDetection, blue_reports, detections
 
 if TYPE_CHECKING:
@@ -41,6 +43,7 @@ _EPS_S = 1e-9
 STALE_INTERVALS = 3
 #: ... and for at least this long.
 MIN_STALE = timedelta(seconds=30)
+_DEFAULT_RESEND = ResendPolicy()
 
 
 class DetectionFeed:
@@ -103,12 +106,13 @@ def blue_force_cot(report: BlueReport, now: datetime, stale_after: timedelta) ->
 
 @dataclass(slots=True)
 class PlayStats:
-    """What a scenario run sent."""
+    """What a scenario run sent; ``airframes`` (by scenario id) are filled in as it starts."""
 
     frames: int = 0
     detections: int = 0
     reports: int = 0
     reports_refused: int = 0
+    airframes: dict[str, SimulatedAirframe] = field(default_factory=dict)
 
 
 async def send_blue_forces(
@@ -150,13 +154,16 @@ async def play_scenario(
     speed: float = 1.0,
     sealers: Sequence[Sealer | None] | None = None,
     stats: PlayStats | None = None,
+    resend: ResendPolicy | None = _DEFAULT_RESEND,
+    linger_s: float = 0.0,
     task_status: anyio.abc.TaskStatus[None] = anyio.TASK_STATUS_IGNORED,
 ) -> PlayStats:
     """Play ``scenario`` to the gateway link at ``host:port`` (and its CoT source at ``cot``).
 
     Runs for ``duration_s`` of sim time (the scenario's own by default) and returns what was
     sent. Without ``cot`` the friendly units are not sent. ``sealers`` (one per airframe,
-    in the scenario's order) seal the frames in the tunnel. ``task_status.started()`` once
+    in the scenario's order) seal the frames in the tunnel. ``resend`` and ``linger_s`` are
+    each airframe's (``SimulatedAirframe``, ``run_udp``). ``task_status.started()`` once
     every socket exists. Raises ``ValueError`` for a bad speed or sealer count, ``OSError``
     if a socket cannot open.
     """
@@ -170,14 +177,27 @@ async def play_scenario(
     feeds = [DetectionFeed(detections(scenario, a, end_s)) for a in scenario.airframes]
     flyers = [
         SimulatedAirframe(
-            a.sysid, a.profile(), phase_rad=math.radians(a.orbit.phase_deg), feed=feed
+            a.sysid,
+            a.profile(),
+            phase_rad=math.radians(a.orbit.phase_deg),
+            feed=feed,
+            resend=resend,
         )
         for a, feed in zip(scenario.airframes, feeds, strict=True)
     ]
+    stats.airframes = {a.id: flyer for a, flyer in zip(scenario.airframes, flyers, strict=True)}
     async with anyio.create_task_group() as tg:
         for flyer, sealer in zip(flyers, seals, strict=True):
             await tg.start(
-                partial(flyer.run_udp, host, port, duration_s=end_s, speed=speed, sealer=sealer)
+                partial(
+                    flyer.run_udp,
+                    host,
+                    port,
+                    duration_s=end_s,
+                    speed=speed,
+                    sealer=sealer,
+                    linger_s=linger_s,
+                )
             )
         if cot is not None and scenario.blue_forces:
             await tg.start(

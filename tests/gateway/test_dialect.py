@@ -1,4 +1,5 @@
-"""FISCHER_DETECTION: our message class against mavgen's, and detections through the gateway."""
+"""FISCHER_DETECTION and FISCHER_DETECTION_ACK: our message classes against mavgen's, and
+detections through the gateway."""
 
 from __future__ import annotations
 
@@ -21,7 +22,15 @@ from test_ingest import make_ingest
 from gateway.app import Gateway
 from gateway.config import Config
 from gateway.events import Detection, Event
-from gateway.fleet.dialect import FISCHER_DETECTION_CRC_EXTRA, fischer_detection
+from gateway.fleet.dialect import (
+    FISCHER_DETECTION_ACK_CRC_EXTRA,
+    FISCHER_DETECTION_ACK_RESULT_DUPLICATE,
+    FISCHER_DETECTION_ACK_RESULT_HELD,
+    FISCHER_DETECTION_CRC_EXTRA,
+    FischerDetectionAck,
+    fischer_detection,
+    fischer_detection_ack,
+)
 from gateway.sim.airframe import SimProfile, SimulatedAirframe
 from gateway.testing import MemorySink, eventually
 
@@ -68,6 +77,46 @@ def test_mavgen_parser_decodes_our_frame(generated: ModuleType) -> None:
     frame = fischer_detection(*ARGS, subtype="T-72").pack(apm.MAVLink(None, 1, 1))
     (msg,) = generated.MAVLink(None).parse_buffer(frame)
     assert (msg.detection_id, msg.lat, msg.class_id, msg.subtype) == (7, 658_352_000, 1, "T-72")
+
+
+ACK_ARGS = (1_763_800_000_000_000, 4_000_000_007, 12, 1)
+
+
+@pytest.mark.parametrize(
+    "result", [FISCHER_DETECTION_ACK_RESULT_HELD, FISCHER_DETECTION_ACK_RESULT_DUPLICATE]
+)
+def test_ack_crc_extra_and_bytes_match_mavgen(generated: ModuleType, result: int) -> None:
+    """Both results, including HELD (0), whose trailing zero MAVLink 2 truncates."""
+    ack_class = generated.MAVLink_fischer_detection_ack_message
+    assert ack_class.crc_extra == FISCHER_DETECTION_ACK_CRC_EXTRA
+    assert ack_class.id == FischerDetectionAck.id
+    assert ack_class.unpacker.format == FischerDetectionAck.unpacker.format
+    theirs = generated.MAVLink(None, srcSystem=255, srcComponent=190)
+    ours = apm.MAVLink(None, srcSystem=255, srcComponent=190)
+    expected = bytes(theirs.fischer_detection_ack_encode(*ACK_ARGS, result).pack(theirs))
+    assert fischer_detection_ack(*ACK_ARGS, result=result).pack(ours) == expected
+    assert len(expected) == 12 + 15 - (1 if result == 0 else 0)
+
+
+def test_mavgen_parser_decodes_our_ack_and_ours_decodes_theirs(generated: ModuleType) -> None:
+    ours = apm.MAVLink(None, srcSystem=255, srcComponent=190)
+    frame = fischer_detection_ack(*ACK_ARGS, result=FISCHER_DETECTION_ACK_RESULT_DUPLICATE).pack(
+        ours
+    )
+    (msg,) = generated.MAVLink(None).parse_buffer(frame)
+    assert msg.get_type() == "FISCHER_DETECTION_ACK"
+    assert (msg.time_usec, msg.detection_id, msg.target_system, msg.target_component) == ACK_ARGS
+    assert msg.result == FISCHER_DETECTION_ACK_RESULT_DUPLICATE
+    theirs = generated.MAVLink(None, srcSystem=255, srcComponent=190)
+    held = bytes(theirs.fischer_detection_ack_encode(*ACK_ARGS, 0).pack(theirs))
+    (back,) = apm.MAVLink(None).parse_buffer(held)
+    assert isinstance(back, FischerDetectionAck)
+    assert (back.time_usec, back.detection_id, back.target_system, back.result) == (
+        ACK_ARGS[0],
+        ACK_ARGS[1],
+        12,
+        FISCHER_DETECTION_ACK_RESULT_HELD,
+    )
 
 
 def test_detection_becomes_a_durable_event() -> None:

@@ -161,6 +161,14 @@ class Sealer:
         )
         return header + cipher.encrypt(nonce, payload, header)
 
+    def reply_opener(self) -> TunnelOpener:
+        """An opener for what the gateway seals to this airframe (its uplink).
+
+        The gateway seals uplink frames under the airframe's own day keys, so the airframe
+        opens them with the keys and clock it seals with, and accepts only its own id.
+        """
+        return TunnelOpener(self._keys, frozenset({self.airframe}), self._clock)
+
 
 @dataclass(slots=True)
 class ReplayWindow:
