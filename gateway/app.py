@@ -37,6 +37,7 @@ from gateway.ops.health import HealthServer
 from gateway.ops.instruments import Instruments
 from gateway.ops.sdnotify import SystemdNotifier
 from gateway.ops.supervise import Supervised, supervise
+from gateway.spool.store import Spool
 
 __all__ = ["Gateway", "utc_now"]
 
@@ -63,6 +64,38 @@ def _version() -> str:
         return "unknown"
 
 
+def open_spool(config: Config) -> Spool:
+    """The config's spool, opened; warns when it is in memory or owes unconfigured sinks.
+
+    Raises ``SpoolError`` when the file cannot be opened.
+    """
+    cfg = config.spool
+    spool = Spool(
+        cfg.path,
+        sync=cfg.sync,
+        max_bytes=cfg.max_bytes,
+        warn_pct=cfg.warn_pct,
+        dedup_window_s=cfg.dedup_window_s,
+        dead_letters_max=cfg.dead_letters_max,
+    )
+    if cfg.path is None and any(True for _ in config.sinks):
+        log.warning(
+            "spool_in_memory",
+            note="spool.path is not set: durable events waiting for a sink are lost on restart",
+        )
+    configured = {entry.name for entry in config.sinks}
+    orphans = {s: n for s, n in spool.pending_counts().items() if s not in configured}
+    if orphans:
+        log.warning(
+            "spool_owes_unconfigured_sinks",
+            pending=orphans,
+            note="kept; configure the sink again, or list them with 'fischer-gateway spool status'",
+        )
+    if spool.pending_counts():
+        log.info("spool_resumed", path=str(cfg.path), pending=spool.pending_counts())
+    return spool
+
+
 class Gateway:
     """One gateway node: links → ingest → bus → sink runners, plus health."""
 
@@ -78,11 +111,14 @@ class Gateway:
         self.config = config
         self.instruments = Instruments()
         self.notifier = notifier or SystemdNotifier()
+        self.spool = open_spool(config)
         given = dict(sinks or {})
         self.runners: dict[str, SinkRunner] = {}
         for entry in config.sinks:
             sink = given.pop(entry.name, None) or build_sink(entry.type, entry.name, entry.options)
-            self.runners[entry.name] = SinkRunner(entry, sink, self.instruments)
+            self.runners[entry.name] = SinkRunner(
+                entry, sink, self.instruments, spool=self.spool, stale=config.spool.stale
+            )
         if given:
             raise ValueError(f"sinks given for names not in the config: {sorted(given)}")
         self.processors: dict[str, ProcessorRunner] = {}
@@ -103,8 +139,10 @@ class Gateway:
             self.instruments,
             source=source,
             processors=self.processors.values(),
+            spool=self.spool,
         )
         self.instruments.sink_queue.set_function(self._queue_depths)
+        self._instrument_spool()
         self.security = Security.from_config(config, clock)
         self.terrain = terrain_model(config)
         self._instrument_terrain_and_readiness()
@@ -117,6 +155,7 @@ class Gateway:
             verifiers=self.security.verifiers,
             terrain=self.terrain,
             baro_sigma_m=config.terrain.baro_sigma_m,
+            ledger=self.spool,
         )
         self.sessions = self.ingest.sessions
         for session in self.sessions.values():
@@ -185,6 +224,15 @@ class Gateway:
             depths += [((name, "latest"), float(latest)), ((name, "durable"), float(durable))]
         return depths
 
+    def _instrument_spool(self) -> None:
+        inst, spool = self.instruments, self.spool
+        inst.spool_bytes.set_function(lambda: [((), float(spool.size_bytes))])
+        inst.spool_max_bytes.set_function(lambda: [((), float(spool.max_bytes))])
+        inst.spool_pending.set_function(
+            lambda: [((sink,), float(n)) for sink, n in spool.pending_counts().items()]
+        )
+        inst.spool_dead_letters.set_function(lambda: [((), float(spool.dead_letter_count()))])
+
     def _instrument_terrain_and_readiness(self) -> None:
         inst, terrain = self.instruments, self.terrain
         inst.ready.set_function(lambda: [((), float(self.is_ready()))])
@@ -251,6 +299,8 @@ class Gateway:
                     # retried with backoff and shown on /status, never the daemon's end.
                     await ingest.start(partial(supervise, source.run, record, what="source"))
                 ingest.start_soon(self._watch_links)
+                if self.ingest.acks is not None:
+                    ingest.start_soon(self.ingest.acks.run)
                 self._links_up = True
                 outer.start_soon(self.notifier.run_watchdog)
                 self.notifier.ready(self.status_line())
@@ -273,12 +323,19 @@ class Gateway:
             with anyio.move_on_after(deadline_s / 2) as drain:
                 for runner in self.runners.values():
                     await runner.wait_done()
-            if drain.cancelled_caught:
-                left = {r.name: r.depth for r in self.runners.values() if any(r.depth)}
+            left = {r.name: r.depth for r in self.runners.values() if any(r.depth)}
+            if left and self.spool.path is not None:
+                self.log.warning(
+                    "shutdown_left_in_spool",
+                    owed={name: durable for name, (_, durable) in left.items() if durable},
+                    note="delivered after the next start",
+                )
+            elif drain.cancelled_caught:
                 self.log.error("shutdown_drain_incomplete", undelivered=left)
             for runner in self.runners.values():
                 runner.close_timeout_s = deadline_s / 2
             outer.cancel_scope.cancel()
+        self.spool.close()
         self.log.info("gateway_stopped")
 
     async def _watch_links(self) -> None:
@@ -339,6 +396,14 @@ class Gateway:
             ],
             "unknown_sysids": sorted(self.ingest.unknown_sysids),
             "sinks": [runner.status() for runner in self.runners.values()],
+            "spool": {
+                "path": None if self.spool.path is None else str(self.spool.path),
+                "size_bytes": self.spool.size_bytes,
+                "max_bytes": self.spool.max_bytes,
+                "pending": self.spool.pending_counts(),
+                "refused": self.spool.refused,
+                "dead_letters": self.spool.dead_letter_count(),
+            },
             "processors": [p.status() for p in self.processors.values()],
             "listeners": [self.health.stats.status()] if self.health is not None else [],
             "terrain": [] if self.terrain is None else self.terrain.status(),

@@ -193,6 +193,23 @@ def _parser() -> argparse.ArgumentParser:
             default=None,
             help="airframe id(s) whose day keys seal the frames (one per simulated airframe)",
         )
+    spool = sub.add_parser("spool", help="look into the spool; list and re-queue dead letters")
+    spool_sub = spool.add_subparsers(dest="spool_command", required=True)
+    spool_status = spool_sub.add_parser("status", help="size, events owed per sink, dead letters")
+    letters = spool_sub.add_parser("dead-letters", help="list dead letters, newest first")
+    letters.add_argument("--sink", default=None, help="only this sink's")
+    letters.add_argument("--limit", type=int, default=100, help="at most N (default 100)")
+    letters.add_argument("--json", action="store_true", help="one JSON object per line")
+    show = spool_sub.add_parser("show", help="print one dead letter's event as JSON")
+    show.add_argument("id", type=int)
+    requeue = spool_sub.add_parser("requeue", help="put dead letters back in their sink's queue")
+    requeue.add_argument("ids", type=int, nargs="*", help="dead letter ids (see dead-letters)")
+    requeue.add_argument("--all", action="store_true", help="every dead letter (of --sink)")
+    requeue.add_argument("--sink", default=None, help="only this sink's")
+    for spool_parser in (spool_status, letters, show, requeue):
+        spool_parser.add_argument(
+            "--config", type=Path, required=True, help="the gateway's config file (spool.path)"
+        )
     keys = sub.add_parser("keys", help="tunnel key material")
     keys_sub = keys.add_subparsers(dest="keys_command", required=True)
     new = keys_sub.add_parser("new", help="write a new random master key (mode 0600)")
@@ -531,6 +548,52 @@ def _simulate_scenario(args: argparse.Namespace, host: str, port: int) -> int:
     return EXIT_OK
 
 
+def _spool(args: argparse.Namespace) -> int:
+    from gateway.errors import SpoolError
+    from gateway.spool import admin
+    from gateway.spool.store import Spool
+
+    try:
+        config = load_config(args.config, check_sink=None)
+    except ConfigError as exc:
+        _print_config_error(exc, sys.stderr)
+        return EXIT_CONFIG
+    path = config.spool.path
+    if path is None:
+        print(  # noqa: T201 - the output
+            f"{args.config}: spool.path is not set; the spool is in the gateway's memory",
+            file=sys.stderr,
+        )
+        return EXIT_CONFIG
+    if not path.exists():
+        print(f"{path}: no spool here yet", file=sys.stderr)  # noqa: T201 - the output
+        return EXIT_FAILURE
+    try:
+        spool = Spool(
+            path,
+            exclusive=False,
+            max_bytes=config.spool.max_bytes,
+            dead_letters_max=config.spool.dead_letters_max,
+        )
+    except SpoolError as exc:
+        print(exc, file=sys.stderr)  # noqa: T201 - the output
+        return EXIT_FAILURE
+    try:
+        if args.spool_command == "status":
+            return admin.status(spool, sys.stdout)
+        if args.spool_command == "dead-letters":
+            return admin.dead_letters(
+                spool, sys.stdout, sink=args.sink, limit=args.limit, as_json=args.json
+            )
+        if args.spool_command == "show":
+            return admin.show(spool, sys.stdout, sys.stderr, args.id)
+        return admin.requeue(
+            spool, sys.stdout, sys.stderr, args.ids, every=args.all, sink=args.sink
+        )
+    finally:
+        spool.close()
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``fischer-gateway`` console script."""
     args = _parser().parse_args(argv)
@@ -549,6 +612,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         from gateway.domain.selftest import run_selftest
 
         return run_selftest(sys.stdout)
+    if args.command == "spool":
+        return _spool(args)
     if args.command == "keys":
         try:
             return _keys(args)

@@ -21,10 +21,11 @@ from pydantic import (
     Field,
     PlainSerializer,
     WithJsonSchema,
+    field_validator,
 )
 
 from gateway.domain.energy import EnergyProfile, EwMode
-from gateway.events import EventKind
+from gateway.events import LATEST_WINS_KINDS, EventKind
 
 __all__ = [
     "AirframeConfig",
@@ -332,6 +333,74 @@ class SinkEntry(BaseModel):
     )
 
 
+class StaleRule(BaseModel):
+    """What the spool does with a durable event of one kind that waited too long (an outage)."""
+
+    model_config = _FROZEN
+
+    after_s: float = Field(gt=0, le=30 * 86400, description="Age in the spool that makes it stale.")
+    action: Literal["deliver_late", "expire"] = Field(
+        description="deliver_late: sent with late_by_s set; expire: dead-lettered as expired."
+    )
+
+
+def _default_stale() -> dict[EventKind, StaleRule]:
+    return {
+        EventKind.DETECTION: StaleRule(after_s=3600.0, action="deliver_late"),
+        EventKind.TRACK: StaleRule(after_s=3600.0, action="deliver_late"),
+        # A counter-UAS cue minutes old points at where the target was: expire it, the
+        # tracker cues the battery again if the track is still alive.
+        EventKind.HANDOFF: StaleRule(after_s=60.0, action="expire"),
+        EventKind.ORDER: StaleRule(after_s=3600.0, action="deliver_late"),
+    }
+
+
+class SpoolConfig(BaseModel):
+    """The SQLite spool that holds durable events until each sink confirms them."""
+
+    model_config = _FROZEN
+
+    path: Path | None = Field(
+        default=None,
+        description="The spool database file (WAL mode). Unset: in memory, lost on restart.",
+    )
+    sync: Literal["normal", "full"] = Field(
+        default="normal",
+        description="normal: survives kill -9 and crashes of the process, not a power cut; "
+        "full: an fsync per commit, survives a power cut, costs the disk's sync latency.",
+    )
+    max_bytes: int = Field(
+        default=1 << 30,
+        ge=1 << 20,
+        description="Size cap; new durable events are refused above it.",
+    )
+    warn_pct: float = Field(
+        default=80.0, gt=0, le=100, description="Log loudly when the spool is this full."
+    )
+    stale: dict[EventKind, StaleRule] = Field(
+        default_factory=_default_stale,
+        description="Per durable kind: when an event counts as stale, and whether it is then "
+        "delivered marked late or expired into the dead letters.",
+    )
+    dedup_window_s: float = Field(
+        default=86400.0,
+        gt=0,
+        le=30 * 86400,
+        description="How long detection ids are remembered to drop an airframe's re-sends.",
+    )
+    dead_letters_max: int = Field(
+        default=100_000, ge=1, description="Dead letters kept; the oldest go first."
+    )
+
+    @field_validator("stale")
+    @classmethod
+    def _durable_only(cls, stale: dict[EventKind, StaleRule]) -> dict[EventKind, StaleRule]:
+        latest = sorted(k.value for k in stale if k in LATEST_WINS_KINDS)
+        if latest:
+            raise ValueError(f"latest-wins kinds are never spooled: {latest}")
+        return {**_default_stale(), **stale}
+
+
 class SourceEntry(BaseModel):
     """One configured source: ``name``, ``type`` (an entry point name) and its own options.
 
@@ -448,6 +517,9 @@ class Config(BaseModel):
     )
     terrain: TerrainConfig = Field(
         default=TerrainConfig(), description="DEM sources for height above ground."
+    )
+    spool: SpoolConfig = Field(
+        default=SpoolConfig(), description="Where durable events wait for the sinks."
     )
     sources: tuple[SourceEntry, ...] = Field(
         default=(), description="Inputs beyond the airframes: CoT from ATAK/WinTAK (blue force)."

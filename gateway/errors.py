@@ -17,6 +17,7 @@ translated once, at the boundary where they enter, with ``raise ... from exc``::
     │   ├── TransientSinkError       try again later (the SinkRunner retries with backoff)
     │   ├── PermanentSinkError       these events will never be accepted (dead-lettered)
     │   └── SinkLoadError            the sink named in config cannot be loaded or configured
+    ├── SpoolError                   the spool database cannot be opened or written
     └── OrderRejected                an order failed its acceptance checks
 
 Errors carry structured attributes (``key_path``, ``line``, ``airframe``, ``sink``, ``link``)
@@ -45,6 +46,7 @@ __all__ = [
     "SinkError",
     "SinkLoadError",
     "SinkOptionsInvalid",
+    "SpoolError",
     "TransientSinkError",
     "os_reason",
 ]
@@ -171,6 +173,10 @@ class SinkOptionsInvalid(SinkLoadError):
         super().__init__(f"options of sink type {sink!r} are invalid", sink=sink)
         self.validation = validation
         self.model = model
+
+
+class SpoolError(GatewayError):
+    """Raised when the spool database cannot be opened, read or written (disk, schema)."""
 
 
 class OrderRejected(GatewayError):

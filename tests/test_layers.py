@@ -29,6 +29,7 @@ LAYERS: dict[str, tuple[int, str]] = {
     "gateway.codecs": (2, "codecs"),
     "gateway.transports": (2, "transports"),
     "gateway.ops": (2, "ops"),
+    "gateway.spool": (2, "spool"),
     "gateway.fleet": (3, "fleet"),
     "gateway.sim": (3, "sim"),
     "gateway.flow": (3, "flow"),

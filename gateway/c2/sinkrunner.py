@@ -4,8 +4,11 @@ Every sink gets the same delivery behaviour from here, and holds none of its own
 
 - latest-wins kinds (telemetry, link state, blue force) sit in one slot per key, so a slow
   sink gets the freshest value instead of a backlog;
-- durable kinds (detections, tracks, ...) sit in a bounded FIFO and are never dropped
-  silently: an overflow is counted and logged loudly, a permanent rejection is dead-lettered;
+- durable kinds (detections, tracks, ...) are held in the spool (``gateway.spool``) until the
+  sink confirms them, with a window of them in memory (``gateway.c2.outbox``): they survive a
+  restart or kill -9 of the gateway, a permanent rejection is dead-lettered in the spool, a
+  stale event is delivered marked late or expired by its kind's rule; only a full spool
+  refuses events (counted and logged loudly);
 - every ``send`` runs under the sink's deadline, so a hung sink costs that sink a timeout and
   a retry, never another sink or the ingest path (``offer`` is synchronous and O(1));
 - a sink bug (an exception that is neither a ``SinkError`` nor the network's) is retried
@@ -14,33 +17,37 @@ Every sink gets the same delivery behaviour from here, and holds none of its own
 - a sink's background work (its optional ``run`` lifetime) runs in this runner's task group,
   between ``open`` and ``aclose``, never in a task group the sink holds itself.
 
-The durable FIFO is a deque rather than a memory object stream because a failed batch must go
-back to the *front*, in order, for the retry.
+Failures go through one circuit breaker per sink (``gateway.c2.circuit``): jittered exponential
+backoff from tenacity, and after a few failures in a row one probe event at a time until the
+sink takes events again.
 """
 
 from __future__ import annotations
 
-import random
 import time
 from collections import deque
+from collections.abc import Mapping
 from typing import Any, cast
 
 import anyio
 import anyio.abc
 import structlog
 
+from gateway.c2.circuit import Circuit
+from gateway.c2.outbox import Outbox, Queued
 from gateway.c2.sink import LifetimeSink, Sink
-from gateway.config import SinkEntry
-from gateway.errors import PermanentSinkError, TransientSinkError
-from gateway.events import LATEST_WINS_KINDS, Event, latest_key
+from gateway.config import SinkEntry, StaleRule
+from gateway.errors import PermanentSinkError, SpoolError, TransientSinkError
+from gateway.events import LATEST_WINS_KINDS, Event, EventKind, latest_key
 from gateway.ops.instruments import Instruments
 from gateway.ops.logsetup import RateLimit
+from gateway.spool.store import Spool
 
-__all__ = ["DEAD_LETTER_KEEP", "ERROR_ATTEMPTS", "MAX_LATEST_SLOTS", "SinkRunner"]
+__all__ = ["DEAD_LETTER_KEEP", "ERROR_ATTEMPTS", "IDLE_POLL_S", "MAX_LATEST_SLOTS", "SinkRunner"]
 
 log = structlog.get_logger(__name__)
 
-#: Dead-lettered events kept in memory for /status until the spool keeps them on disk.
+#: The newest dead-lettered events kept in memory too, for tests and /status (the spool has all).
 DEAD_LETTER_KEEP = 1000
 #: Latest-wins slots held for one sink at most (units reported over CoT, airframes ...).
 MAX_LATEST_SLOTS = 10_000
@@ -48,11 +55,9 @@ MAX_LATEST_SLOTS = 10_000
 #: Unexpected errors (sink bugs) in a row on one batch before its events are tried one by one
 #: and those that still fail are given up on (dead-lettered, or counted if latest-wins).
 ERROR_ATTEMPTS = 3
-#: Backoff doublings at most: past this the delay is retry_max_s anyway, and 2**n stays small.
-_MAX_DOUBLINGS = 32
 _ERROR_LOG_INTERVAL_S = 30.0
-
-_Item = tuple[Event, float]
+#: While idle, how often the runner looks in the spool for re-queued dead letters.
+IDLE_POLL_S = 5.0
 
 
 def _is_transient(exc: BaseException) -> bool:
@@ -73,15 +78,25 @@ class _StartedFlag:
 
 
 class SinkRunner:
-    """Owns the queue of one sink and the task that feeds it."""
+    """Owns the queues of one sink and the task that feeds it."""
 
-    def __init__(self, entry: SinkEntry, sink: Sink, instruments: Instruments) -> None:
+    def __init__(
+        self,
+        entry: SinkEntry,
+        sink: Sink,
+        instruments: Instruments,
+        *,
+        spool: Spool | None = None,
+        stale: Mapping[EventKind, StaleRule] | None = None,
+    ) -> None:
         self.entry = entry
         self.sink = sink
         self.name = entry.name
         self.kinds = sink.kinds
-        self._latest: dict[str, _Item] = {}
-        self._durable: deque[_Item] = deque()
+        self._latest: dict[str, Queued] = {}
+        #: Without a spool of the gateway's, the runner keeps its own in memory (tests, tools).
+        self.spool = spool if spool is not None else Spool()
+        self.outbox = Outbox(self.name, self.spool, window=entry.queue_max, stale=stale)
         self._wake = anyio.Event()
         self._waiting = False
         self._stopping = False
@@ -91,10 +106,10 @@ class SinkRunner:
         self._error_attempts = 0
         self._needs_close = False
         self._error_log = RateLimit(interval_s=_ERROR_LOG_INTERVAL_S)
+        self.circuit = Circuit(initial_s=entry.retry_initial_s, max_s=entry.retry_max_s)
         self.dead_letters: deque[tuple[Event, str]] = deque(maxlen=DEAD_LETTER_KEEP)
         self.state = "starting"
         self.reason = ""
-        self.failures_in_row = 0
         self.is_open = False
         self.close_timeout_s = entry.send_timeout_s
         inst = instruments
@@ -103,8 +118,11 @@ class SinkRunner:
         self._overflow = inst.sink_dropped.labels(self.name, "overflow")
         self._rejected = inst.sink_dropped.labels(self.name, "rejected")
         self._given_up = inst.sink_dropped.labels(self.name, "error")
+        self._expired = inst.sink_dropped.labels(self.name, "expired")
+        self._late = inst.sink_late
         self._latency = inst.sink_latency.labels(self.name)
         self._open_gauge = inst.sink_open.labels(self.name)
+        self._circuit_gauge = inst.sink_circuit.labels(self.name)
         self._failed = {
             reason: inst.sink_failed.labels(self.name, reason)
             for reason in ("transient", "timeout", "error", "permanent")
@@ -117,6 +135,15 @@ class SinkRunner:
         """How config errors name this runner's sink."""
         return f"sink {self.name!r} ({self.entry.type})"
 
+    @property
+    def failures_in_row(self) -> int:
+        """Failed calls in a row (the circuit breaker's count)."""
+        return self.circuit.failures_in_row
+
+    @failures_in_row.setter
+    def failures_in_row(self, value: int) -> None:
+        self.circuit.failures_in_row = value
+
     # -- ingest side: synchronous, O(1), never blocks ------------------------------------
 
     def offer(self, event: Event, ingest_mono: float) -> None:
@@ -124,7 +151,11 @@ class SinkRunner:
         self.offer_slot(event, ingest_mono, latest_key(event))
 
     def offer_slot(self, event: Event, ingest_mono: float, slot: str | None) -> None:
-        """``offer`` with the event's ``latest_key`` already computed (once, by the bus)."""
+        """``offer`` with the event's ``latest_key`` already computed (once, by the bus).
+
+        A durable event is spooled for this sink alone here; the bus spools one copy for all
+        its sinks instead and calls ``offer_spooled``.
+        """
         if slot is not None:
             latest = self._latest
             if slot in latest:
@@ -135,39 +166,66 @@ class SinkRunner:
                 # the oldest latest-wins report makes room (counted like an overflow).
                 del latest[next(iter(latest))]
                 self._overflow.inc()
-            latest[slot] = (event, ingest_mono)
-        elif len(self._durable) >= self.entry.queue_max:
-            self._overflow.inc()
-            if self._overflow_log.allow("overflow"):
-                self.log.error(
-                    "sink_queue_overflowed",
-                    kind=event.kind.value,
-                    event_id=event.event_id,
-                    queue_max=self.entry.queue_max,
-                    note="durable events are being dropped until the sink catches up",
-                )
-            return
+            latest[slot] = Queued(event, ingest_mono, 0)
         else:
-            self._durable.append((event, ingest_mono))
+            try:
+                held = self.outbox.append(event, ingest_mono)
+            except SpoolError:
+                held = False
+                self.log.exception("spool_write_failed", event_id=event.event_id)
+            if not held:
+                self.refused(event)
+                return
+        self._wake_sender()
+
+    def offer_spooled(self, event: Event, ingest_mono: float, seq: int) -> None:
+        """Queue a durable event the bus has already spooled for this sink as ``seq``."""
+        self.outbox.add(event, ingest_mono, seq)
+        self._wake_sender()
+
+    def refused(self, event: Event) -> None:
+        """Count a durable event the spool had no room for (the spool logs it too)."""
+        self._overflow.inc()
+        if self._overflow_log.allow("overflow"):
+            self.log.error(
+                "sink_event_refused_spool_full",
+                kind=event.kind.value,
+                event_id=event.event_id,
+                note="the spool is full: durable events are refused until sinks catch up",
+            )
+
+    def _wake_sender(self) -> None:
         if self._waiting:
             self._waiting = False
             self._wake.set()
 
     @property
     def depth(self) -> tuple[int, int]:
-        """Events waiting: (latest-wins slots, durable)."""
-        return len(self._latest), len(self._durable)
+        """Events waiting: (latest-wins slots, durable events the spool owes this sink)."""
+        return len(self._latest), self.outbox.owed
 
     def stop(self) -> None:
-        """Ask the runner to finish: it drains what is queued, then closes the sink."""
+        """Ask the runner to finish: it drains what is queued, then closes the sink.
+
+        With a spool on disk, a sink that is failing is not drained: what it is owed stays
+        in the spool for the next start.
+        """
         self._stopping = True
         self._stop_requested.set()
-        self._waiting = False
-        self._wake.set()
+        self._wake_sender()
 
     async def wait_done(self) -> None:
         """Wait until ``run`` has returned."""
         await self._done.wait()
+
+    @property
+    def _leave_rest_in_spool(self) -> bool:
+        return (
+            self._stopping
+            and self.spool.path is not None
+            and (self.circuit.failures_in_row > 0 or not self.is_open)
+            and not self._latest
+        )
 
     # -- delivery side -------------------------------------------------------------------
 
@@ -181,6 +239,7 @@ class SinkRunner:
         and opened again with backoff.
         """
         task_status.started()
+        self._circuit_gauge.set(0.0)
         try:
             while await self._open():
                 failure = await self._serve()
@@ -208,7 +267,7 @@ class SinkRunner:
     async def _open(self) -> bool:
         """Open the sink, retrying; False if asked to stop with nothing left to deliver."""
         while True:
-            if self._stopping and not any(self.depth):
+            if self._stopping and (not any(self.depth) or self._leave_rest_in_spool):
                 return False
             self._needs_close = True  # ``aclose`` is due even after a failed ``open``
             try:
@@ -219,7 +278,7 @@ class SinkRunner:
                 continue
             self.is_open = True
             self._open_gauge.set(1.0)
-            self.state, self.reason, self.failures_in_row = "open", "", 0
+            self.state, self.reason = "open", ""
             self.log.info("sink_opened")
             return True
 
@@ -251,25 +310,32 @@ class SinkRunner:
             if not status.is_started:
                 raise  # comes out of ``tg.start`` in ``_serve``
             self._lifetime_failure = exc
-            self._waiting = False
-            self._wake.set()
+            self._wake_sender()
 
     async def _deliver_until_done(self) -> BaseException | None:
         while True:
             if self._lifetime_failure is not None:
                 return self._lifetime_failure
-            if not self._latest and not self._durable:
+            if self._leave_rest_in_spool:
+                return None
+            items = self._take()
+            if not items:
                 if self._stopping:
                     return None
                 self._wake = anyio.Event()
                 self._waiting = True
-                await self._wake.wait()
+                with anyio.move_on_after(IDLE_POLL_S):
+                    await self._wake.wait()
+                self._waiting = False
+                if not self._latest and not len(self.outbox):
+                    self.outbox.poll()  # dead letters re-queued from the command line
                 continue
-            await self._deliver(self._take())
+            await self._deliver(items)
 
-    def _take(self) -> list[_Item]:
-        limit = self.entry.batch_max
-        items: list[_Item] = []
+    def _take(self) -> list[Queued]:
+        limit = 1 if self.circuit.probing() else self.entry.batch_max
+        self._circuit_gauge.set(float(self.circuit.state))
+        items: list[Queued] = []
         if self._latest:
             if len(self._latest) <= limit:
                 items.extend(self._latest.values())
@@ -277,20 +343,28 @@ class SinkRunner:
             else:
                 for key in list(self._latest)[:limit]:
                     items.append(self._latest.pop(key))
-        while self._durable and len(items) < limit:
-            items.append(self._durable.popleft())
+        if len(items) < limit:
+            durable, expired = self.outbox.take(limit - len(items))
+            for item, reason in expired:
+                self._expired.inc()
+                self._dead_letter([item], reason, count=False)
+            for item in durable:
+                if item.event.kind is not EventKind.ORDER and getattr(
+                    item.event, "late_by_s", None
+                ):
+                    self._late.labels(self.name, item.event.kind.value).inc()
+            items += durable
         return items
 
-    def _put_back(self, items: list[_Item]) -> None:
-        durable = [item for item in items if item[0].kind not in LATEST_WINS_KINDS]
-        self._durable.extendleft(reversed(durable))
+    def _put_back(self, items: list[Queued]) -> None:
+        self.outbox.put_back([item for item in items if item.seq])
         for item in items:
-            slot = latest_key(item[0])
+            slot = latest_key(item.event)
             if slot is not None:
                 # A newer value that arrived during the failed send wins over the retry.
                 self._latest.setdefault(slot, item)
 
-    async def _send(self, items: list[_Item]) -> BaseException | None:
+    async def _send(self, items: list[Queued]) -> BaseException | None:
         """One ``send`` under the deadline: None if delivered, else what it raised.
 
         Cancelled mid-send (shutdown), the events are put back: the batch is still ours.
@@ -298,7 +372,7 @@ class SinkRunner:
         settled = False
         try:
             with anyio.fail_after(self.entry.send_timeout_s):
-                await self.sink.send([event for event, _ in items])
+                await self.sink.send([item.event for item in items])
             settled = True
         except Exception as exc:  # noqa: BLE001 - isolation boundary around one sink call
             settled = True
@@ -308,7 +382,7 @@ class SinkRunner:
                 self._put_back(items)
         return None
 
-    async def _deliver(self, items: list[_Item]) -> None:
+    async def _deliver(self, items: list[Queued]) -> None:
         failure = await self._send(items)
         if failure is None:
             self._error_attempts = 0
@@ -330,7 +404,7 @@ class SinkRunner:
             self._failed["error"].inc()
             await self._deliver_one_by_one(items, failure)
 
-    async def _deliver_one_by_one(self, items: list[_Item], failure: BaseException) -> None:
+    async def _deliver_one_by_one(self, items: list[Queued], failure: BaseException) -> None:
         """The batch failed ``ERROR_ATTEMPTS`` times with a sink bug: isolate the culprits."""
         if len(items) == 1:
             self._give_up(items[0], failure)
@@ -349,52 +423,74 @@ class SinkRunner:
                 self._failed["error"].inc()
                 self._give_up(item, failure_one)
 
-    def _delivered(self, items: list[_Item]) -> None:
+    def _delivered(self, items: list[Queued]) -> None:
         now = time.monotonic()
         observe = self._latency.observe
-        for _, ingest_mono in items:
-            observe(now - ingest_mono)
+        for item in items:
+            observe(now - item.ingest_mono)
+            if getattr(item.event, "late_by_s", None) is not None:
+                self._late.labels(self.name, item.event.kind.value).inc()
+        self._confirm(items)
         self._sent.inc(len(items))
-        if self.failures_in_row:
-            self.log.info("sink_recovered", after_failures=self.failures_in_row)
-            self.state, self.reason, self.failures_in_row = "open", "", 0
+        ended = self.circuit.succeeded()
+        self._circuit_gauge.set(0.0)
+        if ended:
+            self.log.info("sink_recovered", after_failures=ended)
+            self.state, self.reason = "open", ""
 
-    def _refused(self, items: list[_Item], exc: PermanentSinkError) -> None:
+    def _confirm(self, items: list[Queued]) -> None:
+        try:
+            self.outbox.confirm([item for item in items if item.seq])
+        except SpoolError:
+            # Delivered but still in the spool: sent again after a restart (the receiver
+            # de-duplicates by event id). Logged, never fatal.
+            self.log.exception("spool_confirm_failed", count=len(items))
+
+    def _refused(self, items: list[Queued], exc: PermanentSinkError) -> None:
         """Dead-letter what ``exc`` names (the whole batch if it names nothing)."""
         self._failed["permanent"].inc()
         if not exc.event_ids:
             self._dead_letter(items, str(exc))
             return
-        refused = [item for item in items if item[0].event_id in exc.event_ids]
+        refused = [item for item in items if item.event.event_id in exc.event_ids]
         self._dead_letter(refused, str(exc))
-        self._delivered([item for item in items if item[0].event_id not in exc.event_ids])
+        self._delivered([item for item in items if item.event.event_id not in exc.event_ids])
         if strangers := len(exc.event_ids) - len(refused):
             self.log.warning("sink_refused_unknown_events", count=strangers)
 
-    def _give_up(self, item: _Item, exc: BaseException) -> None:
-        event = item[0]
+    def _give_up(self, item: Queued, exc: BaseException) -> None:
         reason = f"sink error after {ERROR_ATTEMPTS} attempts: {type(exc).__name__}: {exc}"
-        if event.kind in LATEST_WINS_KINDS:
+        if item.event.kind in LATEST_WINS_KINDS:
             self._given_up.inc()  # superseded soon anyway; counted, not dead-lettered
         else:
-            self.dead_letters.append((event, reason))
+            self._dead_letter([item], reason, count=False)
             self._rejected.inc()
         self.log.error(
-            "sink_event_given_up", kind=event.kind.value, event_id=event.event_id, reason=reason
+            "sink_event_given_up",
+            kind=item.event.kind.value,
+            event_id=item.event.event_id,
+            reason=reason,
         )
 
-    def _dead_letter(self, items: list[_Item], reason: str) -> None:
-        for event, _ in items:
-            if event.kind in LATEST_WINS_KINDS:
-                continue
-            self.dead_letters.append((event, reason))
-            self._rejected.inc()
-        self.log.error("sink_events_rejected", count=len(items), reason=reason)
+    def _dead_letter(self, items: list[Queued], reason: str, *, count: bool = True) -> None:
+        durable = [item for item in items if item.event.kind not in LATEST_WINS_KINDS]
+        for item in durable:
+            self.dead_letters.append((item.event, reason))
+            if count:
+                self._rejected.inc()
+        try:
+            self.outbox.dead_letter([item for item in durable if item.seq], reason)
+        except SpoolError:
+            self.log.exception("spool_dead_letter_failed", count=len(durable))
+        if count:
+            self.log.error("sink_events_rejected", count=len(items), reason=reason)
+        elif durable:
+            self.log.warning("sink_events_dead_lettered", count=len(durable), reason=reason[:200])
 
     def retry_delay_s(self) -> float:
-        """The backoff before the next attempt, before jitter, for ``failures_in_row``."""
-        doublings = min(max(self.failures_in_row - 1, 0), _MAX_DOUBLINGS)
-        return min(self.entry.retry_max_s, self.entry.retry_initial_s * 2.0**doublings)
+        """The longest backoff before the next attempt for ``failures_in_row`` (no jitter)."""
+        doublings = min(max(self.failures_in_row - 1, 0), 64)
+        return float(min(self.entry.retry_max_s, self.entry.retry_initial_s * 2.0**doublings))
 
     async def _backoff(self, step: str, exc: BaseException) -> None:
         if isinstance(exc, TimeoutError):
@@ -404,19 +500,20 @@ class SinkRunner:
         else:
             reason, detail = "error", f"{type(exc).__name__}: {exc}"
         self._failed[reason].inc()
-        self.failures_in_row += 1
-        # Full jitter in [delay/2, delay] keeps many gateways from retrying in lock step.
-        delay = self.retry_delay_s() * random.uniform(0.5, 1.0)  # noqa: S311 - not crypto
+        delay = self.circuit.failed()
+        self._circuit_gauge.set(float(self.circuit.state))
         self.state, self.reason = "retrying", detail
         fields: dict[str, Any] = {
             "step": step,
             "reason": reason,
             "detail": detail,
             "failures_in_row": self.failures_in_row,
+            "circuit": self.circuit.state.name.lower(),
             "retry_in_s": round(delay, 3),
         }
         if reason != "error":
-            self.log.warning("sink_call_failed", **fields)
+            if self.failures_in_row <= self.circuit.threshold or self._error_log.allow(step):
+                self.log.warning("sink_call_failed", **fields)
         elif self._error_log.allow(step):
             # A sink bug: the traceback once per interval, every occurrence counted.
             self.log.warning("sink_call_failed", exc_info=exc, **fields)
@@ -435,6 +532,7 @@ class SinkRunner:
             "state": self.state,
             "reason": self.reason,
             "open": self.is_open,
+            "circuit": self.circuit.state.name.lower(),
             "failures_in_row": self.failures_in_row,
             "queued_latest": latest,
             "queued_durable": durable,

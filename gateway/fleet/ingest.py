@@ -34,6 +34,7 @@ from gateway.config import AirframeConfig
 from gateway.domain.terrain import TerrainModel
 from gateway.errors import FrameError
 from gateway.events import Event
+from gateway.fleet.acks import DetectionAcks, DetectionLedger
 from gateway.fleet.deframe import StreamDeframer
 from gateway.fleet.linkhealth import LinkHealth
 from gateway.fleet.mavlink import MavlinkParser, MavMessage
@@ -97,8 +98,11 @@ class Ingest:
         verifiers: Mapping[int, SigningVerifier] | None = None,
         terrain: TerrainModel | None = None,
         baro_sigma_m: float = 0.5,
+        ledger: DetectionLedger | None = None,
     ) -> None:
         self._publish = publish
+        #: Durable intake of detections with acknowledgements, when there is a spool.
+        self.acks = None if ledger is None else DetectionAcks(publish, ledger, instruments)
         self._inst = instruments
         self._opener = opener
         self._clock = clock
@@ -153,7 +157,18 @@ class Ingest:
                 del airframe.peers[label]
 
     def on_data(self, label: str, peer: object, data: bytes) -> None:
-        """Take one datagram or stream read from link ``label``; never raises."""
+        """Take one datagram or stream read from link ``label``; never raises.
+
+        The detections it carries are committed to the spool together when it is read, and
+        only then acknowledged to their airframes.
+        """
+        try:
+            self._on_data(label, peer, data)
+        finally:
+            if self.acks is not None and self.acks.is_open:
+                self.acks.commit()
+
+    def _on_data(self, label: str, peer: object, data: bytes) -> None:
         intake = self._intakes.get(label)
         if intake is None or intake.counters is None:
             return  # not a registered link: nothing to attribute it to
@@ -307,7 +322,10 @@ class Ingest:
         if detection is None:
             self._rejected(label, "malformed", "FISCHER_DETECTION with impossible values")
             return
-        self._publish(detection)
+        if self.acks is None:
+            self._publish(detection)
+        else:
+            self.acks.take(airframe, label, detection, int(msg.detection_id), int(msg.time_usec))
 
     def _schedule_flush(self) -> None:
         # Telemetry is latest-wins, so the frames read in one pass of the event loop make one

@@ -26,6 +26,7 @@ import structlog
 
 from gateway.config import AirframeConfig
 from gateway.errors import LinkUnavailable
+from gateway.fleet.dialect import fischer_detection_ack
 from gateway.fleet.linkhealth import LinkHealth
 from gateway.fleet.mavlink import MavMessage, dialect
 from gateway.fleet.normalise import AirframeState
@@ -148,6 +149,14 @@ class AirframeSession:
         pending.result = int(msg.result)
         pending.acked_mono = time.monotonic()
         pending.done.set()
+
+    def encode_detection_ack(self, detection_id: int, time_usec: int, result: int) -> bytes:
+        """A FISCHER_DETECTION_ACK frame for one of this airframe's detections."""
+        mav = dialect.MAVLink(None, srcSystem=GATEWAY_SYSID, srcComponent=GATEWAY_COMPID)
+        mav.seq = self._seq
+        self._seq = (self._seq + 1) % 256
+        msg = fischer_detection_ack(time_usec, detection_id, self.config.sysid, 1, result)
+        return bytes(msg.pack(mav))
 
     def _encode_command_long(
         self, command: int, params: tuple[float, ...], confirmation: int

@@ -2,9 +2,12 @@
 
 ``Bus.publish`` is synchronous and never blocks: it hands each event to the subscribers its
 routes select (each applies its own queue policy) and to every processor that consumes its
-kind. The route decision for a (kind, airframe, class) triple is computed once and cached, so
-the hot path is one dict lookup plus one ``offer_slot`` per destination. The bus knows
-subscribers only through ``gateway.flow.subscriber.Subscriber``.
+kind. A durable event bound for sinks is first written to the spool once, for all of them
+(``Spool.append``), and only then handed to their runners; ``publish`` returns False when the
+spool refused it (full or failing), so a caller that can have it sent again does not
+acknowledge it. The route decision for a (kind, airframe, class) triple is computed once and
+cached, so the hot path is one dict lookup plus one offer per destination. The bus knows
+subscribers only through ``Subscriber`` and ``SpoolingSubscriber``.
 """
 
 from __future__ import annotations
@@ -12,25 +15,40 @@ from __future__ import annotations
 import time
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
+from typing import Protocol
 
 import structlog
 
 from gateway.config import RouteConfig
-from gateway.errors import ConfigError, ConfigIssue
+from gateway.errors import ConfigError, ConfigIssue, SpoolError
 from gateway.events import LATEST_WINS_KINDS, Detection, Event, EventKind, Track, latest_key
 from gateway.flow.subscriber import Subscriber
 from gateway.ops.instruments import Instruments
+from gateway.ops.logsetup import RateLimit
+from gateway.spool.store import Spool
 
-__all__ = ["Bus"]
+__all__ = ["Bus", "SpoolingSubscriber"]
 
 _MAX_CACHED_ROUTES = 4096
 
 log = structlog.get_logger(__name__)
 
 
+class SpoolingSubscriber(Subscriber, Protocol):
+    """A subscriber that takes durable events already in the spool (a sink runner)."""
+
+    def offer_spooled(self, event: Event, ingest_mono: float, seq: int) -> None:
+        """Take ``event``, held in the spool as ``seq`` for this subscriber."""
+        ...
+
+    def refused(self, event: Event) -> None:
+        """Count ``event``, which the spool had no room for."""
+        ...
+
+
 @dataclass(slots=True)
 class _Target:
-    runner: Subscriber
+    runner: SpoolingSubscriber
     min_interval_s: float | None
     last_sent: dict[str, float]
 
@@ -58,13 +76,20 @@ class Bus:
     def __init__(
         self,
         routes: Iterable[RouteConfig],
-        runners: Mapping[str, Subscriber],
+        runners: Mapping[str, SpoolingSubscriber],
         instruments: Instruments,
         *,
         source: str = "<config>",
         processors: Iterable[Subscriber] = (),
+        spool: Spool | None = None,
     ) -> None:
         self._routes = tuple(routes)
+        self._spool = spool if spool is not None else Spool()
+        for runner in runners.values():
+            theirs = getattr(runner, "spool", self._spool)
+            if theirs is not self._spool:
+                # Sequence numbers of one spool confirmed in another would settle wrong rows.
+                raise ValueError(f"{runner.description} has a spool of its own, not the bus's")
         self._runners = runners
         self._processors = tuple(processors)
         self._by_kind: dict[EventKind, tuple[Subscriber, ...]] = {
@@ -74,6 +99,7 @@ class Bus:
         self._cache: dict[tuple[EventKind, tuple[str, ...] | None, str | None], list[_Target]] = {}
         self._targets: dict[tuple[int, str, EventKind], _Target] = {}
         self._event_counters = {kind: instruments.events.labels(kind.value) for kind in EventKind}
+        self._spool_log = RateLimit(interval_s=10.0)
         self._check(source)
 
     def _check(self, source: str) -> None:
@@ -154,6 +180,8 @@ class Bus:
             return True
         now = time.monotonic()
         slot = latest_key(event)
+        if slot is None:
+            return self._publish_durable(event, targets, now)
         for target in targets:
             interval = target.min_interval_s
             if interval is not None and slot is not None:
@@ -163,4 +191,21 @@ class Bus:
                     continue
                 target.last_sent[slot] = now
             target.runner.offer_slot(event, now, slot)
+        return True
+
+    def _publish_durable(self, event: Event, targets: list[_Target], now: float) -> bool:
+        names = [target.runner.name for target in targets]
+        try:
+            seq = self._spool.append(event, names)
+        except SpoolError:
+            seq = None
+            if self._spool_log.allow("error"):
+                log.exception("spool_write_failed", kind=event.kind.value)
+        if seq is None:
+            self._inst.spool_refused.inc()
+            for target in targets:
+                target.runner.refused(event)
+            return False
+        for target in targets:
+            target.runner.offer_spooled(event, now, seq)
         return True

@@ -67,7 +67,8 @@ class Instruments:
         )
         self.sink_dropped = r.counter(
             "fg_sink_events_dropped_total",
-            "Events a sink will never get, by reason (overflow, rejected, error).",
+            "Events a sink will never get, by reason (overflow: the spool was full; rejected; "
+            "error; expired: stale after an outage, kept in the dead letters).",
             ("sink", "reason"),
         )
         self.sink_superseded = r.counter(
@@ -89,6 +90,30 @@ class Instruments:
             ("sink",),
         )
         self.sink_open = r.gauge("fg_sink_open", "1 while a sink is open and healthy.", ("sink",))
+        self.sink_circuit = r.gauge(
+            "fg_sink_circuit_state",
+            "A sink's circuit breaker: 0 closed, 1 half-open (probing), 2 open (failing).",
+            ("sink",),
+        )
+        self.sink_late = r.counter(
+            "fg_sink_events_late_total",
+            "Durable events delivered after their kind's stale threshold, marked late_by_s.",
+            ("sink", "kind"),
+        )
+        self.spool_bytes = r.gauge("fg_spool_bytes", "Bytes the spool holds (in-use pages).")
+        self.spool_max_bytes = r.gauge("fg_spool_max_bytes", "The spool's size cap.")
+        self.spool_pending = r.gauge(
+            "fg_spool_pending_events", "Durable events owed to a sink, in the spool.", ("sink",)
+        )
+        self.spool_refused = r.counter(
+            "fg_spool_refused_total", "Durable events refused because the spool was full."
+        )
+        self.spool_dead_letters = r.gauge("fg_spool_dead_letters", "Dead letters held.")
+        self.detections_acked = r.counter(
+            "fg_detections_acknowledged_total",
+            "FISCHER_DETECTION_ACKs queued to airframes, by result (held, duplicate).",
+            ("airframe", "result"),
+        )
         self.uplink_frames = r.counter(
             "fg_uplink_sends_total",
             "Sends to an airframe (passthrough, commands), per airframe and link.",

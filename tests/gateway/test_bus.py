@@ -23,6 +23,12 @@ class Taker:
     def offer_slot(self, event: Event, ingest_mono: float, slot: str | None) -> None:
         self.got.append(event)
 
+    def offer_spooled(self, event: Event, ingest_mono: float, seq: int) -> None:
+        self.got.append(event)
+
+    def refused(self, event: Event) -> None:
+        raise AssertionError(f"refused {event.event_id}")
+
 
 def telemetry(n: int) -> Telemetry:
     return Telemetry(event_id=f"t{n}", airframe="A", time=T0)

@@ -247,6 +247,7 @@ class TestCli:
             "health",
             "tunnel",
             "terrain",
+            "spool",
             "sources",
             "processors",
             "airframes",

@@ -14,6 +14,7 @@ from gateway.config import RouteConfig, SinkEntry
 from gateway.events import Detection, EventKind, Position, Sensor, Telemetry
 from gateway.flow.bus import Bus
 from gateway.ops.instruments import Instruments
+from gateway.spool.store import Spool
 from gateway.testing import MemorySink, eventually
 
 T0 = datetime(2026, 11, 22, 12, 0, tzinfo=UTC)
@@ -58,13 +59,35 @@ class TestPolicies:
         assert runner.depth == (2, 0)
         assert inst.sink_superseded.labels("m").value == 98
 
-    def test_durable_kinds_queue_in_order_and_overflow_is_counted(self) -> None:
+    @pytest.mark.anyio
+    async def test_durable_kinds_beyond_the_window_wait_in_the_spool_in_order(self) -> None:
         inst = Instruments()
-        runner = SinkRunner(entry("m", queue_max=10), MemorySink("m"), inst)
-        for n in range(15):
+        sink = MemorySink("m")
+        runner = SinkRunner(entry("m", queue_max=10, batch_max=4), sink, inst)
+        for n in range(35):
             runner.offer(detection(n), 0.0)
-        assert runner.depth == (0, 10)
-        assert inst.sink_dropped.labels("m", "overflow").value == 5
+        assert runner.depth == (0, 35)
+        assert len(runner.outbox) == 10  # the rest only in the spool
+        assert inst.sink_dropped.labels("m", "overflow").value == 0
+        with anyio.fail_after(10):
+            async with anyio.create_task_group() as tg:
+                await tg.start(runner.run)
+                await sink.wait_for(35)
+                await eventually(lambda: runner.depth == (0, 0))
+                tg.cancel_scope.cancel()
+        assert [e.event_id for e in sink.events] == [f"det-{n}" for n in range(35)]
+        assert runner.depth == (0, 0)
+
+    def test_a_full_spool_refuses_and_counts_durable_events(self) -> None:
+        inst = Instruments()
+        spool = Spool(max_bytes=64 * 1024)
+        runner = SinkRunner(entry("m", queue_max=10), MemorySink("m"), inst, spool=spool)
+        for n in range(2000):
+            runner.offer(detection(n), 0.0)
+        refused = inst.sink_dropped.labels("m", "overflow").value
+        assert refused > 0
+        assert runner.depth == (0, 2000 - refused)
+        assert spool.refused == refused
 
 
 async def run_runners(*runners: SinkRunner, until: anyio.Event) -> None:
@@ -152,8 +175,11 @@ class TestIsolation:
         good = MemorySink("good")
         sinks = {"good": good, **{s.name: s for s in bad}}
         inst = Instruments()
-        runners = {name: SinkRunner(entry(name), sink, inst) for name, sink in sinks.items()}
-        bus = Bus([RouteConfig(sinks=tuple(sinks))], runners, inst)
+        spool = Spool()
+        runners = {
+            name: SinkRunner(entry(name), sink, inst, spool=spool) for name, sink in sinks.items()
+        }
+        bus = Bus([RouteConfig(sinks=tuple(sinks))], runners, inst, spool=spool)
         with anyio.fail_after(10):
             async with anyio.create_task_group() as tg:
                 for runner in runners.values():
@@ -189,8 +215,9 @@ class TestRoutes:
 
     def make(self, *routes: RouteConfig) -> tuple[Bus, dict[str, SinkRunner], Instruments]:
         inst = Instruments()
-        runners = {n: SinkRunner(entry(n), MemorySink(n), inst) for n in ("a", "b")}
-        return Bus(routes, runners, inst), runners, inst
+        spool = Spool()
+        runners = {n: SinkRunner(entry(n), MemorySink(n), inst, spool=spool) for n in ("a", "b")}
+        return Bus(routes, runners, inst, spool=spool), runners, inst
 
     def test_filters_by_kind_airframe_and_class(self) -> None:
         bus, runners, _ = self.make(

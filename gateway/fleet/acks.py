@@ -1,0 +1,145 @@
+"""Detections held before they are acknowledged: the gateway's half of FISCHER_DETECTION_ACK.
+
+An airframe keeps each detection until the gateway acknowledges it (docs/detection-ack.md).
+The gateway acknowledges a detection only once it is committed to the spool:
+
+1. the first detection of a datagram opens one spool transaction (``DetectionLedger.batch``);
+2. a detection id already in the ledger is a re-send whose acknowledgement was lost: it is
+   acknowledged again as DUPLICATE and not published;
+3. otherwise it is published; if the bus held it (spooled for every sink it goes to), its id
+   is remembered in the same transaction and a HELD acknowledgement is due; if not (spool
+   full) nothing is due, and the airframe sends it again later;
+4. when the datagram is done the transaction commits, and only then are the due
+   acknowledgements queued for sending (``run`` sends them, batched per airframe).
+
+A lost acknowledgement costs a re-send, never a detection; an unsent one is counted.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections import deque
+from collections.abc import Callable
+from typing import Protocol
+
+import anyio
+import structlog
+
+from gateway.errors import FrameError, GatewayError, LinkError
+from gateway.events import Detection, Event
+from gateway.fleet.session import AirframeSession
+from gateway.ops.instruments import Instruments
+from gateway.ops.logsetup import RateLimit
+
+__all__ = ["ACK_DUPLICATE", "ACK_HELD", "DetectionAcks", "DetectionLedger"]
+
+log = structlog.get_logger(__name__)
+
+#: FISCHER_DETECTION_ACK_RESULT values.
+ACK_HELD = 0
+ACK_DUPLICATE = 1
+_RESULT_NAMES = {ACK_HELD: "held", ACK_DUPLICATE: "duplicate"}
+#: Acknowledgements waiting to be sent at most; past it the oldest go (the airframe re-sends).
+ACK_QUEUE_MAX = 10_000
+#: Acknowledgements of one airframe are sent together up to about this many bytes.
+ACK_SEND_BYTES = 1024
+
+
+class DetectionLedger(Protocol):
+    """What the intake needs of the spool: a transaction and the detection ids taken in."""
+
+    def batch(self) -> contextlib.AbstractContextManager[None]:
+        """One transaction for what is written inside."""
+        ...
+
+    def seen(self, event_id: str) -> bool:
+        """True if this detection was taken in already."""
+        ...
+
+    def remember(self, event_id: str) -> None:
+        """Record this detection as taken in."""
+        ...
+
+
+class DetectionAcks:
+    """Takes detections into the spool and acknowledges them once committed."""
+
+    def __init__(
+        self, publish: Callable[[Event], bool], ledger: DetectionLedger, instruments: Instruments
+    ) -> None:
+        self._publish = publish
+        self._ledger = ledger
+        self._inst = instruments
+        self._batch: contextlib.AbstractContextManager[None] | None = None
+        self._due: list[tuple[AirframeSession, int, int, int]] = []
+        self._queue: deque[tuple[AirframeSession, bytes]] = deque(maxlen=ACK_QUEUE_MAX)
+        self._ready = anyio.Event()
+        self._log = RateLimit(interval_s=10.0)
+
+    @property
+    def is_open(self) -> bool:
+        """True while a datagram's transaction is open."""
+        return self._batch is not None
+
+    def take(
+        self,
+        airframe: AirframeSession,
+        label: str,
+        detection: Detection,
+        detection_id: int,
+        time_usec: int,
+    ) -> None:
+        """Take one detection of the datagram being read (see the module docstring)."""
+        if self._batch is None:
+            self._batch = self._ledger.batch()
+            self._batch.__enter__()
+        if self._ledger.seen(detection.event_id):
+            self._inst.link_ignored.labels(label, "duplicate_detection").inc()
+            self._due.append((airframe, detection_id, time_usec, ACK_DUPLICATE))
+            return
+        if self._publish(detection):
+            self._ledger.remember(detection.event_id)
+            self._due.append((airframe, detection_id, time_usec, ACK_HELD))
+
+    def commit(self) -> None:
+        """Commit the datagram's detections, then queue their acknowledgements."""
+        batch, self._batch = self._batch, None
+        due, self._due = self._due, []
+        try:
+            if batch is not None:
+                batch.__exit__(None, None, None)
+        except GatewayError:
+            # Not committed: nothing is acknowledged, the airframes send these again.
+            if self._log.allow("commit"):
+                log.exception("detections_not_committed", count=len(due))
+            return
+        for airframe, detection_id, time_usec, result in due:
+            frame = airframe.encode_detection_ack(detection_id, time_usec, result)
+            self._queue.append((airframe, frame))
+            self._inst.detections_acked.labels(airframe.id, _RESULT_NAMES[result]).inc()
+        if due:
+            self._ready.set()
+
+    async def run(self) -> None:
+        """Send queued acknowledgements, those of one airframe together, until cancelled."""
+        while True:
+            await self._ready.wait()
+            self._ready = anyio.Event()
+            pending: dict[str, tuple[AirframeSession, bytearray]] = {}
+            while self._queue:
+                airframe, frame = self._queue.popleft()
+                _, frames = pending.setdefault(airframe.id, (airframe, bytearray()))
+                frames += frame
+                if len(frames) >= ACK_SEND_BYTES:
+                    await self._send(airframe, bytes(frames))
+                    frames.clear()
+            for airframe, frames in pending.values():
+                if frames:
+                    await self._send(airframe, bytes(frames))
+
+    async def _send(self, airframe: AirframeSession, frames: bytes) -> None:
+        try:
+            await airframe.send(frames)
+        except (LinkError, FrameError):
+            # The airframe sends the detection again and is acknowledged DUPLICATE then.
+            self._inst.link_ignored.labels(airframe.id, "ack_unsent").inc()

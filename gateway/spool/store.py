@@ -1,0 +1,440 @@
+"""The spool: durable events in SQLite until every sink they go to has confirmed them.
+
+One database (WAL journal) holds:
+
+- ``events``: one row per durable event (its JSON body once, however many sinks take it),
+  numbered by ``seq``, which only grows (AUTOINCREMENT), so a sink's order is ``seq`` order;
+- ``pending``: one row per (sink, seq) still owed; an ``events`` row goes with its last one;
+- ``dead_letters``: events a sink refused for good or that expired, with the reason, until an
+  operator re-queues them (``requeue``) or the cap pushes the oldest out;
+- ``seen``: detection ids already taken in, so an airframe's re-send is acknowledged again but
+  not delivered twice; kept for ``dedup_window_s``.
+
+Durability: an event is committed before ``append`` returns (or, inside ``batch()``, when the
+batch ends: one commit for all the events of one datagram). ``sync="normal"`` (WAL with
+``synchronous=NORMAL``) survives kill -9 and any crash of the process, since a commit is in the
+operating system's cache when it returns; a power cut can lose the newest commits. ``"full"``
+adds an fsync per commit. All calls are synchronous and short, made on the event loop.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import sqlite3
+import time
+from collections import Counter
+from collections.abc import Iterable, Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import BinaryIO
+
+import structlog
+
+from gateway.errors import SpoolError
+from gateway.events import Event, event_adapter
+from gateway.ops.logsetup import RateLimit
+
+__all__ = ["DeadLetter", "Spool", "Spooled"]
+
+log = structlog.get_logger(__name__)
+
+_SCHEMA_VERSION = "1"
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS events (
+    seq INTEGER PRIMARY KEY AUTOINCREMENT,
+    event_id TEXT NOT NULL,
+    kind TEXT NOT NULL,
+    body BLOB NOT NULL,
+    spooled_at REAL NOT NULL
+);
+CREATE TABLE IF NOT EXISTS pending (
+    sink TEXT NOT NULL,
+    seq INTEGER NOT NULL,
+    PRIMARY KEY (sink, seq)
+) WITHOUT ROWID;
+CREATE INDEX IF NOT EXISTS pending_seq ON pending (seq);
+CREATE TABLE IF NOT EXISTS dead_letters (
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    sink TEXT NOT NULL,
+    event_id TEXT NOT NULL,
+    kind TEXT NOT NULL,
+    body BLOB NOT NULL,
+    reason TEXT NOT NULL,
+    spooled_at REAL NOT NULL,
+    dead_at REAL NOT NULL
+);
+CREATE TABLE IF NOT EXISTS seen (event_id TEXT PRIMARY KEY, at REAL NOT NULL) WITHOUT ROWID;
+CREATE INDEX IF NOT EXISTS seen_at ON seen (at);
+"""
+#: How often (appends) the size is measured against the cap; between, it is estimated.
+_SIZE_CHECK_EVERY = 256
+_SEEN_PRUNE_EVERY = 4096
+_FULL_LOG_INTERVAL_S = 10.0
+_WARN_LOG_INTERVAL_S = 60.0
+
+
+@dataclass(frozen=True, slots=True)
+class Spooled:
+    """One pending event of one sink, read back from the spool."""
+
+    seq: int
+    event: Event
+    spooled_at: float
+
+
+@dataclass(frozen=True, slots=True)
+class DeadLetter:
+    """One dead-lettered event, as ``fischer-gateway spool dead-letters`` lists it."""
+
+    id: int
+    sink: str
+    event_id: str
+    kind: str
+    reason: str
+    spooled_at: float
+    dead_at: float
+
+
+def _lock(path: Path) -> BinaryIO:
+    """Hold ``<path>.lock`` exclusively: two gateways on one spool would deliver twice."""
+    lock_path = path.with_name(path.name + ".lock")
+    try:
+        handle = lock_path.open("ab")
+    except OSError as exc:
+        raise SpoolError(f"{lock_path}: {exc.strerror or exc}") from exc
+    try:
+        fcntl.flock(handle.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        handle.close()
+        raise SpoolError(
+            f"{path}: in use by another fischer-gateway (or its 'spool' command); "
+            "one spool belongs to one gateway"
+        ) from None
+    return handle
+
+
+class Spool:
+    """The spool of one gateway; ``path`` None keeps it in memory (gone with the process).
+
+    The gateway holds the file exclusively (``<path>.lock``); the ``spool`` command opens it
+    with ``exclusive=False`` beside a running gateway, which picks up re-queued events when
+    it next polls (``Outbox.poll``).
+    """
+
+    def __init__(
+        self,
+        path: Path | None = None,
+        *,
+        sync: str = "normal",
+        max_bytes: int = 1 << 30,
+        warn_pct: float = 80.0,
+        dedup_window_s: float = 86400.0,
+        dead_letters_max: int = 100_000,
+        exclusive: bool = True,
+    ) -> None:
+        self.path = path
+        self.max_bytes = max_bytes
+        self.warn_bytes = int(max_bytes * warn_pct / 100.0)
+        self.dedup_window_s = dedup_window_s
+        self.dead_letters_max = dead_letters_max
+        target = ":memory:" if path is None else str(path)
+        self._lock = _lock(path) if path is not None and exclusive else None
+        try:
+            self._db = sqlite3.connect(target, isolation_level=None, check_same_thread=False)
+            db = self._db
+            if path is not None:
+                mode = db.execute("PRAGMA journal_mode=WAL").fetchone()[0]
+                if str(mode).lower() != "wal":
+                    raise SpoolError(f"{path}: the file system does not support WAL ({mode})")
+            db.execute(f"PRAGMA synchronous={'FULL' if sync == 'full' else 'NORMAL'}")
+            db.execute("PRAGMA foreign_keys=OFF")
+            db.executescript(_SCHEMA)
+            self._check_version()
+        except sqlite3.Error as exc:
+            raise SpoolError(f"{target}: {exc}") from exc
+        self._depth = 0  # open batch() contexts
+        self._appends = 0
+        self._bytes = self._measure()
+        self._refused = 0
+        self._full_log = RateLimit(interval_s=_FULL_LOG_INTERVAL_S)
+        self._warn_log = RateLimit(interval_s=_WARN_LOG_INTERVAL_S)
+        self._pending = Counter(
+            dict(db.execute("SELECT sink, count(*) FROM pending GROUP BY sink").fetchall())
+        )
+        self._dead = int(db.execute("SELECT count(*) FROM dead_letters").fetchone()[0])
+
+    # -- housekeeping ---------------------------------------------------------------------
+
+    def _check_version(self) -> None:
+        row = self._db.execute("SELECT value FROM meta WHERE key='schema'").fetchone()
+        if row is None:
+            self._db.execute("INSERT INTO meta VALUES ('schema', ?)", (_SCHEMA_VERSION,))
+        elif row[0] != _SCHEMA_VERSION:
+            raise SpoolError(
+                f"{self.path}: spool schema {row[0]}, this gateway reads {_SCHEMA_VERSION}"
+            )
+
+    def _measure(self) -> int:
+        db = self._db
+        page = int(db.execute("PRAGMA page_size").fetchone()[0])
+        used = int(db.execute("PRAGMA page_count").fetchone()[0])
+        free = int(db.execute("PRAGMA freelist_count").fetchone()[0])
+        return (used - free) * page
+
+    @property
+    def size_bytes(self) -> int:
+        """Bytes in use (pages holding data), as last measured."""
+        return self._bytes
+
+    @property
+    def is_full(self) -> bool:
+        """True while the spool is at its cap: new durable events are refused."""
+        return self._bytes >= self.max_bytes
+
+    @property
+    def refused(self) -> int:
+        """Events refused because the spool was full, since start."""
+        return self._refused
+
+    def close(self) -> None:
+        """Commit what is open and close the database."""
+        with contextlib.suppress(sqlite3.Error):
+            if self._db.in_transaction:
+                self._db.execute("COMMIT")
+        self._db.close()
+        if self._lock is not None:
+            self._lock.close()  # releases the flock
+
+    # -- writing ---------------------------------------------------------------------------
+
+    @contextlib.contextmanager
+    def batch(self) -> Iterator[None]:
+        """One transaction for everything appended inside (no ``await`` in between).
+
+        Used per datagram by ingest: its detections are committed together, and acknowledged
+        only after this block ends without error. Nested batches join the outer one.
+        """
+        if self._depth == 0:
+            self._db.execute("BEGIN")
+        self._depth += 1
+        try:
+            yield
+        except BaseException:
+            self._depth -= 1
+            if self._depth == 0:
+                self._db.execute("ROLLBACK")
+                self._bytes = self._measure()
+            raise
+        self._depth -= 1
+        if self._depth == 0:
+            self._db.execute("COMMIT")
+
+    @contextlib.contextmanager
+    def _write(self) -> Iterator[sqlite3.Connection]:
+        """A write that commits at once, or joins the open batch."""
+        if self._depth or self._db.in_transaction:
+            yield self._db
+            return
+        self._db.execute("BEGIN")
+        try:
+            yield self._db
+        except BaseException:
+            self._db.execute("ROLLBACK")
+            raise
+        self._db.execute("COMMIT")
+
+    def append(self, event: Event, sinks: Sequence[str]) -> int | None:
+        """Hold ``event`` for ``sinks``; its ``seq``, or None if the spool is full.
+
+        Raises ``SpoolError`` if the database cannot be written (disk full, I/O error).
+        """
+        if self._bytes >= self.max_bytes:
+            self._appends += 1
+            if self._appends % _SIZE_CHECK_EVERY == 0:
+                self._bytes = self._measure()  # confirmations may have made room
+            if self._bytes >= self.max_bytes:
+                self._refuse(event)
+                return None
+        body = event.model_dump_json().encode()
+        try:
+            with self._write() as db:
+                cursor = db.execute(
+                    "INSERT INTO events (event_id, kind, body, spooled_at) VALUES (?, ?, ?, ?)",
+                    (event.event_id, event.kind.value, body, time.time()),
+                )
+                seq = int(cursor.lastrowid or 0)
+                db.executemany("INSERT INTO pending VALUES (?, ?)", [(s, seq) for s in sinks])
+        except sqlite3.Error as exc:
+            raise SpoolError(f"spool {self.path or ':memory:'}: {exc}") from exc
+        for sink in sinks:
+            self._pending[sink] += 1
+        self._appends += 1
+        self._bytes += len(body) + 64 * (1 + len(sinks))
+        if self._appends % _SIZE_CHECK_EVERY == 0:
+            self._bytes = self._measure()
+        if self._bytes >= self.warn_bytes and self._warn_log.allow("warn"):
+            log.warning(
+                "spool_nearly_full",
+                size_bytes=self._bytes,
+                max_bytes=self.max_bytes,
+                pending=dict(self._pending),
+                note="new durable events are refused at max_bytes: check the sinks",
+            )
+        return seq
+
+    def _refuse(self, event: Event) -> None:
+        self._refused += 1
+        if self._full_log.allow("full"):
+            log.error(
+                "spool_full",
+                size_bytes=self._bytes,
+                max_bytes=self.max_bytes,
+                refused_total=self._refused,
+                kind=event.kind.value,
+                pending=dict(self._pending),
+                note="durable events are refused; detections stay unacknowledged on the airframes",
+            )
+
+    def seen(self, event_id: str) -> bool:
+        """True if a detection with this id was taken in within the de-duplication window."""
+        row = self._db.execute("SELECT at FROM seen WHERE event_id=?", (event_id,)).fetchone()
+        return row is not None and time.time() - float(row[0]) < self.dedup_window_s
+
+    def remember(self, event_id: str) -> None:
+        """Record a detection id as taken in (in the open batch, with its event)."""
+        now = time.time()
+        with self._write() as db:
+            db.execute("INSERT OR REPLACE INTO seen VALUES (?, ?)", (event_id, now))
+            self._appends += 1
+            if self._appends % _SEEN_PRUNE_EVERY == 0:
+                db.execute("DELETE FROM seen WHERE at < ?", (now - self.dedup_window_s,))
+
+    def confirm(self, sink: str, seqs: Iterable[int]) -> None:
+        """``sink`` has delivered these events: they are no longer owed to it."""
+        self._settle(sink, list(seqs))
+
+    def _settle(self, sink: str, seqs: list[int]) -> None:
+        if not seqs:
+            return
+        try:
+            with self._write() as db:
+                cursor = db.executemany(
+                    "DELETE FROM pending WHERE sink=? AND seq=?", [(sink, s) for s in seqs]
+                )
+                self._pending[sink] -= max(cursor.rowcount, 0)
+                db.executemany(
+                    "DELETE FROM events WHERE seq=? AND NOT EXISTS "
+                    "(SELECT 1 FROM pending WHERE pending.seq=events.seq)",
+                    [(s,) for s in seqs],
+                )
+        except sqlite3.Error as exc:
+            raise SpoolError(f"spool {self.path or ':memory:'}: {exc}") from exc
+
+    def dead_letter(self, sink: str, seqs: Sequence[int], reason: str) -> None:
+        """Move these events of ``sink`` to the dead letters, with ``reason``."""
+        if not seqs:
+            return
+        now = time.time()
+        with self._write() as db:
+            db.executemany(
+                "INSERT INTO dead_letters (sink, event_id, kind, body, reason, spooled_at, dead_at)"
+                " SELECT ?, event_id, kind, body, ?, spooled_at, ? FROM events WHERE seq=?",
+                [(sink, reason[:1000], now, seq) for seq in seqs],
+            )
+            self._dead = int(db.execute("SELECT count(*) FROM dead_letters").fetchone()[0])
+            over = self._dead
+            if over > self.dead_letters_max:
+                db.execute(
+                    "DELETE FROM dead_letters WHERE id IN "
+                    "(SELECT id FROM dead_letters ORDER BY id LIMIT ?)",
+                    (over - self.dead_letters_max,),
+                )
+                self._dead = self.dead_letters_max
+            self._settle(sink, list(seqs))
+
+    # -- reading ---------------------------------------------------------------------------
+
+    def pending(self, sink: str, *, after: int = 0, limit: int = 1000) -> list[Spooled]:
+        """Up to ``limit`` events owed to ``sink`` with ``seq`` above ``after``, in order.
+
+        A row whose body no longer parses (written by another version) is dead-lettered with
+        the reason instead of stopping the sink.
+        """
+        rows = self._db.execute(
+            "SELECT e.seq, e.body, e.spooled_at FROM pending p JOIN events e ON e.seq = p.seq"
+            " WHERE p.sink=? AND p.seq>? ORDER BY p.seq LIMIT ?",
+            (sink, after, limit),
+        ).fetchall()
+        out: list[Spooled] = []
+        for seq, body, spooled_at in rows:
+            try:
+                event = event_adapter.validate_json(body)
+            except ValueError as exc:
+                self.dead_letter(sink, [seq], f"unreadable in the spool: {exc}"[:1000])
+                continue
+            out.append(Spooled(int(seq), event, float(spooled_at)))
+        return out
+
+    def pending_count(self, sink: str) -> int:
+        """Events owed to ``sink``."""
+        return self._pending.get(sink, 0)
+
+    def recount(self, sink: str) -> int:
+        """Count what ``sink`` is owed from the database (after another process changed it)."""
+        row = self._db.execute("SELECT count(*) FROM pending WHERE sink=?", (sink,)).fetchone()
+        self._pending[sink] = int(row[0])
+        return self._pending[sink]
+
+    def pending_counts(self) -> dict[str, int]:
+        """Events owed, per sink (sinks no longer configured included)."""
+        return {sink: n for sink, n in self._pending.items() if n > 0}
+
+    def dead_letters(self, sink: str | None = None, *, limit: int = 1000) -> list[DeadLetter]:
+        """The newest dead letters (of ``sink``), newest first."""
+        query = "SELECT id, sink, event_id, kind, reason, spooled_at, dead_at FROM dead_letters"
+        args: tuple[object, ...] = ()
+        if sink is not None:
+            query += " WHERE sink=?"
+            args = (sink,)
+        query += " ORDER BY id DESC LIMIT ?"
+        rows = self._db.execute(query, (*args, limit)).fetchall()
+        return [DeadLetter(*row) for row in rows]
+
+    def dead_letter_count(self) -> int:
+        """Dead letters held."""
+        return self._dead
+
+    def dead_letter_body(self, letter_id: int) -> bytes | None:
+        """The event JSON of one dead letter, None if there is no such letter."""
+        row = self._db.execute("SELECT body FROM dead_letters WHERE id=?", (letter_id,)).fetchone()
+        return None if row is None else bytes(row[0])
+
+    def requeue(self, ids: Iterable[int] | None = None, *, sink: str | None = None) -> int:
+        """Put dead letters back in their sink's queue (as new, last in order); how many.
+
+        ``ids`` None takes every dead letter (of ``sink`` if given). A running gateway picks
+        them up within its idle poll interval.
+        """
+        select = "SELECT id, sink, event_id, kind, body FROM dead_letters"
+        if ids is None:
+            rows = self._db.execute(select + " ORDER BY id").fetchall()
+        else:
+            rows = []
+            for letter_id in sorted(set(ids)):
+                rows += self._db.execute(select + " WHERE id=?", (letter_id,)).fetchall()
+        if sink is not None:
+            rows = [row for row in rows if row[1] == sink]
+        now = time.time()
+        with self._write() as db:
+            for letter_id, letter_sink, event_id, kind, body in rows:
+                cursor = db.execute(
+                    "INSERT INTO events (event_id, kind, body, spooled_at) VALUES (?, ?, ?, ?)",
+                    (event_id, kind, body, now),
+                )
+                db.execute("INSERT INTO pending VALUES (?, ?)", (letter_sink, cursor.lastrowid))
+                db.execute("DELETE FROM dead_letters WHERE id=?", (letter_id,))
+                self._pending[letter_sink] += 1
+                self._dead -= 1
+        return len(rows)
