@@ -3,10 +3,10 @@
 First against a pymavlink ground station that acknowledges (``tests/ack_peer.py``), in the
 tunnel with day keys made by ``fischer-gateway keys derive``: the link is cut for a while and
 some acknowledgements are decoys, and the command must end with every detection delivered
-and its summary saying nothing is left unacknowledged. Then against ``fischer-gateway run``:
-a gateway that does not acknowledge gets each detection exactly once, and one restarted in
-the middle of a run still ends with every detection in its archive when the airframes re-send
-without waiting for acknowledgements. Loopback only.
+and its summary saying nothing is left unacknowledged. Then against ``fischer-gateway run``
+with a spool file: every detection acknowledged and archived once, and through a restart of
+the gateway in the middle of the run, every detection still acknowledged and archived.
+Loopback only.
 """
 
 from __future__ import annotations
@@ -141,6 +141,7 @@ def write_node(tmp_path: Path, link_port: int) -> tuple[Path, Path]:
         f"""
 gateway: {{shutdown_deadline_s: 2}}
 health: {{port: 0}}
+spool: {{path: '{tmp_path / "spool.db"}'}}
 airframes:
   - id: F26E-001
     sysid: 1
@@ -163,29 +164,29 @@ def archived_detections(archive: Path) -> list[int]:
     ]
 
 
-def test_a_gateway_without_acknowledgements_gets_each_detection_exactly_once(
+def test_the_gateway_acknowledges_every_detection_and_archives_each_once(
     tmp_path: Path,
 ) -> None:
-    """The airframe holds its detections but re-sends none until it hears an ack."""
     link = free_udp_port()
     config, archive = write_node(tmp_path, link)
     scenario = tmp_path / "restart.yaml"
     scenario.write_text(SCENARIO.replace("duration_s: 24", "duration_s: 8"))
-    with running(config):
+    with running(config) as daemon:
         command = [*GATEWAY, "simulate", "--scenario", str(scenario)]
-        command += ["--to", f"udp://127.0.0.1:{link}", "--speed", "4", "--resend-first", "0.1"]
+        command += ["--to", f"udp://127.0.0.1:{link}", "--speed", "4"]
         played = subprocess.run(command, capture_output=True, timeout=30, check=False)
         assert played.returncode == 0, played.stderr.decode(errors="replace")
         (line,) = summaries(played.stdout).values()
         wait_until(lambda: len(archived_detections(archive)) >= line["sent"], 10, "archive")
-    assert sorted(archived_detections(archive)) == list(range(1, line["sent"] + 1))
+        acked = daemon.metric("fg_detections_acked_total", airframe="F26E-001", result="held")
     assert line["sent"] == 41  # 5 Hz over 8 s of sim time, both ends included
-    # Acknowledged or still held, never lost track of (a gateway that acknowledges: all).
-    assert line["acknowledged"] + line["unacknowledged"] == line["sent"]
-    assert line["dropped"] == 0
+    assert (line["acknowledged"], line["unacknowledged"], line["dropped"]) == (41, 0, 0)
+    assert line["resent"] == 0  # nothing was lost on loopback, so nothing was sent twice
+    assert acked == 41
+    assert sorted(archived_detections(archive)) == list(range(1, 42))
 
 
-def test_a_gateway_restarted_mid_run_ends_with_every_detection_in_its_archive(
+def test_a_gateway_restarted_mid_run_ends_with_every_detection_acknowledged_and_archived(
     tmp_path: Path,
 ) -> None:
     link = free_udp_port()
@@ -193,9 +194,8 @@ def test_a_gateway_restarted_mid_run_ends_with_every_detection_in_its_archive(
     scenario = tmp_path / "restart.yaml"
     scenario.write_text(SCENARIO)
     command = [*GATEWAY, "simulate", "--scenario", str(scenario), "--to"]
-    command += [f"udp://127.0.0.1:{link}", "--speed", "4", "--resend-before-ack"]
-    command += ["--resend-first", "0.2", "--resend-max", "0.5", "--resend-rate", "500"]
-    command += ["--linger", "0"]
+    command += [f"udp://127.0.0.1:{link}", "--speed", "4"]
+    command += ["--resend-first", "0.2", "--resend-max", "0.5", "--linger", "10"]
     first = Daemon(config)
     try:
         simulator = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
@@ -211,4 +211,6 @@ def test_a_gateway_restarted_mid_run_ends_with_every_detection_in_its_archive(
         first.stop()
     assert line["sent"] == 121  # 5 Hz over 24 s of sim time
     assert line["refused"] > 0  # the airframe did send into the restart
+    assert line["resent"] > 0
+    assert (line["acknowledged"], line["unacknowledged"], line["dropped"]) == (121, 0, 0)
     assert set(archived_detections(archive)) == expected
