@@ -90,6 +90,7 @@ class Outbox:
 
     def poll(self) -> None:
         """Look for events put in the spool by someone else (a re-queue by the CLI)."""
+        self.spool.take_requeued()
         self.spool.recount(self.sink)
         self._spilled = True
         self.refill()

@@ -3,7 +3,9 @@
 One database (WAL journal) holds:
 
 - ``events``: one row per durable event (its JSON body once, however many sinks take it),
-  numbered by ``seq``, which only grows (AUTOINCREMENT), so a sink's order is ``seq`` order;
+  numbered by ``seq``, which only grows while the gateway runs (only the gateway numbers
+  events: a re-queue from the command line marks the dead letter, and the gateway moves it
+  back), so a sink's order is ``seq`` order;
 - ``pending``: one row per (sink, seq) still owed; an ``events`` row goes with its last one;
 - ``dead_letters``: events a sink refused for good or that expired, with the reason, until an
   operator re-queues them (``requeue``) or the cap pushes the oldest out;
@@ -43,7 +45,7 @@ _SCHEMA_VERSION = "1"
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
 CREATE TABLE IF NOT EXISTS events (
-    seq INTEGER PRIMARY KEY AUTOINCREMENT,
+    seq INTEGER PRIMARY KEY,
     event_id TEXT NOT NULL,
     kind TEXT NOT NULL,
     body BLOB NOT NULL,
@@ -63,8 +65,10 @@ CREATE TABLE IF NOT EXISTS dead_letters (
     body BLOB NOT NULL,
     reason TEXT NOT NULL,
     spooled_at REAL NOT NULL,
-    dead_at REAL NOT NULL
+    dead_at REAL NOT NULL,
+    requeue INTEGER NOT NULL DEFAULT 0
 );
+CREATE INDEX IF NOT EXISTS dead_letters_requeue ON dead_letters (requeue) WHERE requeue = 1;
 CREATE TABLE IF NOT EXISTS seen (event_id TEXT PRIMARY KEY, at REAL NOT NULL) WITHOUT ROWID;
 CREATE INDEX IF NOT EXISTS seen_at ON seen (at);
 """
@@ -140,6 +144,7 @@ class Spool:
         self.dedup_window_s = dedup_window_s
         self.dead_letters_max = dead_letters_max
         target = ":memory:" if path is None else str(path)
+        self._owner = exclusive
         self._lock = _lock(path) if path is not None and exclusive else None
         try:
             self._db = sqlite3.connect(target, isolation_level=None, check_same_thread=False)
@@ -164,6 +169,7 @@ class Spool:
             dict(db.execute("SELECT sink, count(*) FROM pending GROUP BY sink").fetchall())
         )
         self._dead = int(db.execute("SELECT count(*) FROM dead_letters").fetchone()[0])
+        self._seq = int(db.execute("SELECT coalesce(max(seq), 0) FROM events").fetchone()[0])
 
     # -- housekeeping ---------------------------------------------------------------------
 
@@ -259,13 +265,7 @@ class Spool:
                 return None
         body = event.model_dump_json().encode()
         try:
-            with self._write() as db:
-                cursor = db.execute(
-                    "INSERT INTO events (event_id, kind, body, spooled_at) VALUES (?, ?, ?, ?)",
-                    (event.event_id, event.kind.value, body, time.time()),
-                )
-                seq = int(cursor.lastrowid or 0)
-                db.executemany("INSERT INTO pending VALUES (?, ?)", [(s, seq) for s in sinks])
+            seq = self._insert(event.event_id, event.kind.value, body, time.time(), sinks)
         except sqlite3.Error as exc:
             raise SpoolError(f"spool {self.path or ':memory:'}: {exc}") from exc
         for sink in sinks:
@@ -282,6 +282,19 @@ class Spool:
                 pending=dict(self._pending),
                 note="new durable events are refused at max_bytes: check the sinks",
             )
+        return seq
+
+    def _insert(
+        self, event_id: str, kind: str, body: bytes, spooled_at: float, sinks: Sequence[str]
+    ) -> int:
+        seq = self._seq + 1
+        with self._write() as db:
+            db.execute(
+                "INSERT INTO events (seq, event_id, kind, body, spooled_at) VALUES (?, ?, ?, ?, ?)",
+                (seq, event_id, kind, body, spooled_at),
+            )
+            db.executemany("INSERT INTO pending VALUES (?, ?)", [(s, seq) for s in sinks])
+        self._seq = seq
         return seq
 
     def _refuse(self, event: Event) -> None:
@@ -412,29 +425,47 @@ class Spool:
         return None if row is None else bytes(row[0])
 
     def requeue(self, ids: Iterable[int] | None = None, *, sink: str | None = None) -> int:
-        """Put dead letters back in their sink's queue (as new, last in order); how many.
+        """Mark dead letters for re-queueing (all of ``sink``'s, or all, if ``ids`` is None).
 
-        ``ids`` None takes every dead letter (of ``sink`` if given). A running gateway picks
-        them up within its idle poll interval.
+        How many were marked. The gateway that owns the spool moves them back into their
+        sink's queue (last in order) at its next ``take_requeued``; called by that gateway
+        itself, they are moved at once.
         """
-        select = "SELECT id, sink, event_id, kind, body FROM dead_letters"
-        if ids is None:
-            rows = self._db.execute(select + " ORDER BY id").fetchall()
-        else:
-            rows = []
-            for letter_id in sorted(set(ids)):
-                rows += self._db.execute(select + " WHERE id=?", (letter_id,)).fetchall()
-        if sink is not None:
-            rows = [row for row in rows if row[1] == sink]
+        marked = 0
+        with self._write() as db:
+            if ids is None and sink is None:
+                cursor = db.execute("UPDATE dead_letters SET requeue=1 WHERE requeue=0")
+                marked = max(cursor.rowcount, 0)
+            elif ids is None:
+                cursor = db.execute(
+                    "UPDATE dead_letters SET requeue=1 WHERE requeue=0 AND sink=?", (sink,)
+                )
+                marked = max(cursor.rowcount, 0)
+            else:
+                for letter_id in sorted(set(ids)):
+                    query = "UPDATE dead_letters SET requeue=1 WHERE id=?"
+                    args: tuple[object, ...] = (letter_id,)
+                    if sink is not None:
+                        query += " AND sink=?"
+                        args = (letter_id, sink)
+                    marked += max(db.execute(query, args).rowcount, 0)
+        if self._owner:
+            self.take_requeued()
+        return marked
+
+    def take_requeued(self) -> int:
+        """Move dead letters marked for re-queueing back into their sinks' queues; how many."""
+        rows = self._db.execute(
+            "SELECT id, sink, event_id, kind, body FROM dead_letters WHERE requeue=1 ORDER BY id"
+        ).fetchall()
+        if not rows:
+            return 0
         now = time.time()
         with self._write() as db:
             for letter_id, letter_sink, event_id, kind, body in rows:
-                cursor = db.execute(
-                    "INSERT INTO events (event_id, kind, body, spooled_at) VALUES (?, ?, ?, ?)",
-                    (event_id, kind, body, now),
-                )
-                db.execute("INSERT INTO pending VALUES (?, ?)", (letter_sink, cursor.lastrowid))
+                self._insert(event_id, kind, body, now, (letter_sink,))
                 db.execute("DELETE FROM dead_letters WHERE id=?", (letter_id,))
                 self._pending[letter_sink] += 1
-                self._dead -= 1
+        self._dead = int(self._db.execute("SELECT count(*) FROM dead_letters").fetchone()[0])
+        log.info("spool_requeued", count=len(rows))
         return len(rows)

@@ -81,15 +81,21 @@ class TestOwing:
         assert again.pending_counts() == {"s": 1}
         again.close()
 
-    def test_sequence_numbers_only_grow_across_reopening(self, tmp_path: Path) -> None:
-        spool = Spool(tmp_path / "spool.db")
+    def test_sequence_numbers_grow_even_when_the_newest_event_is_gone(self) -> None:
+        spool = Spool()
         first = spool.append(detection(1), ("s",))
         spool.confirm("s", [first])  # type: ignore[list-item]
+        second = spool.append(detection(2), ("s",))
+        assert first is not None and second is not None and second > first
+
+    def test_reopening_continues_after_the_highest_held_seq(self, tmp_path: Path) -> None:
+        spool = Spool(tmp_path / "spool.db")
+        seqs = [spool.append(detection(n), ("s",)) for n in range(3)]
         spool.close()
         again = Spool(tmp_path / "spool.db")
-        second = again.append(detection(2), ("s",))
+        later = again.append(detection(3), ("s",))
         again.close()
-        assert first is not None and second is not None and second > first
+        assert later is not None and later > max(s for s in seqs if s is not None)
 
 
 class TestDeadLetters:
@@ -105,6 +111,22 @@ class TestDeadLetters:
         assert spool.requeue([letter.id]) == 1
         assert ids(spool, "slb") == ["det-1", "det-2", "det-0"]
         assert spool.dead_letters() == [] and spool.dead_letter_count() == 0
+
+    def test_a_requeue_from_the_command_line_is_moved_by_the_owning_gateway(
+        self, tmp_path: Path
+    ) -> None:
+        owner = Spool(tmp_path / "spool.db")
+        seq = owner.append(detection(1), ("slb",))
+        owner.dead_letter("slb", [seq], "403")  # type: ignore[list-item]
+        beside = Spool(tmp_path / "spool.db", exclusive=False)
+        (letter,) = beside.dead_letters()
+        assert beside.requeue([letter.id, 999]) == 1
+        assert ids(beside, "slb") == []  # only marked: the owner numbers events
+        beside.close()
+        assert owner.take_requeued() == 1
+        assert ids(owner, "slb") == ["det-1"]
+        assert owner.dead_letter_count() == 0
+        owner.close()
 
     def test_the_oldest_dead_letters_make_room(self) -> None:
         spool = Spool(dead_letters_max=5)
