@@ -178,7 +178,9 @@ def test_the_gateway_acknowledges_every_detection_and_archives_each_once(
         assert played.returncode == 0, played.stderr.decode(errors="replace")
         (line,) = summaries(played.stdout).values()
         wait_until(lambda: len(archived_detections(archive)) >= line["sent"], 10, "archive")
-        acked = daemon.metric("fg_detections_acked_total", airframe="F26E-001", result="held")
+        acked = daemon.metric(
+            "fg_detections_acknowledged_total", airframe="F26E-001", result="held"
+        )
     assert line["sent"] == 41  # 5 Hz over 8 s of sim time, both ends included
     assert (line["acknowledged"], line["unacknowledged"], line["dropped"]) == (41, 0, 0)
     assert line["resent"] == 0  # nothing was lost on loopback, so nothing was sent twice
