@@ -106,6 +106,7 @@ class AckPeer:
     datagrams: int = 0
     rejected: int = 0  # tunnel frames that did not open
     acks_sent: int = 0
+    address: tuple[str, int] | None = None  # where the last datagram came from
 
     def __post_init__(self) -> None:
         self._parser = self.dialect.MAVLink(None)
@@ -152,6 +153,7 @@ class AckPeer:
         """Receive, record and answer until cancelled."""
         async for data, (host, port) in self.sock:
             self.datagrams += 1
+            self.address = (host, port)
             if self._opener is not None:
                 try:
                     data = self._opener.open_frame(data, stream=(host, port)).payload

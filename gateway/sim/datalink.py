@@ -4,12 +4,14 @@ Outgoing frames are sealed in the tunnel when the airframe has a ``Sealer``; wha
 sends back (its uplink) is opened with the sealer's reply opener, so a tunnel airframe reads
 its uplink as a plain one does. Nothing the network does raises: an ICMP port unreachable
 (nothing listens, the gateway is down or restarting) comes back as ``ConnectionRefusedError``
-on the next send or receive of a connected socket and is counted, and an uplink datagram that
-is too big or does not open is counted and skipped.
+on the next send or receive of a connected socket, a lost route as ``ENETUNREACH`` and the
+like; each is counted. An uplink datagram that is too big or does not open is counted and
+skipped.
 """
 
 from __future__ import annotations
 
+import errno
 import socket
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Self
@@ -29,6 +31,10 @@ __all__ = ["MAX_UPLINK_BYTES", "AirframeLink", "LinkCounts"]
 MAX_UPLINK_BYTES = 8192
 # recv() with a buffer one byte larger tells an oversize datagram from one that fits exactly.
 _RECV_BYTES = MAX_UPLINK_BYTES + 1
+#: What the network reports when nobody listens or there is no way there: a link outage.
+_UNREACHABLE = frozenset(
+    {errno.ECONNREFUSED, errno.EHOSTUNREACH, errno.ENETUNREACH, errno.EHOSTDOWN, errno.ENETDOWN}
+)
 
 
 @dataclass(slots=True)
@@ -38,7 +44,7 @@ class LinkCounts:
     datagrams_sent: int = 0
     """Datagrams the kernel took."""
     refused: int = 0
-    """ICMP port unreachable reports: nothing listened when an earlier datagram arrived."""
+    """ICMP unreachable reports (nobody listened, no route): each cost one send or receive."""
     uplink_datagrams: int = 0
     """Uplink datagrams that opened (or were plain) and were handed on."""
     uplink_rejected: int = 0
@@ -96,8 +102,9 @@ class AirframeLink:
     async def send(self, frame: bytes) -> bool:
         """Send ``frame`` (sealed if the link seals) as one datagram; False if it was refused.
 
-        A refusal reports an earlier datagram that found no listener, and the kernel drops
-        this one with it; it is tried once more, since the listener may be back by now.
+        A refusal reports an earlier datagram that found no listener (or no route), and the
+        kernel drops this one with it; it is tried once more, since the listener may be back.
+        Other ``OSError``s are raised.
         """
         data = self._sealer.seal(frame) if self._sealer is not None else frame
         async with self._sending:
@@ -108,7 +115,9 @@ class AirframeLink:
                     except BlockingIOError:
                         await anyio.wait_writable(self._sock)
                         continue
-                    except ConnectionRefusedError:
+                    except OSError as exc:
+                        if exc.errno not in _UNREACHABLE:
+                            raise
                         self.counts.refused += 1
                         break
                     self.counts.datagrams_sent += 1
@@ -123,7 +132,9 @@ class AirframeLink:
                 datagram = self._sock.recv(_RECV_BYTES)
             except BlockingIOError:
                 continue
-            except ConnectionRefusedError:
+            except OSError as exc:
+                if exc.errno not in _UNREACHABLE:
+                    raise
                 self.counts.refused += 1
                 continue
             if len(datagram) > MAX_UPLINK_BYTES:

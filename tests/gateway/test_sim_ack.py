@@ -172,3 +172,41 @@ async def test_a_long_outage_drains_at_the_capped_rate_and_a_full_store_drops_th
     delivered = {a.detection_id for a in peer.arrivals}
     assert len(delivered) == counts.sent - counts.dropped
     assert max(delivered) == counts.sent  # the newest were kept
+
+
+@pytest.mark.anyio
+async def test_hostile_uplink_datagrams_are_counted_and_skipped(dialect: ModuleType) -> None:
+    """Oversize, garbage and truncated datagrams on the uplink: the airframe reads on."""
+    sim = SimulatedAirframe(SYSID, PROFILE, resend=FAST)
+    first_arrival, landed = anyio.Event(), anyio.Event()
+
+    def ack_after_the_first(arrival: Arrival, copy: int) -> Answer:
+        first_arrival.set()
+        return "none" if arrival.detection_id == 1 and copy == 1 else "ack"
+
+    async def fly(port: int, *, task_status: anyio.abc.TaskStatus[None]) -> None:
+        await sim.run_udp(
+            "127.0.0.1", port, duration_s=1.0, speed=2.0, linger_s=10, task_status=task_status
+        )
+        landed.set()
+
+    ack = dialect.MAVLink_fischer_detection_ack_message(1, 1, SYSID, 1, 0)
+    frame = bytes(ack.pack(dialect.MAVLink(None, 255, 190)))
+    hostile = [b"\xfd" * 9000, b"\x00" * 64, frame[:-3], b"\xfd\xff" + frame[2:]]
+    with anyio.fail_after(15):
+        async with (
+            AckPeer.bound(dialect, answer=ack_after_the_first) as peer,
+            anyio.create_task_group() as tg,
+        ):
+            tg.start_soon(peer.serve)
+            await tg.start(fly, peer.port)
+            await first_arrival.wait()
+            assert peer.address is not None
+            for datagram in hostile:
+                await peer.sock.sendto(datagram, *peer.address)
+            await landed.wait()
+            tg.cancel_scope.cancel()
+    assert sim.link.uplink_rejected == 1  # the oversize one; the rest parsed to nothing
+    assert sim.resend.counts.acknowledged == sim.resend.counts.sent == 21
+    assert len(sim.resend) == 0
+    assert {a.detection_id for a in peer.arrivals} == set(range(1, 22))
