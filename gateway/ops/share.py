@@ -24,6 +24,7 @@ DESCRIPTIONS = {
     "architecture.md": "how the gateway is built, with a diagram",
     "writing-a-sink.md": "the sink contract, an example sink and its contract check",
     "tunnel.md": "the AES-256-GCM airframe tunnel",
+    "durability.md": "durable delivery: the spool, detection acknowledgements, dead letters",
     "security.md": "threat model per link mode and port, listener limits, the attack tests",
     "README.md": "what works today",
 }
