@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 import re
+import warnings
 from datetime import UTC, datetime
 from importlib.resources import files
 from typing import Annotated, Any, Literal
@@ -170,7 +171,15 @@ def _area(location: _Location) -> OrderArea:
         )
     if location.mgrs is not None:
         try:
-            ref = from_mgrs(location.mgrs)
+            with warnings.catch_warnings():
+                # GeoTrans warns, and still decodes, when the latitude band does not hold the
+                # 100 km square: such a reference is inconsistent, so it is refused.
+                warnings.simplefilter("error", RuntimeWarning)
+                ref = from_mgrs(location.mgrs)
+        except RuntimeWarning:
+            raise OrderRejected(
+                _cut(f"location.mgrs: {location.mgrs!r}: the grid square is not in its band")
+            ) from None
         except MgrsError as exc:
             raise OrderRejected(_cut(f"location.mgrs: {exc}")) from None
         return OrderArea(
