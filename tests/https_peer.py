@@ -176,17 +176,22 @@ class HttpsPeer:
     # -- one connection -----------------------------------------------------------------------
 
     async def _connection(self, raw: anyio.abc.ByteStream, context: ssl.SSLContext) -> None:
-        if self.down:
-            self.refused_while_down += 1
-            await raw.aclose()
-            return
+        try:
+            if self.down:
+                self.refused_while_down += 1
+                return
+            await self._serve(raw, context)
+        finally:
+            # Also when the peer is shut down mid-handshake: no socket outlives the test.
+            await anyio.aclose_forcefully(raw)
+
+    async def _serve(self, raw: anyio.abc.ByteStream, context: ssl.SSLContext) -> None:
         try:
             stream = await _AlertingTLSStream.wrap(
                 raw, server_side=True, ssl_context=context, standard_compatible=False
             )
         except (ssl.SSLError, OSError, anyio.BrokenResourceError, anyio.EndOfStream) as exc:
             self.handshake_failures.append(str(getattr(exc, "reason", None) or exc))
-            await raw.aclose()
             return
         reader = BufferedByteReceiveStream(stream)
         try:
@@ -197,7 +202,7 @@ class HttpsPeer:
         except (ssl.SSLError, OSError):
             pass
         finally:
-            await stream.aclose()
+            await anyio.aclose_forcefully(stream)
 
     async def _exchange(self, reader: BufferedByteReceiveStream, stream: TLSStream) -> bool:
         """Read one request and answer it; False when the connection is to close."""
