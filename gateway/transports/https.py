@@ -192,7 +192,7 @@ def retry_after_s(
     else:
         try:
             when = parsedate_to_datetime(text)
-        except (TypeError, ValueError, IndexError):
+        except (TypeError, ValueError, IndexError, OverflowError):
             return None
         if when.tzinfo is None:
             return None  # RFC 9110 dates are GMT; a date without a zone is not one

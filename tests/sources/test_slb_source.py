@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
 from datetime import UTC, datetime
@@ -300,6 +302,37 @@ class TestConfig:
         config = SlbSourceConfig.model_validate(peer.source_options(cert_file=str(missing)))
         with pytest.raises(ValueError, match=str(missing)):
             SlbSource("slb", config, Published())
+
+    def test_check_config_names_each_problem_with_its_line(self, tmp_path: Path) -> None:
+        peer = SlbPeer(tmp_path)
+        missing = tmp_path / "missing.pem"
+        config = tmp_path / "node.yaml"
+        config.write_text(
+            "health: {port: 0}\n"
+            "sources:\n"
+            "  - name: slb_in\n"
+            "    type: slb\n"
+            f"    base_url: {peer.base_url}\n"
+            f"    ca_file: {peer.ca_file}\n"
+            f"    cert_file: {missing}\n"
+            "sinks:\n"
+            "  - name: slb\n"
+            "    type: slb\n"
+            f"    options: {{base_url: 'http://slb/api', ca_file: '{peer.ca_file}',\n"
+            f"               cert_file: '{peer.cert_file}', key_file: '{peer.key_file}'}}\n"
+        )
+        result = subprocess.run(
+            [sys.executable, "-m", "gateway", "check-config", str(config)],
+            capture_output=True,
+            text=True,
+            timeout=60,
+            check=False,
+        )
+        assert result.returncode == 2
+        assert f"{config}:4 sources[0].type: source type 'slb' cannot be built: {missing}" in (
+            result.stderr
+        )
+        assert f"{config}:11 sinks[0].options.base_url: expected https://" in result.stderr
 
     def test_status(self, tmp_path: Path) -> None:
         peer = SlbPeer(tmp_path)
