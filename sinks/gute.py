@@ -251,11 +251,9 @@ class GuteSink:
             detail = describe_https_error(exc, self.url, self._files)
             return _Outcome(handoff.event_id, key, "transient", detail)
         text = reason.decode("utf-8", "replace").strip() or response.reason_phrase
-        # The one status table of the HTTPS sinks; a GUTE II battery's Retry-After is not
-        # needed: the runner's backoff paces the retry of a cue.
-        answer = classify_answer(
-            self.url, status, response.headers, text, max_retry_after_s=self.config.timeout_s
-        )
+        # The status table shared with the slb sink. Retry-After is not read here (this sink's
+        # behaviour is unchanged): the runner's backoff paces the retry of a cue.
+        answer = classify_answer(self.url, status, response.headers, text, max_retry_after_s=0.0)
         result: Literal["delivered", "duplicate", "transient", "refused"] = (
             "transient" if answer.outcome == "retry" else answer.outcome
         )

@@ -201,6 +201,8 @@ def read_order(element: object, *, source: str) -> FiveLineOrder:
         order = SlbOrder.model_validate_json(json.dumps(element))
     except ValidationError as exc:
         raise OrderRejected(_reason(exc)) from None
+    except RecursionError:  # json.loads took it at a shallower stack than ours
+        raise OrderRejected("order: nested too deeply") from None
     if order.not_before and order.not_after and order.not_after < order.not_before:
         raise OrderRejected("not_after: before not_before")
     area = _area(order.location)

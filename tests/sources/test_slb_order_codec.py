@@ -234,6 +234,15 @@ class TestList:
         with pytest.raises(ValueError):  # noqa: PT011 - the message is checked elsewhere
             parse_order_list(body, max_orders=10)
 
+    @pytest.mark.parametrize("depth", [100, 5000])
+    def test_a_deeply_nested_order_is_refused(self, depth: int) -> None:
+        """Beyond what the encoder can recurse into, too: never a RecursionError."""
+        nested: list[Any] = []
+        for _ in range(depth):
+            nested = [nested]
+        with pytest.raises(OrderRejected, match=r"^(order|target): "):
+            read_order({**VALID, "target": nested}, source="slb")
+
     @settings(max_examples=200, deadline=None)
     @given(st.binary(max_size=200))
     def test_arbitrary_bytes_give_orders_or_a_value_error(self, body: bytes) -> None:
