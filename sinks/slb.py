@@ -195,13 +195,19 @@ class SlbSink:
             )
         refused = [o for o in outcomes if o.result == "refused"]
         if refused:
-            for outcome in refused:
-                self.log.warning(
-                    "slb_item_refused", event_id=outcome.event_id, reason=outcome.detail
-                )
+            # One line per batch, not per report: a schema SLB no longer takes refuses them all.
+            self.log.warning(
+                "slb_items_refused",
+                count=len(refused),
+                event_ids=[o.event_id for o in refused[:5]],
+                reason=refused[0].detail,
+            )
+            reasons = "; ".join(f"{o.event_id}: {o.detail}" for o in refused[:5])
+            if len(refused) > 5:
+                reasons += f"; and {len(refused) - 5} more"
             raise PermanentSinkError(
                 f"sink {self.name}: {self.url} refused {len(refused)} of {total} reports: "
-                + "; ".join(f"{o.event_id}: {o.detail}" for o in refused),
+                + reasons,
                 sink=self.name,
                 event_ids=[o.event_id for o in refused],
             )

@@ -11,6 +11,7 @@ import pytest
 import trustme
 from pydantic import ValidationError
 from slb_peer import SlbPeer
+from structlog.testing import capture_logs
 
 from gateway.c2.sinkrunner import SinkRunner
 from gateway.codecs.jc3iedm import SCHEMA_ID
@@ -133,6 +134,22 @@ class TestDelivery:
                 await slb.aclose()
         assert caught.value.event_ids == frozenset({"T-2"})
         assert set(peer.accepted) == {"T-1", "D-3"}
+
+    @pytest.mark.anyio
+    async def test_a_refused_batch_is_one_log_line_and_a_bounded_reason(
+        self, tmp_path: Path
+    ) -> None:
+        keys = {f"D-{n}": 422 for n in range(8)}
+        async with SlbPeer(tmp_path, refuse=keys) as peer:
+            slb = sink(peer.sink_options())
+            with capture_logs() as logs, anyio.fail_after(10):
+                with pytest.raises(PermanentSinkError, match=r"; and 3 more$") as caught:
+                    await slb.send([detection(n) for n in range(8)])
+                await slb.aclose()
+        assert caught.value.event_ids == frozenset(keys)
+        (line,) = [e for e in logs if e["event"] == "slb_items_refused"]
+        assert line["count"] == 8
+        assert len(line["event_ids"]) == 5
 
     @pytest.mark.anyio
     async def test_a_value_json_cannot_hold_is_refused_without_a_post(self, tmp_path: Path) -> None:
