@@ -40,8 +40,13 @@ from gateway.c2.sink import SinkConfig
 from gateway.codecs.gute import encode_handoff
 from gateway.errors import PermanentSinkError, TransientSinkError
 from gateway.events import Event, EventKind, Handoff
-from gateway.transports.https import describe_https_error, https_client, read_at_most
-from gateway.transports.tls import TlsFiles, tls_context
+from gateway.transports.https import (
+    classify_answer,
+    describe_https_error,
+    https_client,
+    read_at_most,
+)
+from gateway.transports.tls import TlsFiles, tls_problem, unreadable_file
 
 __all__ = ["GuteSink", "GuteSinkConfig"]
 
@@ -49,9 +54,6 @@ log = structlog.get_logger(__name__)
 
 #: How much of a refusal's body is read and quoted, at most.
 MAX_REASON_BYTES = 512
-# 401/403: the battery does not (yet) accept our certificate. Fixable by an operator (a renewed
-# or newly enrolled certificate), so the cues are kept and retried, never dead-lettered.
-_RETRY_STATUSES = frozenset({401, 403, 408, 425, 429})
 _KINDS = frozenset({EventKind.HANDOFF})
 
 
@@ -100,7 +102,7 @@ class GuteSinkConfig(SinkConfig):
         if isinstance(info.context, dict) and info.context.get("environment"):
             # On the node (run, check-config): read the files now, so a missing CA or a wrong
             # password is a config error with its line, not a retry loop at the first cue.
-            problem = _tls_problem(self.tls_files)
+            problem = tls_problem(self.tls_files)
             if problem is not None:
                 raise ValueError(problem)
         return self
@@ -111,41 +113,6 @@ class GuteSinkConfig(SinkConfig):
         return TlsFiles(
             self.ca_file, self.cert_file, self.key_file, self.pkcs12_file, self.password_file
         )
-
-
-def _unreadable(files: TlsFiles) -> str | None:
-    """The first TLS file that cannot be read, and why; None if all can."""
-    for path in (
-        files.ca_file,
-        files.cert_file,
-        files.key_file,
-        files.pkcs12_file,
-        files.password_file,
-    ):
-        if path is None:
-            continue
-        try:
-            # The ssl module's loaders name no file when one is missing; this does.
-            with path.open("rb"):
-                pass
-        except OSError as exc:
-            return f"{path}: {exc.strerror or exc}"
-    return None
-
-
-def _tls_problem(files: TlsFiles) -> str | None:
-    """Why the TLS material cannot be used, naming the file; None if it loads."""
-    if (unreadable := _unreadable(files)) is not None:
-        return unreadable
-    try:
-        tls_context(files)
-    except OSError as exc:
-        return f"{exc.filename or files.ca_file}: {exc.strerror or exc}"
-    except ssl.SSLError as exc:  # only the CA is loaded without translation
-        return f"{files.ca_file}: not a usable CA certificate ({exc.reason or exc})"
-    except ValueError as exc:  # names the client certificate or PKCS#12 file
-        return str(exc)
-    return None
 
 
 def _package_version() -> str:
@@ -195,7 +162,7 @@ class GuteSink:
         if self._client is not None:
             return
         timeout_s = self.config.timeout_s
-        unreadable = await anyio.to_thread.run_sync(_unreadable, self._files)
+        unreadable = await anyio.to_thread.run_sync(unreadable_file, self._files)
         if unreadable is not None:
             raise self._fail(f"{self.url}: {unreadable}")
         try:
@@ -284,23 +251,13 @@ class GuteSink:
             detail = describe_https_error(exc, self.url, self._files)
             return _Outcome(handoff.event_id, key, "transient", detail)
         text = reason.decode("utf-8", "replace").strip() or response.reason_phrase
-        if 200 <= status < 300:
-            return _Outcome(handoff.event_id, key, "delivered")
-        if status == 409:
-            return _Outcome(handoff.event_id, key, "duplicate")
-        if status in _RETRY_STATUSES or status >= 500:
-            return _Outcome(
-                handoff.event_id, key, "transient", f"{self.url}: HTTP {status}: {text}"
-            )
-        if 300 <= status < 400:
-            where = response.headers.get("location", "?")
-            return _Outcome(
-                handoff.event_id,
-                key,
-                "transient",
-                f"{self.url}: HTTP {status} redirect to {where!r} not followed; fix the url",
-            )
-        return _Outcome(handoff.event_id, key, "refused", f"HTTP {status}: {text}")
+        # The status table shared with the slb sink. Retry-After is not read here (this sink's
+        # behaviour is unchanged): the runner's backoff paces the retry of a cue.
+        answer = classify_answer(self.url, status, response.headers, text, max_retry_after_s=0.0)
+        result: Literal["delivered", "duplicate", "transient", "refused"] = (
+            "transient" if answer.outcome == "retry" else answer.outcome
+        )
+        return _Outcome(handoff.event_id, key, result, answer.detail)
 
     async def aclose(self) -> None:
         """Close the pooled connections; safe before ``open`` and after a failed one."""

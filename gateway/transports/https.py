@@ -7,20 +7,47 @@ never follows a redirect, keeps a small connection pool and has a deadline for e
 ``read_at_most`` reads a response body up to a bound, never more, and
 ``describe_https_error`` turns what httpx or OpenSSL raised into one sentence naming the URL
 and, for TLS, the CA file, the hostname or the client certificate.
+
+``classify_answer`` is the one table by which every HTTPS sink (GUTE II, SLB) takes a
+server's status code: delivered, already delivered (409), worth retrying (with the server's
+``Retry-After``, bounded) or refused for good.
 """
 
 from __future__ import annotations
 
 import importlib
 import ssl
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from datetime import datetime
+from email.utils import parsedate_to_datetime
+from typing import Literal
 from urllib.parse import urlsplit
 
 import anyio.to_thread
 import httpx
 
+from gateway.clock import utc_now
 from gateway.transports.tls import TlsFiles, describe_tls_error, tls_context
 
-__all__ = ["describe_https_error", "https_client", "read_at_most"]
+__all__ = [
+    "RETRY_STATUSES",
+    "Answer",
+    "classify_answer",
+    "describe_https_error",
+    "https_client",
+    "read_at_most",
+    "retry_after_s",
+]
+
+#: Statuses retried besides 5xx. 401/403: the server does not (yet) accept our certificate,
+#: which an operator fixes (a renewed or newly enrolled certificate), so the events are kept
+#: and retried, never dead-lettered. 408, 425, 429: the server asks us to come back.
+RETRY_STATUSES = frozenset({401, 403, 408, 425, 429})
+#: Statuses whose ``Retry-After`` is honoured (RFC 9110: a 503's or a 429's wait).
+_RETRY_AFTER_STATUSES = frozenset({429, 503})
+#: A ``Retry-After`` longer than this is not a number of seconds or a date we read.
+_MAX_RETRY_AFTER_CHARS = 64
 
 # OpenSSL alert reasons a server sends when it refuses the client's certificate.
 _CLIENT_CERT_REFUSED = (
@@ -130,3 +157,77 @@ def describe_https_error(exc: BaseException, url: str, files: TlsFiles) -> str:
     if isinstance(exc, httpx.RemoteProtocolError | httpx.ReadError | httpx.WriteError):
         return f"{url}: connection lost: {text}"
     return f"{url}: {type(exc).__name__}: {text}"
+
+
+@dataclass(frozen=True, slots=True)
+class Answer:
+    """How one HTTP answer of a C2 server is to be taken.
+
+    ``outcome``: ``delivered`` (2xx), ``duplicate`` (409: the server already has the
+    idempotency key, so delivered too), ``retry`` (try again later; ``retry_after_s`` is the
+    server's bounded wait, or None) or ``refused`` (never accepted). ``detail`` is one
+    sentence naming the URL and the status, for the error and the log.
+    """
+
+    outcome: Literal["delivered", "duplicate", "retry", "refused"]
+    detail: str = ""
+    retry_after_s: float | None = None
+
+
+def retry_after_s(
+    value: str | None, *, limit_s: float, clock: Callable[[], datetime] = utc_now
+) -> float | None:
+    """Seconds to wait from a ``Retry-After`` header: delta-seconds or an HTTP date.
+
+    At most ``limit_s`` (a server cannot park us for a day), at least 0; None when the header
+    is absent or unreadable, which is never an error.
+    """
+    if value is None:
+        return None
+    text = value.strip()
+    if not text or len(text) > _MAX_RETRY_AFTER_CHARS:
+        return None
+    if text.isdigit():
+        seconds = float(text)
+    else:
+        try:
+            when = parsedate_to_datetime(text)
+        except (TypeError, ValueError, IndexError, OverflowError):
+            return None
+        if when.tzinfo is None:
+            return None  # RFC 9110 dates are GMT; a date without a zone is not one
+        seconds = (when - clock()).total_seconds()
+    return min(max(seconds, 0.0), limit_s)
+
+
+def classify_answer(
+    url: str,
+    status: int,
+    headers: Mapping[str, str],
+    text: str,
+    *,
+    max_retry_after_s: float,
+    clock: Callable[[], datetime] = utc_now,
+) -> Answer:
+    """Take ``status`` from ``url`` by the one table every HTTPS sink uses.
+
+    2xx: delivered; 409: duplicate (delivered before); 5xx, ``RETRY_STATUSES`` and a redirect
+    (never followed: the configured URL is wrong): retry, with ``Retry-After`` read for 429
+    and 503 (bounded by ``max_retry_after_s``); any other 4xx: refused. ``text`` is the
+    server's reason (already bounded by the caller); ``headers`` are looked up in lower case.
+    """
+    if 200 <= status < 300:
+        return Answer("delivered")
+    if status == 409:
+        return Answer("duplicate")
+    if 300 <= status < 400:
+        where = headers.get("location", "?")
+        return Answer(
+            "retry", f"{url}: HTTP {status} redirect to {where!r} not followed; fix the url"
+        )
+    if status in RETRY_STATUSES or status >= 500:
+        wait = None
+        if status in _RETRY_AFTER_STATUSES:
+            wait = retry_after_s(headers.get("retry-after"), limit_s=max_retry_after_s, clock=clock)
+        return Answer("retry", f"{url}: HTTP {status}: {text}", wait)
+    return Answer("refused", f"HTTP {status}: {text}")

@@ -1,10 +1,11 @@
 """TLS for TAK server streams: the pinned CA, hostname checking and the client certificate.
 
-Verification is always on: the context trusts only the configured CA file (not the system
-store), requires a certificate and checks the hostname; nothing here can turn that off. The
-client certificate is a PEM pair or a PKCS#12 bundle, its password read from a file and never
-logged. ``describe_tls_error`` turns OpenSSL's verification failures into a sentence that
-names the CA file or the hostname.
+Verification is always on: the context trusts the configured CA file (the system store only
+when a destination asks for it too, ``trust_system_store``), requires a certificate and checks
+the hostname; nothing here can turn that off. The client certificate is a PEM pair or a
+PKCS#12 bundle, its password read from a file and never logged. ``describe_tls_error`` turns
+OpenSSL's verification failures into a sentence that names the CA file or the hostname;
+``tls_problem`` says, naming the file, why configured material cannot be used.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from pathlib import Path
 from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.serialization import pkcs12
 
-__all__ = ["TlsFiles", "describe_tls_error", "tls_context"]
+__all__ = ["TlsFiles", "describe_tls_error", "tls_context", "tls_problem", "unreadable_file"]
 
 # OpenSSL X509_V_ERR_HOSTNAME_MISMATCH and X509_V_ERR_IP_ADDRESS_MISMATCH.
 _NAME_MISMATCH = frozenset({62, 64})
@@ -33,6 +34,7 @@ class TlsFiles:
     key_file: Path | None = None
     pkcs12_file: Path | None = None
     password_file: Path | None = None
+    trust_system_store: bool = False
 
 
 def _password(files: TlsFiles) -> bytes | None:
@@ -65,7 +67,9 @@ def _load_pkcs12(context: ssl.SSLContext, path: Path, password: bytes | None) ->
 
 
 def tls_context(files: TlsFiles) -> ssl.SSLContext:
-    """A client context trusting only ``files.ca_file``, with the client certificate loaded.
+    """A client context trusting ``files.ca_file``, with the client certificate loaded.
+
+    The system's CA store is trusted as well only when ``files.trust_system_store`` is set.
 
     Raises ``OSError`` for a missing file, ``ssl.SSLError`` or ``ValueError`` for unusable
     contents; the messages name the file, never the password.
@@ -73,6 +77,8 @@ def tls_context(files: TlsFiles) -> ssl.SSLContext:
     context = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)  # check_hostname and CERT_REQUIRED
     context.minimum_version = ssl.TLSVersion.TLSv1_2
     context.load_verify_locations(cafile=str(files.ca_file))
+    if files.trust_system_store:
+        context.load_default_certs(ssl.Purpose.SERVER_AUTH)
     password = _password(files)
     if files.pkcs12_file is not None:
         _load_pkcs12(context, files.pkcs12_file, password)
@@ -92,10 +98,48 @@ def describe_tls_error(exc: BaseException, files: TlsFiles, hostname: str) -> st
     if isinstance(exc, ssl.SSLCertVerificationError):
         if exc.verify_code in _NAME_MISMATCH:
             return f"the server's certificate is not valid for hostname {hostname!r}"
-        return (
-            f"the server's certificate is not trusted by the pinned CA {files.ca_file} "
-            f"({exc.verify_message})"
-        )
+        trusted = f"the pinned CA {files.ca_file}"
+        if files.trust_system_store:
+            trusted += " or the system's CA store"
+        return f"the server's certificate is not trusted by {trusted} ({exc.verify_message})"
     if isinstance(exc, ssl.SSLError):
         return f"TLS failed: {exc.reason or exc}"
     return f"TLS failed: {exc}"
+
+
+def unreadable_file(files: TlsFiles) -> str | None:
+    """The first TLS file that cannot be read, and why (``path: reason``); None if all can."""
+    for path in (
+        files.ca_file,
+        files.cert_file,
+        files.key_file,
+        files.pkcs12_file,
+        files.password_file,
+    ):
+        if path is None:
+            continue
+        try:
+            # The ssl module's loaders name no file when one is missing; this does.
+            with path.open("rb"):
+                pass
+        except OSError as exc:
+            return f"{path}: {exc.strerror or exc}"
+    return None
+
+
+def tls_problem(files: TlsFiles) -> str | None:
+    """Why the TLS material cannot be used, naming the file; None if it loads.
+
+    Reads the files (blocking): call it from a worker thread on the event loop.
+    """
+    if (unreadable := unreadable_file(files)) is not None:
+        return unreadable
+    try:
+        tls_context(files)
+    except OSError as exc:
+        return f"{exc.filename or files.ca_file}: {exc.strerror or exc}"
+    except ssl.SSLError as exc:  # only the CA is loaded without translation
+        return f"{files.ca_file}: not a usable CA certificate ({exc.reason or exc})"
+    except ValueError as exc:  # names the client certificate or PKCS#12 file
+        return str(exc)
+    return None

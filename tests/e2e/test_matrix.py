@@ -4,8 +4,9 @@ One ``fischer-gateway run --config FILE`` subprocess (``python -m gateway``) car
 at once: jsonl, console, memory, null and the CoT sink over UDP unicast (XML), UDP unicast
 mesh protobuf, UDP multicast on loopback, TCP, TLS with a client certificate (trustme) and
 TCP with TAK protocol v1 negotiation, the GUTE II sink to an HTTPS battery (client
-certificate, JSON Schema checked) fed by the fusion and counter_uas processors, plus a UDP and
-a TCP CoT source. The simulator
+certificate, JSON Schema checked) fed by the fusion and counter_uas processors, the SLB sink
+(detections and tracks as JC3IEDM object items over HTTPS), plus a UDP and a TCP CoT source
+and the SLB order source. The simulator
 (``fischer-gateway simulate --scenario loitering-munitions``: two airframes, two Lancets seen
 on EO and IR) feeds it for more than ten seconds while every peer here decodes
 what it receives with takproto and /readyz is sampled; then SIGTERM must stop it cleanly.
@@ -35,6 +36,7 @@ import pytest
 import trustme
 from anyio.streams.tls import TLSListener
 from gute_peer import GutePeer
+from slb_peer import SlbPeer
 
 from gateway.codecs.cot.proto import read_varint
 
@@ -42,6 +44,12 @@ takproto = pytest.importorskip("takproto")
 
 RUN_S = 10.5
 GROUP = "239.2.3.9"
+SLB_ORDER = {
+    "order_id": "M-1",
+    "issued": "2026-11-22T12:00:00Z",
+    "task": "observe_point",
+    "location": {"point": {"lat_deg": 65.8235, "lon_deg": 21.6955}},
+}
 
 
 def free_port(kind: int) -> int:
@@ -183,6 +191,8 @@ class MatrixRun:
     stop_s: float = 0.0
     gute: GutePeer | None = None
     """The GUTE II battery the gute2 sink posts handoff cues to."""
+    slb: SlbPeer | None = None
+    """The SLB the slb sink reports to and the slb source takes an order from."""
 
 
 def write_config(run: MatrixRun, ports: dict[str, int], pki: dict[str, str]) -> Path:
@@ -215,6 +225,7 @@ def write_config(run: MatrixRun, ports: dict[str, int], pki: dict[str, str]) -> 
         "sources": [
             {"name": "mesh_in", "uri": f"udp://127.0.0.1:{ports['source_udp']}"},
             {"name": "stream_in", "uri": f"tcp://127.0.0.1:{ports['source_tcp']}"},
+            {"name": "slb_in", "type": "slb", **run.slb.source_options(poll_interval_s=0.5)},
         ],
         # The scenario's two Lancets (EO 0.80 + IR 0.75) are fused and cued to its battery.
         "processors": [
@@ -240,6 +251,7 @@ def write_config(run: MatrixRun, ports: dict[str, int], pki: dict[str, str]) -> 
             {"name": "mem", "type": "memory"},
             {"name": "null", "type": "null"},
             {"name": "gute", "type": "gute2", "options": run.gute.sink_options()},
+            {"name": "slb", "type": "slb", "options": run.slb.sink_options()},
             *cot,
         ],
         "routes": [
@@ -247,6 +259,7 @@ def write_config(run: MatrixRun, ports: dict[str, int], pki: dict[str, str]) -> 
             {"sinks": ["console"], "kinds": ["telemetry"], "max_rate_hz": 1},
             {"sinks": [c["name"] for c in cot], "kinds": ["telemetry", "detection"]},
             {"sinks": ["gute"], "kinds": ["handoff"]},
+            {"sinks": ["slb"], "kinds": ["detection", "track"]},
         ],
     }
     path = run.tmp / "config.yaml"
@@ -302,8 +315,13 @@ async def scenario(run: MatrixRun, pki_files: dict[str, str], server_tls: ssl.SS
         for name, receiver in receivers.items():
             ports[name] = receiver.getsockname()[1]
             run.datagrams[name] = []
-        async with anyio.create_task_group() as tg, GutePeer(run.tmp / "gute") as gute:
-            run.gute = gute
+        async with (
+            anyio.create_task_group() as tg,
+            GutePeer(run.tmp / "gute") as gute,
+            SlbPeer(run.tmp / "slb") as slb,
+        ):
+            run.gute, run.slb = gute, slb
+            slb.queue_order(SLB_ORDER)
             for peer in run.peers.values():
                 await tg.start(peer.run)
             for name, receiver in receivers.items():
@@ -397,7 +415,8 @@ class TestDaemon:
 
     def test_every_sink_opened_and_delivered(self, matrix: MatrixRun) -> None:
         names = ["archive", "console", "mem", "null", "cot_udp", "cot_mesh", "cot_tcp"]
-        names += ["cot_tls", "cot_nego"] + ([] if matrix.multicast_error else ["cot_mcast"])
+        names += ["cot_tls", "cot_nego", "slb"]
+        names += [] if matrix.multicast_error else ["cot_mcast"]
         for name in names:
             status = sink_status(matrix, name)
             assert (status["state"], status["open"]) == ("open", True), status
@@ -508,3 +527,27 @@ class TestCounterUas:
         detail = processors["cuas"]["detail"]
         assert matrix.gute is not None
         assert detail["handed_off"] + detail["revised"] == len(matrix.gute.accepted)
+
+
+class TestSlb:
+    """Detections and fused tracks as JC3IEDM object items to SLB; an order back from it."""
+
+    def test_slb_got_each_detection_and_track_once(self, matrix: MatrixRun) -> None:
+        slb = matrix.slb
+        assert slb is not None
+        lines = [json.loads(line) for line in (matrix.tmp / "a.jsonl").read_text().splitlines()]
+        reported = {e["event_id"] for e in lines if e["kind"] in ("detection", "track")}
+        assert reported
+        # Sent before SIGTERM, or drained at shutdown: every one, once, schema-valid.
+        assert set(slb.accepted) == reported
+        assert {r.status for r in slb.posts if "/object-items" in r.path} == {201}
+        classes = {d["fischer"]["object_class"] for d in slb.accepted.values()}
+        assert classes == {"loitering_munition"}
+
+    def test_the_order_arrived_and_was_acknowledged(self, matrix: MatrixRun) -> None:
+        slb = matrix.slb
+        assert slb is not None
+        lines = [json.loads(line) for line in (matrix.tmp / "a.jsonl").read_text().splitlines()]
+        orders = [e for e in lines if e["kind"] == "order"]
+        assert [(o["event_id"], o["source"]) for o in orders] == [("slb-order-M-1", "slb_in")]
+        assert [r["status"] for r in slb.receipts_for("M-1")] == ["received"]

@@ -15,6 +15,7 @@ from typing import Any
 import pytest
 from gute_peer import GutePeer
 from pydantic import ConfigDict
+from slb_peer import SlbPeer
 
 from gateway.c2.plugins import available, load_plugin
 from gateway.c2.sink import SinkConfig
@@ -35,6 +36,10 @@ def options_for(type_name: str, tmp_path: Path) -> Iterator[dict[str, Any]]:
     if type_name == "gute2":  # a real HTTPS battery on loopback, in a thread
         with GutePeer(tmp_path).in_thread() as peer:
             yield peer.sink_options()
+        return
+    if type_name == "slb":  # a real HTTPS SLB on loopback, in a thread
+        with SlbPeer(tmp_path).in_thread() as slb:
+            yield slb.sink_options()
         return
     make = OPTIONS.get(type_name)
     yield make(tmp_path) if make else {}

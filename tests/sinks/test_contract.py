@@ -12,6 +12,7 @@ import anyio
 import pytest
 from gute_peer import GutePeer
 from pydantic import ValidationError
+from slb_peer import SlbPeer
 
 from gateway.c2.plugins import GROUP, available, build_sink, load_plugin
 from gateway.c2.sink import Sink, SinkConfig
@@ -36,6 +37,10 @@ def options_for(type_name: str, tmp_path: Path) -> Iterator[dict[str, Any]]:
     if type_name == "gute2":  # a real HTTPS battery on loopback, in a thread
         with GutePeer(tmp_path).in_thread() as peer:
             yield peer.sink_options()
+        return
+    if type_name == "slb":  # a real HTTPS SLB on loopback, in a thread
+        with SlbPeer(tmp_path).in_thread() as slb:
+            yield slb.sink_options()
         return
     make = OPTIONS.get(type_name)
     yield make(tmp_path) if make else {}
