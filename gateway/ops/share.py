@@ -25,6 +25,8 @@ DESCRIPTIONS = {
     "writing-a-sink.md": "the sink contract, an example sink and its contract check",
     "tunnel.md": "the AES-256-GCM airframe tunnel",
     "durability.md": "durable delivery: the spool, detection acknowledgements, dead letters",
+    "detection-ack.md": "FISCHER_DETECTION_ACK: what an airframe must do to lose no detection",
+    "slb.md": "the SLB sink and order source: endpoints, JC3IEDM payload, options",
     "security.md": "threat model per link mode and port, listener limits, the attack tests",
     "README.md": "what works today",
 }

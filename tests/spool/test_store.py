@@ -65,10 +65,15 @@ class TestOwing:
 
     def test_a_batch_commits_together_or_not_at_all(self, tmp_path: Path) -> None:
         spool = Spool(tmp_path / "spool.db")
-        with pytest.raises(RuntimeError), spool.batch():
-            spool.append(detection(1), ("s",))
-            spool.remember("det-1")
-            raise RuntimeError("the datagram handler failed")
+
+        def failing_datagram() -> None:
+            with spool.batch():
+                spool.append(detection(1), ("s",))
+                spool.remember("det-1")
+                raise RuntimeError("the datagram handler failed")
+
+        with pytest.raises(RuntimeError):
+            failing_datagram()
         assert ids(spool, "s") == []
         assert not spool.seen("det-1")
         with spool.batch():
@@ -86,7 +91,9 @@ class TestOwing:
         first = spool.append(detection(1), ("s",))
         spool.confirm("s", [first])  # type: ignore[list-item]
         second = spool.append(detection(2), ("s",))
-        assert first is not None and second is not None and second > first
+        assert first is not None
+        assert second is not None
+        assert second > first
 
     def test_reopening_continues_after_the_highest_held_seq(self, tmp_path: Path) -> None:
         spool = Spool(tmp_path / "spool.db")
@@ -95,7 +102,8 @@ class TestOwing:
         again = Spool(tmp_path / "spool.db")
         later = again.append(detection(3), ("s",))
         again.close()
-        assert later is not None and later > max(s for s in seqs if s is not None)
+        assert later is not None
+        assert later > max(s for s in seqs if s is not None)
 
 
 class TestDeadLetters:
@@ -105,12 +113,18 @@ class TestDeadLetters:
         spool.dead_letter("slb", [seqs[0]], "422 unknown class")  # type: ignore[list-item]
         assert ids(spool, "slb") == ["det-1", "det-2"]
         (letter,) = spool.dead_letters()
-        assert (letter.sink, letter.event_id, letter.reason) == ("slb", "det-0", "422 unknown class")
+        assert (letter.sink, letter.event_id, letter.reason) == (
+            "slb",
+            "det-0",
+            "422 unknown class",
+        )
         body = spool.dead_letter_body(letter.id)
-        assert body is not None and b'"det-0"' in body
+        assert body is not None
+        assert b'"det-0"' in body
         assert spool.requeue([letter.id]) == 1
         assert ids(spool, "slb") == ["det-1", "det-2", "det-0"]
-        assert spool.dead_letters() == [] and spool.dead_letter_count() == 0
+        assert spool.dead_letters() == []
+        assert spool.dead_letter_count() == 0
 
     def test_a_requeue_from_the_command_line_is_moved_by_the_owning_gateway(
         self, tmp_path: Path
@@ -143,7 +157,8 @@ class TestDeadLetters:
         spool._db.execute("UPDATE events SET body=? WHERE event_id='det-1'", (b"{not json",))
         assert ids(spool, "s") == ["det-2"]
         (letter,) = spool.dead_letters()
-        assert letter.event_id == "det-1" and "unreadable" in letter.reason
+        assert letter.event_id == "det-1"
+        assert "unreadable" in letter.reason
 
 
 class TestLimits:
@@ -155,7 +170,8 @@ class TestLimits:
             if seq is None:
                 break
             seqs.append(seq)
-        assert spool.is_full and spool.refused == 1
+        assert spool.is_full
+        assert spool.refused == 1
         assert spool.append(detection(-1), ("s",)) is None
         spool.confirm("s", seqs)
         spool._db.execute("VACUUM")
