@@ -13,7 +13,8 @@ A client must ``Register`` first; the peer answers ``Registered`` with what it a
 documents (Intel, Logistics, Operations) of a registered FAS are recorded in ``accepted`` by
 id and acknowledged ``accepted``; an id seen before gets ``duplicate``; ids in ``reject`` get
 ``rejected`` with the given reason. Knobs: ``is_down`` (connections are closed at once),
-``drop_acks`` (that many documents are recorded but never acknowledged).
+``drop_acks`` (that many documents are recorded but never acknowledged), ``noise`` (raw
+bytes written before each acknowledgement: a garbage frame, an oversize header).
 
 Orders go the other way: ``push_order`` sends an ``Orders`` document to every connection
 registered for Orders and keeps it in ``outbox`` until the client acknowledges it (any
@@ -144,6 +145,7 @@ class SweccisPeer:
         refuse_registration: str | None = None,
         withhold: frozenset[str] = frozenset(),
         drop_acks: int = 0,
+        noise: bytes | None = None,
         max_frame_bytes: int = 1 << 20,
         server_name: str = "127.0.0.1",
     ) -> None:
@@ -152,6 +154,7 @@ class SweccisPeer:
         self.refuse_registration = refuse_registration
         self.withhold = withhold
         self.drop_acks = drop_acks
+        self.noise = noise
         self.max_frame_bytes = max_frame_bytes
         self.is_down = False
         self.ca = trustme.CA()
@@ -286,16 +289,20 @@ class SweccisPeer:
 
     async def _serve(self, raw: anyio.abc.ByteStream, context: ssl.SSLContext) -> None:
         self.connection_count += 1
-        if self.is_down:
+        try:
+            if not self.is_down:
+                await self._session(raw, context)
+        finally:
+            # Whatever ended it (a hang-up, a refused handshake, the peer stopping mid-way).
             await anyio.aclose_forcefully(raw)
-            return
+
+    async def _session(self, raw: anyio.abc.ByteStream, context: ssl.SSLContext) -> None:
         try:
             stream = await _AlertingTLSStream.wrap(
                 raw, server_side=True, ssl_context=context, standard_compatible=False
             )
         except (ssl.SSLError, OSError, anyio.BrokenResourceError, anyio.EndOfStream) as exc:
             self.handshake_failures.append(str(getattr(exc, "reason", None) or exc))
-            await anyio.aclose_forcefully(raw)
             return
         connection = Connection(stream)
         self.connections.append(connection)
@@ -314,7 +321,6 @@ class SweccisPeer:
             pass
         finally:
             self.connections.remove(connection)
-            await anyio.aclose_forcefully(stream)
 
     async def _handle(self, connection: Connection, payload: bytes) -> bool:
         """Answer one document; False when the connection is to close."""
@@ -354,6 +360,9 @@ class SweccisPeer:
             self.documents.append(Received(name, doc_id, None))
             return True
         self.documents.append(Received(name, doc_id, status))
+        if self.noise is not None:
+            async with connection.lock:
+                await connection.stream.send(self.noise)
         await connection.send(_ack(doc_id, status, reason))
         return True
 

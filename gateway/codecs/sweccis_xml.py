@@ -212,7 +212,7 @@ class Node:
         """Refuse attributes the schema does not list for this element."""
         for name in self.element.attrib:
             if name not in allowed:
-                raise self.fail(f"unexpected attribute {name!r}")
+                raise self.fail("unexpected attribute", name)
 
     def text(self, *, max_length: int, min_length: int = 0) -> str:
         """The element's text (it may have no child elements), within the bounds."""

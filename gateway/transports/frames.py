@@ -19,6 +19,7 @@ The caller's deadline bounds every call; nothing here waits on its own.
 
 from __future__ import annotations
 
+import errno
 import socket
 import ssl
 import struct
@@ -58,8 +59,9 @@ async def connect_tls(
 ) -> anyio.abc.ByteStream:
     """A TLS stream to ``host:port`` whose certificate must be valid for ``hostname``.
 
-    Raises ``OSError`` when no connection is made and ``ssl.SSLError`` (or anyio's
-    ``BrokenResourceError``) when the handshake fails. The caller sets the deadline.
+    Raises ``OSError`` when no connection is made or the peer hangs up during the handshake,
+    and ``ssl.SSLError`` (or anyio's ``BrokenResourceError``) when the handshake fails. The
+    caller sets the deadline.
     """
     raw = await open_tcp(host, port)
     try:
@@ -72,6 +74,11 @@ async def connect_tls(
         return await TLSStream.wrap(
             stream, hostname=hostname, ssl_context=context, standard_compatible=False
         )
+    except anyio.EndOfStream:
+        await anyio.aclose_forcefully(stream)
+        raise OSError(
+            errno.ECONNRESET, "the peer closed the connection during the TLS handshake"
+        ) from None
     except BaseException:
         await anyio.aclose_forcefully(stream)
         raise
