@@ -184,6 +184,12 @@ class SweccisSink:
                 operations = self._is_due(event, Fas.OPERATIONS, planned)
             try:
                 encoded = encode_event(event, logistics=logistics, operations=operations)
+                for document in encoded:
+                    if len(document.payload) > self.config.max_frame_bytes:
+                        raise ValueError(
+                            f"{document.fas} {document.doc_id}: {len(document.payload)} bytes, "
+                            f"more than max_frame_bytes {self.config.max_frame_bytes}"
+                        )
             except ValueError as exc:
                 refused[event.event_id] = str(exc)
                 self.counts["refused"] += 1

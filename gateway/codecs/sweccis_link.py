@@ -244,21 +244,23 @@ class SweccisLink:
         """Send ``documents`` (unique ids) and return the server's ack of each, by id.
 
         At most ``window`` documents wait for their ack at once. Each ack must come within
-        ``timeout_s`` of the one before (``TimeoutError`` otherwise); ``LinkClosed``,
-        ``Oversize`` or ``Malformed`` when the connection fails. After any error the link
-        must be closed: what the server had is unknown, so the caller sends it all again
-        (the server answers ``duplicate`` for what it had).
+        ``timeout_s`` of the one before, or of the start (``TimeoutError`` otherwise);
+        ``LinkClosed``, ``Oversize`` or ``Malformed`` when the connection fails. After any
+        error the link must be closed: what the server had is unknown, so the caller sends it
+        all again (the server answers ``duplicate`` for what it had).
         """
         acks: dict[str, Ack] = {}
         pending: set[str] = set()
         sent = 0
+        deadline = anyio.current_time() + self.options.timeout_s
         while len(acks) < len(documents):
             while sent < len(documents) and len(pending) < window:
                 document = documents[sent]
                 await self.frames.send(document.payload)
                 pending.add(document.doc_id)
                 sent += 1
-            with anyio.fail_after(self.options.timeout_s):
+            # Skipped frames do not extend the wait: only an ack of ours does.
+            with anyio.fail_after(max(0.0, deadline - anyio.current_time())):
                 data = await self.frames.receive()
             ack = self._ack(data)
             if ack is None:
@@ -268,6 +270,7 @@ class SweccisLink:
                 continue
             pending.discard(ack.ref)
             acks[ack.ref] = ack
+            deadline = anyio.current_time() + self.options.timeout_s
         return acks
 
     def _ack(self, data: bytes) -> Ack | None:

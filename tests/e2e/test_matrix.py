@@ -4,8 +4,9 @@ One ``fischer-gateway run --config FILE`` subprocess (``python -m gateway``) car
 at once: jsonl, console, memory, null and the CoT sink over UDP unicast (XML), UDP unicast
 mesh protobuf, UDP multicast on loopback, TCP, TLS with a client certificate (trustme) and
 TCP with TAK protocol v1 negotiation, the GUTE II sink to an HTTPS battery (client
-certificate, JSON Schema checked) fed by the fusion and counter_uas processors, plus a UDP and
-a TCP CoT source. The simulator
+certificate, JSON Schema checked) fed by the fusion and counter_uas processors, the SWECCIS
+sink and order source to one SWECCIS server (TLS, client certificate, XSD checked), plus a
+UDP and a TCP CoT source. The simulator
 (``fischer-gateway simulate --scenario loitering-munitions``: two airframes, two Lancets seen
 on EO and IR) feeds it for more than ten seconds while every peer here decodes
 what it receives with takproto and /readyz is sampled; then SIGTERM must stop it cleanly.
@@ -35,6 +36,7 @@ import pytest
 import trustme
 from anyio.streams.tls import TLSListener
 from gute_peer import GutePeer
+from sweccis_peer import SweccisPeer, order_document
 
 from gateway.codecs.cot.proto import read_varint
 
@@ -183,6 +185,8 @@ class MatrixRun:
     stop_s: float = 0.0
     gute: GutePeer | None = None
     """The GUTE II battery the gute2 sink posts handoff cues to."""
+    sweccis: SweccisPeer | None = None
+    """The SWECCIS server of the sweccis sink and order source."""
 
 
 def write_config(run: MatrixRun, ports: dict[str, int], pki: dict[str, str]) -> Path:
@@ -215,6 +219,7 @@ def write_config(run: MatrixRun, ports: dict[str, int], pki: dict[str, str]) -> 
         "sources": [
             {"name": "mesh_in", "uri": f"udp://127.0.0.1:{ports['source_udp']}"},
             {"name": "stream_in", "uri": f"tcp://127.0.0.1:{ports['source_tcp']}"},
+            {"name": "orders_in", "type": "sweccis", **run.sweccis.link_options()},
         ],
         # The scenario's two Lancets (EO 0.80 + IR 0.75) are fused and cued to its battery.
         "processors": [
@@ -240,6 +245,7 @@ def write_config(run: MatrixRun, ports: dict[str, int], pki: dict[str, str]) -> 
             {"name": "mem", "type": "memory"},
             {"name": "null", "type": "null"},
             {"name": "gute", "type": "gute2", "options": run.gute.sink_options()},
+            {"name": "sweccis", "type": "sweccis", "options": run.sweccis.link_options()},
             *cot,
         ],
         "routes": [
@@ -247,6 +253,7 @@ def write_config(run: MatrixRun, ports: dict[str, int], pki: dict[str, str]) -> 
             {"sinks": ["console"], "kinds": ["telemetry"], "max_rate_hz": 1},
             {"sinks": [c["name"] for c in cot], "kinds": ["telemetry", "detection"]},
             {"sinks": ["gute"], "kinds": ["handoff"]},
+            {"sinks": ["sweccis"], "kinds": ["telemetry", "detection", "track"]},
         ],
     }
     path = run.tmp / "config.yaml"
@@ -302,8 +309,14 @@ async def scenario(run: MatrixRun, pki_files: dict[str, str], server_tls: ssl.SS
         for name, receiver in receivers.items():
             ports[name] = receiver.getsockname()[1]
             run.datagrams[name] = []
-        async with anyio.create_task_group() as tg, GutePeer(run.tmp / "gute") as gute:
+        async with (
+            anyio.create_task_group() as tg,
+            GutePeer(run.tmp / "gute") as gute,
+            SweccisPeer(run.tmp / "sweccis") as sweccis,
+        ):
             run.gute = gute
+            run.sweccis = sweccis
+            await sweccis.push_order(order_document("m-doc-1", "M-1"))  # sent on registering
             for peer in run.peers.values():
                 await tg.start(peer.run)
             for name, receiver in receivers.items():
@@ -508,3 +521,28 @@ class TestCounterUas:
         detail = processors["cuas"]["detail"]
         assert matrix.gute is not None
         assert detail["handed_off"] + detail["revised"] == len(matrix.gute.accepted)
+
+
+class TestSweccis:
+    """SWECCIS both ways: XSD-valid FAS documents out, an order in, acknowledged once held."""
+
+    def test_the_server_got_valid_documents_of_each_fas(self, matrix: MatrixRun) -> None:
+        peer = matrix.sweccis
+        assert peer is not None
+        assert peer.invalid == []
+        assert {"Intel", "Logistics", "Operations"} <= {r.root for r in peer.documents}
+        assert all(r.status == "accepted" for r in peer.documents if r.root == "Intel")
+        status = sink_status(matrix, "sweccis")
+        assert (status["state"], status["dead_letters"]) == ("open", 0)
+
+    def test_the_order_was_archived_and_acknowledged(self, matrix: MatrixRun) -> None:
+        peer = matrix.sweccis
+        assert peer is not None
+        assert peer.order_acks == [("m-doc-1", "accepted", None)]
+        lines = [json.loads(line) for line in (matrix.tmp / "a.jsonl").read_text().splitlines()]
+        orders = [line for line in lines if line["kind"] == "order"]
+        assert [(o["event_id"], o["source"]) for o in orders] == [
+            ("sweccis-order-M-1", "orders_in")
+        ]
+        counts = {s["source"]: s["counts"] for s in matrix.status["sources"]}
+        assert counts["orders_in"] == {"accepted": 1}

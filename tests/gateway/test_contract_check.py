@@ -15,6 +15,7 @@ from typing import Any
 import pytest
 from gute_peer import GutePeer
 from pydantic import ConfigDict
+from sweccis_peer import SweccisPeer
 
 from gateway.c2.plugins import available, load_plugin
 from gateway.c2.sink import SinkConfig
@@ -35,6 +36,10 @@ def options_for(type_name: str, tmp_path: Path) -> Iterator[dict[str, Any]]:
     if type_name == "gute2":  # a real HTTPS battery on loopback, in a thread
         with GutePeer(tmp_path).in_thread() as peer:
             yield peer.sink_options()
+        return
+    if type_name == "sweccis":  # a real SWECCIS server (TLS, frames, XSD) on loopback
+        with SweccisPeer(tmp_path).in_thread() as sweccis:
+            yield sweccis.link_options()
         return
     make = OPTIONS.get(type_name)
     yield make(tmp_path) if make else {}

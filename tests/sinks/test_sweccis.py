@@ -213,6 +213,20 @@ class TestRefusals:
         ]
 
     @pytest.mark.anyio
+    async def test_a_document_over_the_frame_bound_is_refused_not_retried(
+        self, tmp_path: Path
+    ) -> None:
+        crowded = TRACK.model_copy(update={"airframes": tuple(f"{n:0>100}" for n in range(60))})
+        async with SweccisPeer(tmp_path) as peer:
+            sweccis = sink(peer.link_options(max_frame_bytes=4096))
+            with anyio.fail_after(10):
+                await sweccis.open()
+                with pytest.raises(PermanentSinkError, match="more than max_frame_bytes 4096"):
+                    await sweccis.send([crowded, detection(1)])
+                await sweccis.aclose()
+        assert list(peer.accepted) == ["D-1"]
+
+    @pytest.mark.anyio
     async def test_a_server_that_is_down_is_transient_naming_the_endpoint(
         self, tmp_path: Path
     ) -> None:
