@@ -39,6 +39,7 @@ from gateway.codecs.sweccis_xml import (
     add,
     check_id,
     check_text,
+    clean_text,
     load_schema,
     number,
     parse_root,
@@ -371,12 +372,13 @@ def encode_register(
 
 
 def encode_ack(ref: str, status: AckStatus, reason: str | None = None) -> bytes:
-    """Our answer to document ``ref`` (an order); a reason is cut to 512 characters."""
+    """Our answer to document ``ref`` (an order); a reason is cut to 512 characters and
+    anything XML cannot carry in it replaced, so only an invalid ``ref`` raises ``ValueError``."""
     root = ET.Element(
         "Ack", {"version": SCHEMA_VERSION, "ref": check_id(ref, "@ref"), "status": status}
     )
     if reason is not None:
-        add(root, "Reason", check_text(reason[:512], "Reason", 512))
+        add(root, "Reason", clean_text(reason, 512))
     return to_bytes(root)
 
 

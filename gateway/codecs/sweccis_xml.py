@@ -32,6 +32,7 @@ __all__ = [
     "add",
     "check_id",
     "check_text",
+    "clean_text",
     "load_schema",
     "number",
     "parse_root",
@@ -93,6 +94,12 @@ def check_text(value: str, field: str, max_length: int, *, min_length: int = 0) 
     if _NOT_XML.search(value):
         raise ValueError(f"{field}: holds a character XML cannot carry")
     return value
+
+
+def clean_text(value: str, max_length: int) -> str:
+    """``value`` cut to ``max_length`` with each character XML cannot carry replaced by U+FFFD
+    (for free text of our own, such as a rejection's reason, which must always be sendable)."""
+    return _NOT_XML.sub("\ufffd", value[:max_length])
 
 
 def check_id(value: str, field: str) -> str:

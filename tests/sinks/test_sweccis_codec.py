@@ -236,6 +236,8 @@ class TestEncoding:
         valid(encode_ack("doc-1", "accepted"))
         ack = valid(encode_ack("doc-2", "rejected", "x" * 600))
         assert len(text(ack, "Reason") or "") == 512
+        odd = valid(encode_ack("doc-3", "rejected", "bad \x00 byte \ud800"))
+        assert text(odd, "Reason") == "bad \ufffd byte \ufffd"
 
 
 def event_strategies(*, sane: bool) -> st.SearchStrategy[Any]:
