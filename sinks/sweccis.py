@@ -8,8 +8,8 @@ telemetry's own time; telemetry arriving faster is delivered by being left out. 
 connection (``gateway.codecs.sweccis_link``: TLS 1.2+, client certificate, pinned CA,
 4-byte length frames) registers the FAS this sink's ``kinds`` need before anything is sent.
 
-``send`` returns only once the server has acknowledged every document of the batch, so
-whatever spools the events removes only what is confirmed. The server's answer decides:
+``send`` returns only once the server has acknowledged every document of the batch, so the
+spool behind the SinkRunner removes only what is confirmed. The server's answer decides:
 
 - ``accepted`` or ``duplicate`` (it already had that id): delivered;
 - ``rejected``: the rest of the batch is acknowledged first, then ``PermanentSinkError``
