@@ -222,4 +222,3 @@ def test_kill_9_mid_stream_loses_nothing_accepted(tmp_path: Path) -> None:
     assert line["refused"] > 0  # the airframe sent into the 5 s without a gateway
     assert (line["acknowledged"], line["unacknowledged"], line["dropped"]) == (line["sent"], 0, 0)
     assert sorted(detection_numbers(list(peer.accepted))) == list(range(1, line["sent"] + 1))
-

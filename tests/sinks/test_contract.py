@@ -13,6 +13,7 @@ import pytest
 from gute_peer import GutePeer
 from pydantic import ValidationError
 from slb_peer import SlbPeer
+from sweccis_peer import SweccisPeer
 
 from gateway.c2.plugins import GROUP, available, build_sink, load_plugin
 from gateway.c2.sink import Sink, SinkConfig
@@ -41,6 +42,10 @@ def options_for(type_name: str, tmp_path: Path) -> Iterator[dict[str, Any]]:
     if type_name == "slb":  # a real HTTPS SLB on loopback, in a thread
         with SlbPeer(tmp_path).in_thread() as slb:
             yield slb.sink_options()
+        return
+    if type_name == "sweccis":  # a real SWECCIS server (TLS, frames, XSD) on loopback
+        with SweccisPeer(tmp_path).in_thread() as sweccis:
+            yield sweccis.link_options()
         return
     make = OPTIONS.get(type_name)
     yield make(tmp_path) if make else {}

@@ -1,0 +1,236 @@
+"""The SWECCIS order source: five-line reconnaissance orders from a SWECCIS server.
+
+Connects as the ``sweccis`` sink does (``gateway.codecs.sweccis_link``: TLS 1.2+, client
+certificate, pinned CA, 4-byte length frames), registers to receive the **Orders** FAS, and
+reads the orders the server sends. Each valid ``Orders`` document is published as a
+``FiveLineOrder`` (``event_id`` ``sweccis-order-<OrderId>``, ``source`` this source's name)
+and acknowledged ``accepted`` only once ``publish`` returns True (the event is held
+durably); otherwise it is not acknowledged, so the server sends it again. An order already
+accepted on this run is acknowledged ``duplicate`` and not published again. An order that
+fails its checks is acknowledged ``rejected`` with the reason naming the element. Taking an
+order in does not execute it: that is the orders processor's, later.
+
+Nothing the server sends ends the source: bad documents are counted (``counts``) and logged
+at most once per ``LOG_INTERVAL_S`` per outcome, without their content; a frame over the
+bound or a lost connection ends the connection, and the source connects again after a
+jittered backoff that doubles up to ``reconnect_max_s`` and starts over once a connection
+has lasted ``STABLE_S``.
+"""
+
+from __future__ import annotations
+
+import random
+import ssl
+from collections import Counter, OrderedDict
+from collections.abc import Callable
+from datetime import datetime
+from typing import ClassVar, Literal
+
+import anyio
+import anyio.abc
+import anyio.to_thread
+import structlog
+from pydantic import Field
+
+from gateway.clock import utc_now
+from gateway.codecs.sweccis import (
+    AckStatus,
+    DocumentError,
+    Fas,
+    OrderDocument,
+    encode_ack,
+    parse_document,
+)
+from gateway.codecs.sweccis_link import SweccisLink, SweccisLinkOptions, tls_problem
+from gateway.errors import FrameError, LinkError, LinkUnavailable
+from gateway.events import Event
+from gateway.ops.logsetup import RateLimit
+from gateway.transports.tls import tls_context
+
+__all__ = [
+    "LOG_INTERVAL_S",
+    "REMEMBERED_ORDERS",
+    "STABLE_S",
+    "SweccisSource",
+    "SweccisSourceConfig",
+]
+
+log = structlog.get_logger(__name__)
+
+#: At most one log record per outcome per this many seconds (every one is counted).
+LOG_INTERVAL_S = 10.0
+#: A connection that lasted this long resets the reconnect backoff.
+STABLE_S = 30.0
+#: Documents acknowledged on this run whose repeats are answered ``duplicate``.
+REMEMBERED_ORDERS = 4096
+
+
+class SweccisSourceConfig(SweccisLinkOptions):
+    """A SWECCIS order intake: the server, the TLS material and the reconnect backoff."""
+
+    type: Literal["sweccis"] = Field(default="sweccis", description="The source type.")
+    name: str = Field(
+        default="sweccis",
+        pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$",
+        description="Named in metrics, /status and each order's source.",
+    )
+    reconnect_initial_s: float = Field(
+        default=1.0, gt=0, le=60, description="First wait before connecting again."
+    )
+    reconnect_max_s: float = Field(
+        default=60.0, gt=0, le=3600, description="Longest wait between connection attempts."
+    )
+
+
+class SweccisSource:
+    """Receives five-line orders from one SWECCIS server and publishes them."""
+
+    config_model: ClassVar[type[SweccisSourceConfig]] = SweccisSourceConfig
+
+    def __init__(
+        self,
+        name: str,
+        config: SweccisSourceConfig,
+        publish: Callable[[Event], bool],
+        *,
+        clock: Callable[[], datetime] = utc_now,
+    ) -> None:
+        # Read the TLS files now: a missing CA or a wrong password is a config error on this
+        # source's line (check-config and run build every source), not a reconnect loop.
+        problem = tls_problem(config.tls_files)
+        if problem is not None:
+            raise ValueError(problem)
+        self.name = name
+        self.config = config
+        self._publish = publish
+        self._clock = clock
+        self._context: ssl.SSLContext | None = None
+        self._acknowledged: OrderedDict[str, None] = OrderedDict()
+        #: Orders by outcome: ``accepted``, ``duplicate``, ``rejected`` (failed a check),
+        #: ``not_held`` (publish refused it: not acknowledged); frames that were no order:
+        #: ``invalid`` (no readable id), ``oversize``, ``truncated``, ``unexpected``.
+        self.counts: Counter[str] = Counter()
+        #: Connection outcomes: ``registered``, ``failed``, ``lost``.
+        self.connections: Counter[str] = Counter()
+        self.state: Literal["connecting", "connected", "waiting"] = "connecting"
+        self.last_error = ""
+        self._log_limit = RateLimit(interval_s=LOG_INTERVAL_S)
+        self.log = log.bind(source=name, uri=config.uri)
+
+    def status(self) -> dict[str, object]:
+        """What /status shows for this source."""
+        return {
+            "source": self.name,
+            "type": "sweccis",
+            "uri": self.config.uri,
+            "state": self.state,
+            "counts": dict(self.counts),
+            "connections": dict(self.connections),
+            "last_error": self.last_error,
+        }
+
+    async def run(
+        self, *, task_status: anyio.abc.TaskStatus[None] = anyio.TASK_STATUS_IGNORED
+    ) -> None:
+        """Report started, then connect, receive and reconnect until cancelled."""
+        task_status.started()  # a client binds nothing; the server may come later
+        delay = self.config.reconnect_initial_s
+        while True:
+            self.state = "connecting"
+            started = anyio.current_time()
+            try:
+                await self._connect_and_serve()
+            except (LinkError, FrameError, TimeoutError) as exc:
+                self._failed(exc)
+            if anyio.current_time() - started >= STABLE_S:
+                delay = self.config.reconnect_initial_s
+            self.state = "waiting"
+            await anyio.sleep(delay * random.uniform(0.5, 1.0))  # noqa: S311 - jitter
+            delay = min(delay * 2, self.config.reconnect_max_s)
+
+    def _failed(self, exc: Exception) -> None:
+        if isinstance(exc, TimeoutError):
+            reason = (
+                f"{self.config.uri}: an acknowledgement not sent within {self.config.timeout_s} s"
+            )
+        else:
+            reason = str(exc)
+        if isinstance(exc, FrameError):
+            self.counts["oversize" if exc.reason == "oversize" else "truncated"] += 1
+        self.last_error = reason
+        if self.state == "connected":
+            self.connections["lost"] += 1
+            if self._log_limit.allow("lost"):
+                self.log.warning("sweccis_connection_lost", reason=reason)
+        else:
+            self.connections["failed"] += 1
+            if self._log_limit.allow("failed"):
+                self.log.warning("sweccis_connection_failed", reason=reason)
+
+    async def _connect_and_serve(self) -> None:
+        if self._context is None:
+            try:
+                self._context = await anyio.to_thread.run_sync(tls_context, self.config.tls_files)
+            except (OSError, ValueError) as exc:  # the files changed since the config was checked
+                raise LinkUnavailable(
+                    self.config.uri, f"TLS material unusable: {exc}", what=""
+                ) from exc
+        link = await SweccisLink.connect(self.config, self._context, subscribe=[Fas.ORDERS])
+        try:
+            self.state = "connected"
+            self.connections["registered"] += 1
+            self.log.info("sweccis_orders_registered")
+            while True:
+                # No deadline: orders come when they come. A server that vanished is found
+                # by TCP keep-alive (gateway.transports.frames), and ends this with LinkClosed.
+                await self.handle(link, await link.receive())
+        finally:
+            with anyio.CancelScope(shield=True):
+                await link.aclose()
+
+    async def handle(self, link: SweccisLink, data: bytes) -> None:
+        """Publish and acknowledge one frame's order, or count why not. Never raises on input."""
+        try:
+            document = parse_document(data, source=self.name, max_bytes=self.config.max_frame_bytes)
+        except DocumentError as exc:
+            if exc.doc_id is None:
+                self._count("invalid", element=exc.element)
+                return
+            self._count("rejected", doc_id=exc.doc_id, reason=str(exc))
+            await self._ack(link, exc.doc_id, "rejected", str(exc))
+            return
+        if not isinstance(document, OrderDocument):
+            self._count("unexpected", document=type(document).__name__)
+            return
+        if document.doc_id in self._acknowledged:
+            self.counts["duplicate"] += 1
+            await self._ack(link, document.doc_id, "duplicate")
+            return
+        if not self._publish(document.order):
+            # Not held: no ack, so the server keeps the order and sends it again.
+            self._count("not_held", order_id=document.order.order_id)
+            return
+        self.counts["accepted"] += 1
+        self._acknowledged[document.doc_id] = None
+        while len(self._acknowledged) > REMEMBERED_ORDERS:
+            self._acknowledged.popitem(last=False)
+        self.log.info(
+            "sweccis_order_received",
+            order_id=document.order.order_id,
+            task=document.order.task.value,
+            priority=document.order.priority.value,
+        )
+        await self._ack(link, document.doc_id, "accepted")
+
+    async def _ack(
+        self, link: SweccisLink, doc_id: str, status: AckStatus, reason: str | None = None
+    ) -> None:
+        with anyio.fail_after(self.config.timeout_s):
+            await link.send(encode_ack(doc_id, status, reason))
+
+    def _count(self, outcome: str, **fields: object) -> None:
+        self.counts[outcome] += 1
+        if self._log_limit.allow(outcome):
+            self.log.warning(
+                "sweccis_order_refused", outcome=outcome, count=self.counts[outcome], **fields
+            )
