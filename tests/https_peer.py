@@ -66,7 +66,7 @@ class Malformed(Exception):
     """The request cannot be parsed; the connection is answered 400 and closed."""
 
 
-class _AlertingTLSStream(TLSStream):
+class AlertingTLSStream(TLSStream):
     """A TLS stream that sends OpenSSL's alert when the handshake fails, as servers do.
 
     anyio's ``TLSStream`` drops the alert OpenSSL wrote on a failed handshake; without it a
@@ -187,7 +187,7 @@ class HttpsPeer:
 
     async def _serve(self, raw: anyio.abc.ByteStream, context: ssl.SSLContext) -> None:
         try:
-            stream = await _AlertingTLSStream.wrap(
+            stream = await AlertingTLSStream.wrap(
                 raw, server_side=True, ssl_context=context, standard_compatible=False
             )
         except (ssl.SSLError, OSError, anyio.BrokenResourceError, anyio.EndOfStream) as exc:

@@ -42,7 +42,7 @@ import anyio.abc
 import trustme
 from anyio.from_thread import BlockingPortal, start_blocking_portal
 from anyio.streams.buffered import BufferedByteReceiveStream
-from gute_peer import _AlertingTLSStream
+from https_peer import AlertingTLSStream
 from lxml import etree
 
 from gateway.codecs.sweccis_xml import NAMESPACE, load_schema
@@ -298,7 +298,7 @@ class SweccisPeer:
 
     async def _session(self, raw: anyio.abc.ByteStream, context: ssl.SSLContext) -> None:
         try:
-            stream = await _AlertingTLSStream.wrap(
+            stream = await AlertingTLSStream.wrap(
                 raw, server_side=True, ssl_context=context, standard_compatible=False
             )
         except (ssl.SSLError, OSError, anyio.BrokenResourceError, anyio.EndOfStream) as exc:

@@ -4,15 +4,10 @@ One ``fischer-gateway run --config FILE`` subprocess (``python -m gateway``) car
 at once: jsonl, console, memory, null and the CoT sink over UDP unicast (XML), UDP unicast
 mesh protobuf, UDP multicast on loopback, TCP, TLS with a client certificate (trustme) and
 TCP with TAK protocol v1 negotiation, the GUTE II sink to an HTTPS battery (client
-<<<<<<< HEAD
 certificate, JSON Schema checked) fed by the fusion and counter_uas processors, the SLB sink
-(detections and tracks as JC3IEDM object items over HTTPS), plus a UDP and a TCP CoT source
-and the SLB order source. The simulator
-=======
-certificate, JSON Schema checked) fed by the fusion and counter_uas processors, the SWECCIS
-sink and order source to one SWECCIS server (TLS, client certificate, XSD checked), plus a
-UDP and a TCP CoT source. The simulator
->>>>>>> sweccis
+(detections and tracks as JC3IEDM object items over HTTPS), the SWECCIS sink and order source to
+one SWECCIS server (TLS, client certificate, XSD checked), plus a UDP and a TCP CoT source and
+the SLB order source. The simulator
 (``fischer-gateway simulate --scenario loitering-munitions``: two airframes, two Lancets seen
 on EO and IR) feeds it for more than ten seconds while every peer here decodes
 what it receives with takproto and /readyz is sampled; then SIGTERM must stop it cleanly.
@@ -42,11 +37,8 @@ import pytest
 import trustme
 from anyio.streams.tls import TLSListener
 from gute_peer import GutePeer
-<<<<<<< HEAD
 from slb_peer import SlbPeer
-=======
 from sweccis_peer import SweccisPeer, order_document
->>>>>>> sweccis
 
 from gateway.codecs.cot.proto import read_varint
 
@@ -201,13 +193,10 @@ class MatrixRun:
     stop_s: float = 0.0
     gute: GutePeer | None = None
     """The GUTE II battery the gute2 sink posts handoff cues to."""
-<<<<<<< HEAD
     slb: SlbPeer | None = None
     """The SLB the slb sink reports to and the slb source takes an order from."""
-=======
     sweccis: SweccisPeer | None = None
     """The SWECCIS server of the sweccis sink and order source."""
->>>>>>> sweccis
 
 
 def write_config(run: MatrixRun, ports: dict[str, int], pki: dict[str, str]) -> Path:
@@ -240,11 +229,8 @@ def write_config(run: MatrixRun, ports: dict[str, int], pki: dict[str, str]) -> 
         "sources": [
             {"name": "mesh_in", "uri": f"udp://127.0.0.1:{ports['source_udp']}"},
             {"name": "stream_in", "uri": f"tcp://127.0.0.1:{ports['source_tcp']}"},
-<<<<<<< HEAD
             {"name": "slb_in", "type": "slb", **run.slb.source_options(poll_interval_s=0.5)},
-=======
             {"name": "orders_in", "type": "sweccis", **run.sweccis.link_options()},
->>>>>>> sweccis
         ],
         # The scenario's two Lancets (EO 0.80 + IR 0.75) are fused and cued to its battery.
         "processors": [
@@ -270,11 +256,8 @@ def write_config(run: MatrixRun, ports: dict[str, int], pki: dict[str, str]) -> 
             {"name": "mem", "type": "memory"},
             {"name": "null", "type": "null"},
             {"name": "gute", "type": "gute2", "options": run.gute.sink_options()},
-<<<<<<< HEAD
             {"name": "slb", "type": "slb", "options": run.slb.sink_options()},
-=======
             {"name": "sweccis", "type": "sweccis", "options": run.sweccis.link_options()},
->>>>>>> sweccis
             *cot,
         ],
         "routes": [
@@ -282,11 +265,8 @@ def write_config(run: MatrixRun, ports: dict[str, int], pki: dict[str, str]) -> 
             {"sinks": ["console"], "kinds": ["telemetry"], "max_rate_hz": 1},
             {"sinks": [c["name"] for c in cot], "kinds": ["telemetry", "detection"]},
             {"sinks": ["gute"], "kinds": ["handoff"]},
-<<<<<<< HEAD
             {"sinks": ["slb"], "kinds": ["detection", "track"]},
-=======
             {"sinks": ["sweccis"], "kinds": ["telemetry", "detection", "track"]},
->>>>>>> sweccis
         ],
     }
     path = run.tmp / "config.yaml"
@@ -345,18 +325,12 @@ async def scenario(run: MatrixRun, pki_files: dict[str, str], server_tls: ssl.SS
         async with (
             anyio.create_task_group() as tg,
             GutePeer(run.tmp / "gute") as gute,
-<<<<<<< HEAD
             SlbPeer(run.tmp / "slb") as slb,
-        ):
-            run.gute, run.slb = gute, slb
-            slb.queue_order(SLB_ORDER)
-=======
             SweccisPeer(run.tmp / "sweccis") as sweccis,
         ):
-            run.gute = gute
-            run.sweccis = sweccis
+            run.gute, run.slb, run.sweccis = gute, slb, sweccis
+            slb.queue_order(SLB_ORDER)
             await sweccis.push_order(order_document("m-doc-1", "M-1"))  # sent on registering
->>>>>>> sweccis
             for peer in run.peers.values():
                 await tg.start(peer.run)
             for name, receiver in receivers.items():
@@ -564,7 +538,6 @@ class TestCounterUas:
         assert detail["handed_off"] + detail["revised"] == len(matrix.gute.accepted)
 
 
-<<<<<<< HEAD
 class TestSlb:
     """Detections and fused tracks as JC3IEDM object items to SLB; an order back from it."""
 
@@ -584,10 +557,11 @@ class TestSlb:
         slb = matrix.slb
         assert slb is not None
         lines = [json.loads(line) for line in (matrix.tmp / "a.jsonl").read_text().splitlines()]
-        orders = [e for e in lines if e["kind"] == "order"]
-        assert [(o["event_id"], o["source"]) for o in orders] == [("slb-order-M-1", "slb_in")]
+        orders = [e for e in lines if e["kind"] == "order" and e["source"] == "slb_in"]
+        assert [o["event_id"] for o in orders] == ["slb-order-M-1"]
         assert [r["status"] for r in slb.receipts_for("M-1")] == ["received"]
-=======
+
+
 class TestSweccis:
     """SWECCIS both ways: XSD-valid FAS documents out, an order in, acknowledged once held."""
 
@@ -605,10 +579,7 @@ class TestSweccis:
         assert peer is not None
         assert peer.order_acks == [("m-doc-1", "accepted", None)]
         lines = [json.loads(line) for line in (matrix.tmp / "a.jsonl").read_text().splitlines()]
-        orders = [line for line in lines if line["kind"] == "order"]
-        assert [(o["event_id"], o["source"]) for o in orders] == [
-            ("sweccis-order-M-1", "orders_in")
-        ]
+        orders = [e for e in lines if e["kind"] == "order" and e["source"] == "orders_in"]
+        assert [o["event_id"] for o in orders] == ["sweccis-order-M-1"]
         counts = {s["source"]: s["counts"] for s in matrix.status["sources"]}
         assert counts["orders_in"] == {"accepted": 1}
->>>>>>> sweccis

@@ -15,11 +15,8 @@ from typing import Any
 import pytest
 from gute_peer import GutePeer
 from pydantic import ConfigDict
-<<<<<<< HEAD
 from slb_peer import SlbPeer
-=======
 from sweccis_peer import SweccisPeer
->>>>>>> sweccis
 
 from gateway.c2.plugins import available, load_plugin
 from gateway.c2.sink import SinkConfig
@@ -41,15 +38,13 @@ def options_for(type_name: str, tmp_path: Path) -> Iterator[dict[str, Any]]:
         with GutePeer(tmp_path).in_thread() as peer:
             yield peer.sink_options()
         return
-<<<<<<< HEAD
     if type_name == "slb":  # a real HTTPS SLB on loopback, in a thread
         with SlbPeer(tmp_path).in_thread() as slb:
             yield slb.sink_options()
-=======
+        return
     if type_name == "sweccis":  # a real SWECCIS server (TLS, frames, XSD) on loopback
         with SweccisPeer(tmp_path).in_thread() as sweccis:
             yield sweccis.link_options()
->>>>>>> sweccis
         return
     make = OPTIONS.get(type_name)
     yield make(tmp_path) if make else {}
