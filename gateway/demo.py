@@ -167,7 +167,8 @@ def prepare_demo(
     archive = archive or Path("fischer-demo/archive.jsonl")
     base = archive.parent
     base.mkdir(parents=True, exist_ok=True)
-    link_port = udp_port or 14550
+    # 0 asks for any free port (suites running side by side), not the default.
+    link_port = 14550 if udp_port is None else (udp_port or _free_udp_port())
     for airframe in data["airframes"]:
         for link in airframe["links"]:
             link["uri"] = f"udp://127.0.0.1:{link_port}"
@@ -180,6 +181,8 @@ def prepare_demo(
         with os.fdopen(fd, "w", encoding="ascii") as handle:
             handle.write(secrets.token_hex(32) + "\n")
     data["tunnel"]["master_key_file"] = str(master)
+    # Durable events wait on disk next to the archive, as on a real node.
+    data["spool"]["path"] = str(base / "spool.db")
     pki = make_demo_pki(base / "pki")
     battery = SimulatedBattery(pki, _on_handoff)
     atak = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)

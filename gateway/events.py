@@ -356,8 +356,9 @@ class FiveLineOrder(BaseModel):
 
     The five lines: 1 ``task``; 2 ``location``; 3 the time window ``not_before`` ..
     ``not_after``; 4 ``target`` and ``priority``; 5 ``reporting`` and ``control_measures``.
-    ``order_id`` is the issuer's id; ``event_id`` is ``<source>-order-<order_id>`` so the same
-    order received twice is one event. ``airframe`` is the airframe the issuer tasked, or None
+    ``order_id`` is the issuer's id; ``event_id`` is ``<system>-order-<order_id>`` (``slb``,
+    ``sweccis``: the kind of source, not its configured name) so the same order received twice,
+    by any source of that system, is one event; ``source`` is the configured source's name. ``airframe`` is the airframe the issuer tasked, or None
     for "any suitable". Taking it in does not accept it: the orders processor checks and
     answers it.
     """
