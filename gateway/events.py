@@ -358,7 +358,8 @@ class FiveLineOrder(BaseModel):
     ``not_after``; 4 ``target`` and ``priority``; 5 ``reporting`` and ``control_measures``.
     ``order_id`` is the issuer's id; ``event_id`` is ``<system>-order-<order_id>`` (``slb``,
     ``sweccis``: the kind of source, not its configured name) so the same order received twice,
-    by any source of that system, is one event; ``source`` is the configured source's name. ``airframe`` is the airframe the issuer tasked, or None
+    by any source of that system, is one event; ``source`` is the configured source's name.
+    ``airframe`` is the airframe the issuer tasked, or None
     for "any suitable". Taking it in does not accept it: the orders processor checks and
     answers it.
     """
