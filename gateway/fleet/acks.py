@@ -91,8 +91,9 @@ class DetectionAcks:
     ) -> None:
         """Take one detection of the datagram being read (see the module docstring)."""
         if self._batch is None:
-            self._batch = self._ledger.batch()
-            self._batch.__enter__()
+            batch = self._ledger.batch()
+            batch.__enter__()  # raises if the spool cannot begin: nothing taken, nothing acked
+            self._batch = batch
         if self._ledger.seen(detection.event_id):
             self._inst.link_ignored.labels(label, "duplicate_detection").inc()
             self._due.append((airframe, detection_id, time_usec, ACK_DUPLICATE))

@@ -223,7 +223,10 @@ class Spool:
         only after this block ends without error. Nested batches join the outer one.
         """
         if self._depth == 0:
-            self._db.execute("BEGIN")
+            try:
+                self._db.execute("BEGIN")
+            except sqlite3.Error as exc:
+                raise SpoolError(f"spool {self.path or ':memory:'}: {exc}") from exc
         self._depth += 1
         try:
             yield
@@ -235,7 +238,12 @@ class Spool:
             raise
         self._depth -= 1
         if self._depth == 0:
-            self._db.execute("COMMIT")
+            try:
+                self._db.execute("COMMIT")
+            except sqlite3.Error as exc:
+                with contextlib.suppress(sqlite3.Error):
+                    self._db.execute("ROLLBACK")
+                raise SpoolError(f"spool {self.path or ':memory:'}: {exc}") from exc
 
     @contextlib.contextmanager
     def _write(self) -> Iterator[sqlite3.Connection]:
