@@ -53,7 +53,8 @@ class TestStaleRules:
         assert expired == []
         (item,) = taken
         late = getattr(item.event, "late_by_s", None)
-        assert late is not None and 899 < late < 910
+        assert late is not None
+        assert 899 < late < 910
 
     def test_expire_dead_letters_with_the_reason_and_sends_the_fresh(self) -> None:
         spool = Spool()
@@ -66,7 +67,8 @@ class TestStaleRules:
         assert [i.event.event_id for i in taken] == ["det-2"]
         ((item, reason),) = expired
         assert item.event.event_id == "det-1"
-        assert reason.startswith("expired: waited 12") and "stale after 60 s" in reason
+        assert reason.startswith("expired: waited 12")
+        assert "stale after 60 s" in reason
 
     @pytest.mark.anyio
     async def test_through_the_runner_expired_events_are_dead_letters_on_disk(
@@ -105,11 +107,13 @@ class TestCircuit:
             assert not circuit.probing()
         assert 0.0 <= circuit.failed() <= 4.0
         assert circuit.state is CircuitState.OPEN
-        assert circuit.probing() and circuit.state is CircuitState.HALF_OPEN
+        assert circuit.probing()
+        assert circuit.state is CircuitState.HALF_OPEN
         circuit.failed()
         assert circuit.state is CircuitState.OPEN
         assert circuit.succeeded() == 4
-        assert circuit.state is CircuitState.CLOSED and not circuit.probing()
+        assert circuit.state is CircuitState.CLOSED
+        assert not circuit.probing()
 
     def test_the_delay_never_exceeds_the_cap_however_long_the_outage(self) -> None:
         circuit = Circuit(initial_s=0.5, max_s=30.0)
@@ -191,7 +195,8 @@ class TestAcknowledgements:
         full, published, _ = self.acks(Spool(), held=False)
         full.take(airframe, "radio", detection(2), 2, 200)  # type: ignore[arg-type]
         full.commit()
-        assert len(published) == 1 and not full._queue  # not held: the airframe keeps it
+        assert len(published) == 1
+        assert not full._queue
 
     def test_a_failed_commit_acknowledges_nothing(self) -> None:
         spool = Spool()
