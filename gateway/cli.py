@@ -566,7 +566,13 @@ def _spool(args: argparse.Namespace) -> int:
         )
         return EXIT_CONFIG
     if not path.exists():
-        print(f"{path}: no spool here yet", file=sys.stderr)  # noqa: T201 - the output
+        hint = (
+            ""
+            if path.is_absolute()
+            else " (spool.path is relative: the gateway resolves it from its working "
+            "directory, /var/lib/fischer-gateway under systemd; run this from there)"
+        )
+        print(f"{path.absolute()}: no spool here{hint}", file=sys.stderr)  # noqa: T201
         return EXIT_FAILURE
     try:
         spool = Spool(
@@ -590,6 +596,9 @@ def _spool(args: argparse.Namespace) -> int:
         return admin.requeue(
             spool, sys.stdout, sys.stderr, args.ids, every=args.all, sink=args.sink
         )
+    except BrokenPipeError:  # `| head`: the reader has what it wanted
+        sys.stdout = open(os.devnull, "w")  # noqa: SIM115 - no flush error at exit
+        return EXIT_OK
     finally:
         spool.close()
 

@@ -383,7 +383,7 @@ class SpoolConfig(BaseModel):
         "delivered marked late or expired into the dead letters.",
     )
     dedup_window_s: float = Field(
-        default=86400.0,
+        default=3600.0,
         gt=0,
         le=30 * 86400,
         description="How long detection ids are remembered to drop an airframe's re-sends.",

@@ -26,7 +26,7 @@ so a log line can bind them instead of parsing the message.
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 
 __all__ = [
@@ -153,12 +153,20 @@ class PermanentSinkError(SinkError):
 
     Without ``event_ids`` the whole batch is refused. With them, only the events of the batch
     whose ``event_id`` is listed are refused, and the sink has delivered every other one.
+    ``reasons`` may give each refused event its own reason (kept with its dead letter);
+    events without one get the message.
     """
 
     def __init__(
-        self, message: str, *, sink: str | None = None, event_ids: Iterable[str] = ()
+        self,
+        message: str,
+        *,
+        sink: str | None = None,
+        event_ids: Iterable[str] = (),
+        reasons: Mapping[str, str] | None = None,
     ) -> None:
-        self.event_ids = frozenset(event_ids)
+        self.reasons = dict(reasons or {})
+        self.event_ids = frozenset(event_ids) | frozenset(self.reasons)
         super().__init__(message, sink=sink)
 
 

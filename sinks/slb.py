@@ -210,6 +210,7 @@ class SlbSink:
                 + reasons,
                 sink=self.name,
                 event_ids=[o.event_id for o in refused],
+                reasons={o.event_id: f"{self.url}: {o.detail}" for o in refused},
             )
 
     async def _post(self, client: httpx.AsyncClient, event: Detection | Track) -> _Outcome:

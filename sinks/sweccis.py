@@ -166,6 +166,7 @@ class SweccisSink:
                 + "; ".join(rejected.values()),
                 sink=self.name,
                 event_ids=rejected,
+                reasons=rejected,
             )
 
     def _encode(self, batch: Sequence[Event]) -> tuple[list[Document], dict[str, str], _Timing]:

@@ -453,7 +453,19 @@ class SinkRunner:
             self._dead_letter(items, str(exc))
             return
         refused = [item for item in items if item.event.event_id in exc.event_ids]
-        self._dead_letter(refused, str(exc))
+        if exc.reasons:
+            # Each event keeps its own reason; one log line for the batch.
+            by_reason: dict[str, list[Queued]] = {}
+            for item in refused:
+                by_reason.setdefault(exc.reasons.get(item.event.event_id, str(exc)), []).append(
+                    item
+                )
+            for reason, group in by_reason.items():
+                self._dead_letter(group, reason, count=False, log_it=False)
+                self._rejected.inc(len(group))
+            self.log.error("sink_events_rejected", count=len(refused), reason=str(exc)[:500])
+        else:
+            self._dead_letter(refused, str(exc))
         self._delivered([item for item in items if item.event.event_id not in exc.event_ids])
         if strangers := len(exc.event_ids) - len(refused):
             self.log.warning("sink_refused_unknown_events", count=strangers)
@@ -472,7 +484,9 @@ class SinkRunner:
             reason=reason,
         )
 
-    def _dead_letter(self, items: list[Queued], reason: str, *, count: bool = True) -> None:
+    def _dead_letter(
+        self, items: list[Queued], reason: str, *, count: bool = True, log_it: bool = True
+    ) -> None:
         durable = [item for item in items if item.event.kind not in LATEST_WINS_KINDS]
         for item in durable:
             self.dead_letters.append((item.event, reason))
@@ -482,6 +496,8 @@ class SinkRunner:
             self.outbox.dead_letter([item for item in durable if item.seq], reason)
         except SpoolError:
             self.log.exception("spool_dead_letter_failed", count=len(durable))
+        if not log_it:
+            return
         if count:
             self.log.error("sink_events_rejected", count=len(items), reason=reason)
         elif durable:
@@ -523,6 +539,12 @@ class SinkRunner:
         with anyio.move_on_after(delay):
             await self._stop_requested.wait()
 
+    def _dead_letters_held(self) -> int:
+        try:
+            return self.spool.dead_letters_of(self.name)
+        except SpoolError:  # /status after the spool closed at shutdown
+            return len(self.dead_letters)
+
     def status(self) -> dict[str, object]:
         """The runner's state for /status."""
         latest, durable = self.depth
@@ -537,6 +559,6 @@ class SinkRunner:
             "queued_latest": latest,
             "queued_durable": durable,
             "queue_max": self.entry.queue_max,
-            "dead_letters": len(self.dead_letters),
+            "dead_letters": self._dead_letters_held(),
             "sent": int(self._sent.value),
         }

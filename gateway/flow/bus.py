@@ -160,14 +160,10 @@ class Bus:
         """Hand ``event`` to every runner its routes select; never blocks, never raises.
 
         True once the event is held durably for every sink it goes to (or needs no spool).
+        A durable event the spool refuses goes to no one, processors included: its sender
+        (an airframe that was not acknowledged) sends it again, and it must count once.
         """
         self._event_counters[event.kind].inc()
-        consumers = self._by_kind[event.kind]
-        if consumers:
-            slot = latest_key(event)
-            now = time.monotonic()
-            for consumer in consumers:
-                consumer.offer_slot(event, now, slot)
         key = (event.kind, _airframes_of(event), _class_of(event))
         targets = self._cache.get(key)
         if targets is None:
@@ -176,15 +172,17 @@ class Bus:
                 # Keys include classes and airframes from the network: bounded, not a leak.
                 self._cache.clear()
             self._cache[key] = targets
-        if not targets:
-            return True
         now = time.monotonic()
         slot = latest_key(event)
+        if slot is None and targets and not self._publish_durable(event, targets, now):
+            return False
+        for consumer in self._by_kind[event.kind]:
+            consumer.offer_slot(event, now, slot)
         if slot is None:
-            return self._publish_durable(event, targets, now)
+            return True
         for target in targets:
             interval = target.min_interval_s
-            if interval is not None and slot is not None:
+            if interval is not None:
                 last = target.last_sent.get(slot)
                 if last is not None and now - last < interval:
                     self._inst.sink_rate_limited.labels(target.runner.name).inc()

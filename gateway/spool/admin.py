@@ -69,12 +69,21 @@ def dead_letters(spool: Spool, out: TextIO, *, sink: str | None, limit: int, as_
 
 
 def show(spool: Spool, out: TextIO, err: TextIO, letter_id: int) -> int:
-    """Print one dead letter's event as JSON."""
+    """Print one dead letter as JSON: id, sink, reason, times, and the event itself."""
     body = spool.dead_letter_body(letter_id)
-    if body is None:
+    letter = spool.dead_letter_by_id(letter_id)
+    if body is None or letter is None:
         print(f"no dead letter {letter_id}", file=err)
         return 1
-    print(body.decode(), file=out)
+    record = {
+        "id": letter.id,
+        "sink": letter.sink,
+        "reason": letter.reason,
+        "spooled_at": _when(letter.spooled_at),
+        "dead_at": _when(letter.dead_at),
+        "event": json.loads(body),
+    }
+    print(json.dumps(record, indent=2), file=out)
     return 0
 
 

@@ -68,6 +68,7 @@ CREATE TABLE IF NOT EXISTS dead_letters (
     dead_at REAL NOT NULL,
     requeue INTEGER NOT NULL DEFAULT 0
 );
+CREATE INDEX IF NOT EXISTS dead_letters_sink ON dead_letters (sink);
 CREATE INDEX IF NOT EXISTS dead_letters_requeue ON dead_letters (requeue) WHERE requeue = 1;
 CREATE TABLE IF NOT EXISTS seen (event_id TEXT PRIMARY KEY, at REAL NOT NULL) WITHOUT ROWID;
 CREATE INDEX IF NOT EXISTS seen_at ON seen (at);
@@ -113,8 +114,8 @@ def _lock(path: Path) -> BinaryIO:
     except BlockingIOError:
         handle.close()
         raise SpoolError(
-            f"{path}: in use by another fischer-gateway (or its 'spool' command); "
-            "one spool belongs to one gateway"
+            f"{path}: in use by another running fischer-gateway; one spool belongs to one "
+            "gateway (the 'spool' command may look in beside it)"
         ) from None
     return handle
 
@@ -134,7 +135,7 @@ class Spool:
         sync: str = "normal",
         max_bytes: int = 1 << 30,
         warn_pct: float = 80.0,
-        dedup_window_s: float = 86400.0,
+        dedup_window_s: float = 3600.0,
         dead_letters_max: int = 100_000,
         exclusive: bool = True,
     ) -> None:
@@ -350,6 +351,9 @@ class Spool:
                     "(SELECT 1 FROM pending WHERE pending.seq=events.seq)",
                     [(s,) for s in seqs],
                 )
+            # Measured, not estimated, as it shrinks: a drained spool must stop being "full"
+            # (and stop its alerts) without waiting for new appends.
+            self._bytes = self._measure()
         except sqlite3.Error as exc:
             raise SpoolError(f"spool {self.path or ':memory:'}: {exc}") from exc
 
@@ -426,6 +430,23 @@ class Spool:
     def dead_letter_count(self) -> int:
         """Dead letters held."""
         return self._dead
+
+    def dead_letters_of(self, sink: str) -> int:
+        """Dead letters held for ``sink``; ``SpoolError`` once the spool is closed."""
+        try:
+            row = self._db.execute("SELECT count(*) FROM dead_letters WHERE sink=?", (sink,))
+            return int(row.fetchone()[0])
+        except sqlite3.Error as exc:
+            raise SpoolError(f"spool {self.path or ':memory:'}: {exc}") from exc
+
+    def dead_letter_by_id(self, letter_id: int) -> DeadLetter | None:
+        """One dead letter, None if there is no such letter."""
+        row = self._db.execute(
+            "SELECT id, sink, event_id, kind, reason, spooled_at, dead_at FROM dead_letters"
+            " WHERE id=?",
+            (letter_id,),
+        ).fetchone()
+        return None if row is None else DeadLetter(*row)
 
     def dead_letter_body(self, letter_id: int) -> bytes | None:
         """The event JSON of one dead letter, None if there is no such letter."""

@@ -13,10 +13,11 @@ import pytest
 from gateway.c2.circuit import Circuit, CircuitState
 from gateway.c2.outbox import Outbox
 from gateway.c2.sinkrunner import SinkRunner
-from gateway.config import SinkEntry, StaleRule
-from gateway.errors import TransientSinkError
+from gateway.config import RouteConfig, SinkEntry, StaleRule
+from gateway.errors import PermanentSinkError, TransientSinkError
 from gateway.events import Detection, Event, EventKind, Position, Sensor
 from gateway.fleet.acks import DetectionAcks
+from gateway.flow.bus import Bus
 from gateway.ops.instruments import Instruments
 from gateway.spool.store import Spool
 from gateway.testing import MemorySink, eventually
@@ -207,3 +208,55 @@ class TestAcknowledgements:
             spool._db.execute("SELECT 1")
         acks.commit()
         assert not acks._queue
+
+
+class TestRefusals:
+    @pytest.mark.anyio
+    async def test_each_refused_event_keeps_its_own_reason(self) -> None:
+        class Picky(MemorySink):
+            async def send(self, batch: Sequence[Event]) -> None:
+                odd = {
+                    e.event_id: f"422 {e.event_id} unknown" for e in batch if e.event_id[-1] in "13"
+                }
+                self.events.extend(e for e in batch if e.event_id not in odd)
+                if odd:
+                    raise PermanentSinkError("2 refused", sink=self.name, reasons=odd)
+
+        sink = Picky("p")
+        spool = Spool()
+        runner = SinkRunner(SinkEntry(name="p", type="memory"), sink, Instruments(), spool=spool)
+        for n in range(4):
+            runner.offer(detection(n), time.monotonic())
+        with anyio.fail_after(10):
+            async with anyio.create_task_group() as tg:
+                await tg.start(runner.run)
+                await eventually(lambda: runner.depth == (0, 0))
+                tg.cancel_scope.cancel()
+        assert [e.event_id for e in sink.events] == ["det-0", "det-2"]
+        letters = {d.event_id: d.reason for d in spool.dead_letters()}
+        assert letters == {"det-1": "422 det-1 unknown", "det-3": "422 det-3 unknown"}
+        assert runner.status()["dead_letters"] == 2
+
+
+def test_a_detection_the_full_spool_refused_reaches_no_processor_either() -> None:
+    class Fusion:
+        name = "fusion"
+        kinds = frozenset({EventKind.DETECTION})
+        description = "processor 'fusion'"
+
+        def __init__(self) -> None:
+            self.got: list[str] = []
+
+        def offer_slot(self, event: Event, ingest_mono: float, slot: str | None) -> None:
+            self.got.append(event.event_id)
+
+    spool = Spool(max_bytes=64 * 1024)
+    inst = Instruments()
+    runner = SinkRunner(SinkEntry(name="slb", type="memory"), MemorySink("slb"), inst, spool=spool)
+    fusion = Fusion()
+    bus = Bus(
+        [RouteConfig(sinks=("slb",))], {"slb": runner}, inst, processors=[fusion], spool=spool
+    )
+    held = [bus.publish(detection(n)) for n in range(2000)]
+    assert not all(held)
+    assert fusion.got == [f"det-{n}" for n, ok in enumerate(held) if ok]

@@ -190,7 +190,7 @@ class TestLimits:
 
     def test_one_spool_file_belongs_to_one_gateway(self, tmp_path: Path) -> None:
         first = Spool(tmp_path / "spool.db")
-        with pytest.raises(SpoolError, match="in use by another fischer-gateway"):
+        with pytest.raises(SpoolError, match="in use by another running fischer-gateway"):
             Spool(tmp_path / "spool.db")
         beside = Spool(tmp_path / "spool.db", exclusive=False)  # the spool command
         beside.close()
