@@ -118,6 +118,7 @@ class SlbSource:
         #: Receipts by order id, in the order they were made (oldest first).
         self._answered: OrderedDict[str, dict[str, Any]] = OrderedDict()
         self._log_limit = RateLimit(interval_s=_LOG_INTERVAL_S)
+        self._received_log = RateLimit(interval_s=1.0)
         self._headers = {
             "Accept": "application/json",
             "User-Agent": f"fischer-gateway/{_package_version()}",
@@ -241,12 +242,14 @@ class SlbSource:
                 self._count("not_held", order_id=order_id)
                 return
             self.counts["received"] += 1
-            self.log.info(
-                "slb_order_received",
-                order_id=order_id,
-                task=order.task.value,
-                priority=order.priority.value,
-            )
+            if self._received_log.allow("received"):  # a flood of orders: one line a second
+                self.log.info(
+                    "slb_order_received",
+                    received_total=self.counts["received"],
+                    order_id=order_id,
+                    task=order.task.value,
+                    priority=order.priority.value,
+                )
             receipt = receipt_payload(
                 order_id, "received", time=self._clock(), event_id=order.event_id
             )

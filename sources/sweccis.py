@@ -115,6 +115,7 @@ class SweccisSource:
         self.state: Literal["connecting", "connected", "waiting"] = "connecting"
         self.last_error = ""
         self._log_limit = RateLimit(interval_s=LOG_INTERVAL_S)
+        self._received_log = RateLimit(interval_s=1.0)
         self.log = log.bind(source=name, uri=config.uri)
 
     def status(self) -> dict[str, object]:
@@ -202,7 +203,9 @@ class SweccisSource:
         if not isinstance(document, OrderDocument):
             self._count("unexpected", document=type(document).__name__)
             return
-        if document.doc_id in self._acknowledged:
+        order_key = "order:" + document.order.order_id
+        if document.doc_id in self._acknowledged or order_key in self._acknowledged:
+            # The same document again, or the same order under another document id.
             self.counts["duplicate"] += 1
             await self._ack(link, document.doc_id, "duplicate")
             return
@@ -212,14 +215,17 @@ class SweccisSource:
             return
         self.counts["accepted"] += 1
         self._acknowledged[document.doc_id] = None
+        self._acknowledged[order_key] = None
         while len(self._acknowledged) > REMEMBERED_ORDERS:
             self._acknowledged.popitem(last=False)
-        self.log.info(
-            "sweccis_order_received",
-            order_id=document.order.order_id,
-            task=document.order.task.value,
-            priority=document.order.priority.value,
-        )
+        if self._received_log.allow("received"):  # a flood of orders: one line a second
+            self.log.info(
+                "sweccis_order_received",
+                received_total=self.counts["accepted"],
+                order_id=document.order.order_id,
+                task=document.order.task.value,
+                priority=document.order.priority.value,
+            )
         await self._ack(link, document.doc_id, "accepted")
 
     async def _ack(

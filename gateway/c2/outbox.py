@@ -105,15 +105,16 @@ class Outbox:
         taken: list[Queued] = []
         expired: list[tuple[Queued, str]] = []
         now = time.time()
-        while self._items and len(taken) < limit:
+        rolled_back = self.spool.rolled_back
+        while self._items and len(taken) + len(expired) < limit:
             item = self._items.popleft()
+            if item.seq in rolled_back:
+                continue  # its batch never committed: not held, not ours to send
             rule = self.stale.get(item.event.kind)
             age = now - item.spooled_at
             if rule is not None and age > rule.after_s:
                 if rule.action == "expire":
-                    reason = (
-                        f"expired: waited {age:.0f} s in the spool (stale after {rule.after_s:g} s)"
-                    )
+                    reason = f"expired: stale after {rule.after_s:g} s in the spool"
                     expired.append((item, reason))
                     continue
                 if getattr(item.event, "late_by_s", None) is None:

@@ -31,6 +31,7 @@ from typing import Any, cast
 
 import anyio
 import anyio.abc
+import anyio.lowlevel
 import structlog
 
 from gateway.c2.circuit import Circuit
@@ -128,6 +129,9 @@ class SinkRunner:
             for reason in ("transient", "timeout", "error", "permanent")
         }
         self._overflow_log = RateLimit(interval_s=5.0)
+        self._expired_log = RateLimit(interval_s=10.0)
+        self._reject_log = RateLimit(interval_s=10.0)
+        self._expired_some = False
         self.log = log.bind(sink=self.name)
 
     @property
@@ -319,6 +323,9 @@ class SinkRunner:
             if self._leave_rest_in_spool:
                 return None
             items = self._take()
+            if not items and self._expired_some:
+                await anyio.lowlevel.checkpoint()  # a stale backlog: a batch at a time
+                continue
             if not items:
                 if self._stopping:
                     return None
@@ -343,16 +350,25 @@ class SinkRunner:
             else:
                 for key in list(self._latest)[:limit]:
                     items.append(self._latest.pop(key))
+        self._expired_some = False
         if len(items) < limit:
             durable, expired = self.outbox.take(limit - len(items))
-            for item, reason in expired:
-                self._expired.inc()
-                self._dead_letter([item], reason, count=False)
-            for item in durable:
-                if item.event.kind is not EventKind.ORDER and getattr(
-                    item.event, "late_by_s", None
-                ):
-                    self._late.labels(self.name, item.event.kind.value).inc()
+            if expired:
+                # One dead-letter write per reason and at most one log line per interval.
+                self._expired_some = True
+                self._expired.inc(len(expired))
+                by_reason: dict[str, list[Queued]] = {}
+                for item, reason in expired:
+                    by_reason.setdefault(reason, []).append(item)
+                for reason, group in by_reason.items():
+                    self._dead_letter(group, reason, count=False, log_it=False)
+                if self._expired_log.allow("expired"):
+                    self.log.warning(
+                        "sink_events_expired",
+                        count=len(expired),
+                        expired_total=int(self._expired.value),
+                        reason=next(iter(by_reason)),
+                    )
             items += durable
         return items
 
@@ -463,7 +479,8 @@ class SinkRunner:
             for reason, group in by_reason.items():
                 self._dead_letter(group, reason, count=False, log_it=False)
                 self._rejected.inc(len(group))
-            self.log.error("sink_events_rejected", count=len(refused), reason=str(exc)[:500])
+            if self._reject_log.allow("dead_letter"):
+                self.log.error("sink_events_rejected", count=len(refused), reason=str(exc)[:500])
         else:
             self._dead_letter(refused, str(exc))
         self._delivered([item for item in items if item.event.event_id not in exc.event_ids])
@@ -475,8 +492,10 @@ class SinkRunner:
         if item.event.kind in LATEST_WINS_KINDS:
             self._given_up.inc()  # superseded soon anyway; counted, not dead-lettered
         else:
-            self._dead_letter([item], reason, count=False)
+            self._dead_letter([item], reason, count=False, log_it=False)
             self._rejected.inc()
+        if not self._reject_log.allow("given_up"):
+            return
         self.log.error(
             "sink_event_given_up",
             kind=item.event.kind.value,
@@ -496,10 +515,10 @@ class SinkRunner:
             self.outbox.dead_letter([item for item in durable if item.seq], reason)
         except SpoolError:
             self.log.exception("spool_dead_letter_failed", count=len(durable))
-        if not log_it:
-            return
+        if not log_it or not self._reject_log.allow("dead_letter"):
+            return  # counted in fg_sink_events_dropped_total whatever the log says
         if count:
-            self.log.error("sink_events_rejected", count=len(items), reason=reason)
+            self.log.error("sink_events_rejected", count=len(items), reason=reason[:500])
         elif durable:
             self.log.warning("sink_events_dead_lettered", count=len(durable), reason=reason[:200])
 

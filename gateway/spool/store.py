@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import os
 import sqlite3
 import time
 from collections import Counter
@@ -75,7 +76,9 @@ CREATE INDEX IF NOT EXISTS seen_at ON seen (at);
 """
 #: How often (appends) the size is measured against the cap; between, it is estimated.
 _SIZE_CHECK_EVERY = 256
-_SEEN_PRUNE_EVERY = 4096
+_SEEN_PRUNE_EVERY = 1024
+_SEEN_PRUNE_CHUNK = 10_000
+_ROLLED_BACK_KEEP = 100_000
 _FULL_LOG_INTERVAL_S = 10.0
 _WARN_LOG_INTERVAL_S = 60.0
 
@@ -104,9 +107,10 @@ class DeadLetter:
 
 def _lock(path: Path) -> BinaryIO:
     """Hold ``<path>.lock`` exclusively: two gateways on one spool would deliver twice."""
-    lock_path = path.with_name(path.name + ".lock")
+    real = path.resolve()  # a symlink to the same file is the same spool
+    lock_path = real.with_name(real.name + ".lock")
     try:
-        handle = lock_path.open("ab")
+        handle = os.fdopen(os.open(lock_path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o600), "ab")
     except OSError as exc:
         raise SpoolError(f"{lock_path}: {exc.strerror or exc}") from exc
     try:
@@ -137,6 +141,7 @@ class Spool:
         warn_pct: float = 80.0,
         dedup_window_s: float = 3600.0,
         dead_letters_max: int = 100_000,
+        seen_max: int = 1_000_000,
         exclusive: bool = True,
     ) -> None:
         self.path = path
@@ -144,23 +149,36 @@ class Spool:
         self.warn_bytes = int(max_bytes * warn_pct / 100.0)
         self.dedup_window_s = dedup_window_s
         self.dead_letters_max = dead_letters_max
+        self.seen_max = seen_max
         target = ":memory:" if path is None else str(path)
         self._owner = exclusive
         self._lock = _lock(path) if path is not None and exclusive else None
+        if path is not None and exclusive and not path.exists():
+            # Created private: the WAL and shared-memory files take the database's mode.
+            with contextlib.suppress(OSError):
+                os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
         try:
-            self._db = sqlite3.connect(target, isolation_level=None, check_same_thread=False)
+            self._db = sqlite3.connect(
+                target, isolation_level=None, check_same_thread=False, timeout=0.0
+            )
             db = self._db
             if path is not None:
                 mode = db.execute("PRAGMA journal_mode=WAL").fetchone()[0]
                 if str(mode).lower() != "wal":
                     raise SpoolError(f"{path}: the file system does not support WAL ({mode})")
             db.execute(f"PRAGMA synchronous={'FULL' if sync == 'full' else 'NORMAL'}")
+            # The gateway waits at most this for the 'spool' command's short writes (on the
+            # event loop, so short); the command itself waits longer for the gateway's.
+            db.execute(f"PRAGMA busy_timeout={250 if exclusive else 5000}")
             db.execute("PRAGMA foreign_keys=OFF")
             db.executescript(_SCHEMA)
             self._check_version()
         except sqlite3.Error as exc:
             raise SpoolError(f"{target}: {exc}") from exc
         self._depth = 0  # open batch() contexts
+        self._in_batch: list[tuple[int, tuple[str, ...]]] = []
+        #: Sequence numbers appended in a batch that then failed to commit: never delivered.
+        self.rolled_back: set[int] = set()
         self._appends = 0
         self._bytes = self._measure()
         self._refused = 0
@@ -171,6 +189,13 @@ class Spool:
         )
         self._dead = int(db.execute("SELECT count(*) FROM dead_letters").fetchone()[0])
         self._seq = int(db.execute("SELECT coalesce(max(seq), 0) FROM events").fetchone()[0])
+        self._seen_rows = int(db.execute("SELECT count(*) FROM seen").fetchone()[0])
+        if exclusive:
+            while True:  # at start, all of it: ids past the window are of no use
+                before = self._seen_rows
+                self._prune_seen()
+                if self._seen_rows == before or self._seen_rows == 0:
+                    break
 
     # -- housekeeping ---------------------------------------------------------------------
 
@@ -225,7 +250,7 @@ class Spool:
         """
         if self._depth == 0:
             try:
-                self._db.execute("BEGIN")
+                self._db.execute("BEGIN IMMEDIATE")
             except sqlite3.Error as exc:
                 raise SpoolError(f"spool {self.path or ':memory:'}: {exc}") from exc
         self._depth += 1
@@ -234,8 +259,9 @@ class Spool:
         except BaseException:
             self._depth -= 1
             if self._depth == 0:
-                self._db.execute("ROLLBACK")
-                self._bytes = self._measure()
+                with contextlib.suppress(sqlite3.Error):
+                    self._db.execute("ROLLBACK")
+                self._undo_batch()
             raise
         self._depth -= 1
         if self._depth == 0:
@@ -244,7 +270,21 @@ class Spool:
             except sqlite3.Error as exc:
                 with contextlib.suppress(sqlite3.Error):
                     self._db.execute("ROLLBACK")
+                self._undo_batch()
                 raise SpoolError(f"spool {self.path or ':memory:'}: {exc}") from exc
+            self._in_batch.clear()
+
+    def _undo_batch(self) -> None:
+        """The batch did not commit: what it appended is not held, and must not be sent."""
+        for seq, sinks in self._in_batch:
+            self.rolled_back.add(seq)
+            for sink in sinks:
+                self._pending[sink] -= 1
+        self._in_batch.clear()
+        if len(self.rolled_back) > _ROLLED_BACK_KEEP:
+            self.rolled_back = set(sorted(self.rolled_back)[-_ROLLED_BACK_KEEP // 2 :])
+        with contextlib.suppress(sqlite3.Error):
+            self._bytes = self._measure()
 
     @contextlib.contextmanager
     def _write(self) -> Iterator[sqlite3.Connection]:
@@ -252,7 +292,7 @@ class Spool:
         if self._depth or self._db.in_transaction:
             yield self._db
             return
-        self._db.execute("BEGIN")
+        self._db.execute("BEGIN IMMEDIATE")
         try:
             yield self._db
         except BaseException:
@@ -268,7 +308,11 @@ class Spool:
         if self._bytes >= self.max_bytes:
             self._appends += 1
             if self._appends % _SIZE_CHECK_EVERY == 0:
-                self._bytes = self._measure()  # confirmations may have made room
+                # Durable events come before de-duplication memory: the oldest detection
+                # ids make room first (a re-send of one of them is delivered again, and its
+                # receivers drop it by event id).
+                self._prune_seen(force=True)
+                self._bytes = self._measure()
             if self._bytes >= self.max_bytes:
                 self._refuse(event)
                 return None
@@ -279,6 +323,8 @@ class Spool:
             raise SpoolError(f"spool {self.path or ':memory:'}: {exc}") from exc
         for sink in sinks:
             self._pending[sink] += 1
+        if self._depth:
+            self._in_batch.append((seq, tuple(sinks)))
         self._appends += 1
         self._bytes += len(body) + 64 * (1 + len(sinks))
         if self._appends % _SIZE_CHECK_EVERY == 0:
@@ -326,12 +372,34 @@ class Spool:
 
     def remember(self, event_id: str) -> None:
         """Record a detection id as taken in (in the open batch, with its event)."""
-        now = time.time()
         with self._write() as db:
-            db.execute("INSERT OR REPLACE INTO seen VALUES (?, ?)", (event_id, now))
-            self._appends += 1
-            if self._appends % _SEEN_PRUNE_EVERY == 0:
-                db.execute("DELETE FROM seen WHERE at < ?", (now - self.dedup_window_s,))
+            db.execute("INSERT OR REPLACE INTO seen VALUES (?, ?)", (event_id, time.time()))
+        self._seen_rows += 1
+        if self._seen_rows % _SEEN_PRUNE_EVERY == 0 or self._seen_rows > self.seen_max:
+            self._prune_seen()
+
+    def _prune_seen(self, *, force: bool = False) -> None:
+        """Forget detection ids past the window, and the oldest beyond ``seen_max``.
+
+        At most ``_SEEN_PRUNE_CHUNK`` rows per call, so a large backlog never holds the event
+        loop long; ``force`` drops the oldest chunk even inside the window (a full spool).
+        """
+        cutoff = time.time() - self.dedup_window_s
+        with self._write() as db:
+            cursor = db.execute(
+                "DELETE FROM seen WHERE event_id IN "
+                "(SELECT event_id FROM seen WHERE at < ? LIMIT ?)",
+                (cutoff, _SEEN_PRUNE_CHUNK),
+            )
+            removed = max(cursor.rowcount, 0)
+            if force or self._seen_rows - removed > self.seen_max:
+                cursor = db.execute(
+                    "DELETE FROM seen WHERE event_id IN "
+                    "(SELECT event_id FROM seen ORDER BY at LIMIT ?)",
+                    (_SEEN_PRUNE_CHUNK,),
+                )
+                removed += max(cursor.rowcount, 0)
+        self._seen_rows = max(self._seen_rows - removed, 0)
 
     def confirm(self, sink: str, seqs: Iterable[int]) -> None:
         """``sink`` has delivered these events: they are no longer owed to it."""

@@ -118,6 +118,21 @@ class TestOrders:
         assert len(intake.events) == 1
         assert [status for _, status, _ in peer.order_acks] == ["accepted", "duplicate"]
 
+    @pytest.mark.anyio
+    async def test_one_order_under_many_document_ids_is_published_once(
+        self, tmp_path: Path
+    ) -> None:
+        intake = Intake()
+        async with SweccisPeer(tmp_path) as peer:
+            sweccis = source(peer, intake)
+            with anyio.fail_after(10):
+                async with running(sweccis, peer):
+                    for n in range(5):
+                        await peer.push_order(order_document(f"doc-{n}", "ORD-1"))
+                    await eventually(acked(peer, 5))
+        assert [e.event_id for e in intake.events] == ["sweccis-order-ORD-1"]
+        assert [status for _, status, _ in peer.order_acks] == ["accepted"] + ["duplicate"] * 4
+
 
 class TestHostileInput:
     """Bad orders are rejected by name, garbage is counted; the source carries on."""
