@@ -65,6 +65,13 @@ def config_schema() -> dict[str, Any]:
             name = f"{group.rsplit('.', 1)[1]}_options_{ep.name}"
             defs[name] = options
             # Sources take their options beside name and type; processors under options.
+            if inline and options.get("additionalProperties") is False:
+                # Beside a source's own options stand the entry's name and type.
+                options["properties"] = {
+                    "name": {"type": "string", "description": "The source's name."},
+                    "type": {"type": "string", "description": "The source type."},
+                    **options.get("properties", {}),
+                }
             then = (
                 {"$ref": f"#/$defs/{name}"}
                 if inline
