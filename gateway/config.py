@@ -93,7 +93,7 @@ def parse_endpoint(value: object) -> Endpoint:
         if unknown:
             raise ValueError(f"expected only 'baud' as a serial parameter, found {sorted(unknown)}")
         baud_text = params.get("baud", "57600")
-        if not baud_text.isdigit() or int(baud_text) not in SERIAL_BAUDS:
+        if not (baud_text.isascii() and baud_text.isdigit()) or int(baud_text) not in SERIAL_BAUDS:
             raise ValueError(
                 f"expected a standard baud rate ({', '.join(map(str, SERIAL_BAUDS))}), "
                 f"found {baud_text!r}"
@@ -140,7 +140,7 @@ def _is_host(host: str) -> bool:
     else:
         return True
     labels = host.rstrip(".").split(".")
-    if all(label.isdigit() for label in labels):
+    if all(label.isascii() and label.isdigit() for label in labels):
         return False  # looks like IPv4 but did not parse: 192.0.2.300
     return len(host) <= 253 and all(_HOST_LABEL.fullmatch(label) for label in labels)
 

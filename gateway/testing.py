@@ -133,4 +133,4 @@ class NullSink:
 def fuzz_examples(default: int) -> int:
     """Examples per fuzz property: ``default``, or ``$FISCHER_FUZZ_EXAMPLES`` for long runs."""
     value = os.environ.get("FISCHER_FUZZ_EXAMPLES", "")
-    return int(value) if value.isdigit() else default
+    return int(value) if value.isascii() and value.isdigit() else default

@@ -53,7 +53,7 @@ def is_journal_stream(stream: TextIO, env: Mapping[str, str] | None = None) -> b
     """
     value = (os.environ if env is None else env).get("JOURNAL_STREAM", "")
     dev, _, inode = value.partition(":")
-    if not (dev.isdigit() and inode.isdigit()):
+    if not (value.isascii() and dev.isdigit() and inode.isdigit()):
         return False
     try:
         st = os.fstat(stream.fileno())

@@ -187,7 +187,7 @@ def retry_after_s(
     text = value.strip()
     if not text or len(text) > _MAX_RETRY_AFTER_CHARS:
         return None
-    if text.isdigit():
+    if text.isascii() and text.isdigit():  # str.isdigit alone takes '²', float does not
         seconds = float(text)
     else:
         try:

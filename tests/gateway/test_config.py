@@ -119,6 +119,7 @@ class TestLoad:
             ("tcp://192.0.2.300:5760", "expected an IP address or a host name"),
             ("tcp://bad_host!:5760", "expected an IP address or a host name"),
             ("serial:///dev/ttyUSB0?baud=57601", "expected a standard baud rate"),
+            ("serial:///dev/ttyUSB0?baud=%C2%B2", "expected a standard baud rate"),
         ],
     )
     def test_uris_that_could_never_open_are_config_errors(self, uri: str, message: str) -> None:

@@ -74,6 +74,17 @@ class TestJournalPriority:
         assert json.loads(lines[0])["event"] == "c"
 
 
+@pytest.mark.parametrize("value", ["²:1", "1:²", "１:1", ":", "", "a:b"])
+def test_a_journal_stream_variable_that_is_not_two_numbers_is_not_the_journal(
+    tmp_path: Path, value: str
+) -> None:
+    """``str.isdigit`` takes "²" and full-width digits that ``int`` refuses: never a crash."""
+    from gateway.ops.logsetup import is_journal_stream
+
+    with (tmp_path / "log.txt").open("w", encoding="utf-8") as stream:
+        assert is_journal_stream(stream, {"JOURNAL_STREAM": value}) is False
+
+
 class TestTracebacks:
     """A traceback in a log record never carries local variables."""
 

@@ -116,7 +116,7 @@ def object_symbol(
         symbol = _with_affiliation(_symbol(_table()["unknown_class"]), letter)
     if sidc is not None and _LETTER_SIDC.fullmatch(sidc):
         symbol = Symbol(cot_type_from_sidc(sidc), sidc, symbol.sidc_2525d)
-    elif sidc is not None and len(sidc) == 20 and sidc.isdigit():
+    elif sidc is not None and len(sidc) == 20 and sidc.isascii() and sidc.isdigit():
         symbol = Symbol(symbol.cot_type, symbol.sidc_2525c, sidc)
     return symbol
 
