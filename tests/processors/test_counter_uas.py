@@ -14,7 +14,6 @@ from gateway.domain.geodesy import destination
 from gateway.events import BlueForce, Event, Handoff, Position, Track
 from processors.counter_uas import CounterUasConfig, CounterUasProcessor
 
-NOW = datetime.now(UTC)
 OPTIONS = {
     "batteries": [
         {
@@ -29,20 +28,23 @@ OPTIONS = {
 
 
 def track(track_id: str, bearing: float, distance_m: float, status: str = "created") -> Track:
+    # The time of the call, not of the import: a suite longer than the processor's
+    # blue_max_age_s would otherwise hand it friends that are already too old to count.
+    now = datetime.now(UTC)
     lat, lon = destination(65.80, 21.70, bearing, distance_m)
     return Track.model_validate(
         {
             "event_id": f"{track_id}-1",
             "track_id": track_id,
-            "time": NOW,
+            "time": now,
             "status": status,
             "object_class": "loitering_munition",
             "confidence": 0.95,
             "position": {"lat_deg": lat, "lon_deg": lon},
             "cep50_m": 10.0,
             "cep90_m": 18.0,
-            "first_seen": NOW,
-            "last_seen": NOW,
+            "first_seen": now,
+            "last_seen": now,
         }
     )
 
@@ -61,7 +63,7 @@ async def test_fixed_friends_are_announced_and_each_track_is_handed_off_once() -
             BlueForce(
                 event_id="b1",
                 uid="ANDROID-7",
-                time=NOW,
+                time=datetime.now(UTC),
                 callsign="Alfa 7",
                 position=Position(lat_deg=lat, lon_deg=lon),
                 source="cot",
