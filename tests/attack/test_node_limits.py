@@ -293,15 +293,8 @@ BOMBS = {
 }
 
 
-@pytest.mark.parametrize("command", ["check-config", "run"])
-@pytest.mark.parametrize("bomb", sorted(BOMBS))
-def test_config_bombs_exit_2_within_2_s_naming_the_line(
-    tmp_path: Path, bomb: str, command: str
-) -> None:
-    text, message = BOMBS[bomb]
-    path = tmp_path / "bomb.yaml"
-    path.write_text(text)
-    args = [str(path)] if command == "check-config" else ["--config", str(path)]
+def _timed(command: str, config: Path) -> tuple[float, subprocess.CompletedProcess[str]]:
+    args = [str(config)] if command == "check-config" else ["--config", str(config)]
     started = time.monotonic()
     result = subprocess.run(
         [sys.executable, "-m", "gateway", command, *args],
@@ -311,13 +304,41 @@ def test_config_bombs_exit_2_within_2_s_naming_the_line(
         check=False,
         env={**os.environ, "PYTHONUNBUFFERED": "1"},
     )
-    elapsed = time.monotonic() - started
+    return time.monotonic() - started, result
+
+
+_BASELINES: dict[str, float] = {}
+
+
+def _refusal_baseline_s(command: str, tmp_path: Path) -> float:
+    """Seconds ``command`` takes to refuse a trivial config here: the interpreter's start-up."""
+    if command not in _BASELINES:
+        plain = tmp_path / "plain.yaml"
+        plain.write_text("airframes: 5\n")
+        elapsed, result = _timed(command, plain)
+        assert result.returncode == 2
+        _BASELINES[command] = elapsed
+    return _BASELINES[command]
+
+
+@pytest.mark.parametrize("command", ["check-config", "run"])
+@pytest.mark.parametrize("bomb", sorted(BOMBS))
+def test_config_bombs_exit_2_within_2_s_naming_the_line(
+    tmp_path: Path, bomb: str, command: str
+) -> None:
+    text, message = BOMBS[bomb]
+    path = tmp_path / "bomb.yaml"
+    path.write_text(text)
+    baseline = _refusal_baseline_s(command, tmp_path)
+    elapsed, result = _timed(command, path)
     assert result.returncode == 2, result.stdout + result.stderr
     output = result.stdout + result.stderr
     assert message in output
     assert f"{path}:" in output  # FILE:LINE
     assert "Traceback" not in output
-    assert elapsed < 2.0 + 1.0  # 2 s for the check, plus the interpreter's start-up
+    # 2 s for the check beyond what refusing a trivial file takes on this machine (a
+    # loaded machine slows both; the start-up is measured, not guessed).
+    assert elapsed < 2.0 + 1.5 * baseline
 
 
 @pytest.mark.parametrize(
