@@ -23,37 +23,24 @@ Logs carry event ids, statuses and counts, never a document, a key or a password
 
 from __future__ import annotations
 
-import ssl
 from collections.abc import Sequence
-from dataclasses import dataclass
-from importlib.metadata import PackageNotFoundError, version
 from typing import Literal
 
 import anyio
-import anyio.to_thread
-import httpx
 import structlog
 from pydantic import Field
 
 from gateway.c2.sink import SinkConfig
 from gateway.codecs.jc3iedm import encode_object_item
-from gateway.errors import PermanentSinkError, TransientSinkError
+from gateway.errors import PermanentSinkError
 from gateway.events import Detection, Event, EventKind, Track
 from gateway.transports.endpoint import HttpsEndpoint
-from gateway.transports.https import (
-    classify_answer,
-    describe_https_error,
-    https_client,
-    read_at_most,
-)
-from gateway.transports.tls import unreadable_file
+from sinks._https_post import HttpsPoster, PostOutcome
 
 __all__ = ["SlbSink", "SlbSinkConfig"]
 
 log = structlog.get_logger(__name__)
 
-#: How much of a refusal's body is read and quoted, at most.
-MAX_REASON_BYTES = 512
 #: The path below ``base_url`` that object item reports are POSTed to.
 ITEMS_PATH = "/object-items"
 
@@ -77,23 +64,6 @@ class SlbSinkConfig(SinkConfig, HttpsEndpoint):
     )
 
 
-def _package_version() -> str:
-    try:
-        return version("fischer-gateway")
-    except PackageNotFoundError:
-        return "0"
-
-
-@dataclass(frozen=True, slots=True)
-class _Outcome:
-    """What became of one POST."""
-
-    event_id: str
-    result: Literal["delivered", "duplicate", "retry", "refused"]
-    detail: str = ""
-    retry_after_s: float | None = None
-
-
 class SlbSink:
     """POSTs each detection or track to SLB as a JC3IEDM object item report."""
 
@@ -104,11 +74,16 @@ class SlbSink:
         self.config = config
         self.url = config.url(ITEMS_PATH)
         self._kinds = frozenset(EventKind(kind) for kind in config.kinds)
-        self._files = config.tls_files
-        self._client: httpx.AsyncClient | None = None
+        self._poster = HttpsPoster(
+            name,
+            self.url,
+            config.tls_files,
+            timeout_s=config.timeout_s,
+            max_in_flight=config.max_in_flight,
+            max_retry_after_s=config.max_retry_after_s,
+        )
         #: ``anyio.current_time()`` before which SLB asked not to be contacted (Retry-After).
         self._hold_until = 0.0
-        self._user_agent = f"fischer-gateway/{_package_version()}"
         self.log = log.bind(sink=name, url=self.url)
 
     @property
@@ -116,34 +91,12 @@ class SlbSink:
         """Detections and tracks, unless the config narrows it."""
         return self._kinds
 
-    def _fail(self, what: str) -> TransientSinkError:
-        return TransientSinkError(f"sink {self.name}: {what}", sink=self.name)
-
     async def open(self) -> None:
         """Load the TLS material and make the client; connections open on the first POST.
 
         Raises ``TransientSinkError`` naming the file when the material cannot be loaded.
         """
-        if self._client is not None:
-            return
-        unreadable = await anyio.to_thread.run_sync(unreadable_file, self._files)
-        if unreadable is not None:
-            raise self._fail(f"{self.url}: {unreadable}")
-        timeout_s = self.config.timeout_s
-        try:
-            self._client = await https_client(
-                self._files,
-                connect_timeout_s=timeout_s,
-                read_timeout_s=timeout_s,
-                write_timeout_s=timeout_s,
-                pool_timeout_s=timeout_s,
-                max_connections=self.config.max_in_flight,
-            )
-        except OSError as exc:
-            name = exc.filename or self._files.ca_file
-            raise self._fail(f"{self.url}: {name}: {exc.strerror or exc}") from exc
-        except (ssl.SSLError, ValueError) as exc:
-            raise self._fail(f"{self.url}: TLS material unusable: {exc}") from exc
+        await self._poster.open()
 
     async def send(self, batch: Sequence[Event]) -> None:
         """POST every detection and track of ``batch`` (up to ``max_in_flight`` at once).
@@ -158,26 +111,12 @@ class SlbSink:
             return
         wait_s = self._hold_until - anyio.current_time()
         if wait_s > 0:
-            raise self._fail(
+            raise self._poster.fail(
                 f"{self.url}: holding back {wait_s:.1f} s more, as SLB asked (Retry-After)"
             )
-        if self._client is None:
-            await self.open()
-        client = self._client
-        assert client is not None  # noqa: S101 - open() made it or raised
-        outcomes: list[_Outcome] = []
-        limiter = anyio.CapacityLimiter(self.config.max_in_flight)
+        self._settle(await self._poster.post_all(items, encode_object_item), len(items))
 
-        async def post(event: Detection | Track) -> None:
-            async with limiter:
-                outcomes.append(await self._post(client, event))
-
-        async with anyio.create_task_group() as tg:
-            for event in items:
-                tg.start_soon(post, event)
-        self._settle(outcomes, len(items))
-
-    def _settle(self, outcomes: list[_Outcome], total: int) -> None:
+    def _settle(self, outcomes: list[PostOutcome], total: int) -> None:
         delivered = sum(o.result in ("delivered", "duplicate") for o in outcomes)
         duplicates = sum(o.result == "duplicate" for o in outcomes)
         if delivered:
@@ -189,7 +128,7 @@ class SlbSink:
             if waits:
                 self._hold_until = anyio.current_time() + max(waits)
                 note = f"; SLB asked for {max(waits):.1f} s (Retry-After)"
-            raise self._fail(
+            raise self._poster.fail(
                 f"{retry[0].detail} ({len(retry)} of {total} reports to retry, "
                 f"{delivered} delivered{note})"
             )
@@ -213,45 +152,6 @@ class SlbSink:
                 reasons={o.event_id: f"{self.url}: {o.detail}" for o in refused},
             )
 
-    async def _post(self, client: httpx.AsyncClient, event: Detection | Track) -> _Outcome:
-        try:
-            body = encode_object_item(event)
-        except ValueError as exc:
-            return _Outcome(event.event_id, "refused", str(exc))
-        headers = {
-            "Content-Type": "application/json",
-            "Accept": "application/json",
-            "Idempotency-Key": event.event_id,
-            "User-Agent": self._user_agent,
-        }
-        deadline_s = self.config.timeout_s
-        try:
-            # httpx's deadlines are per phase; this one holds for the whole exchange.
-            with anyio.fail_after(deadline_s):
-                async with client.stream(
-                    "POST", self.url, content=body, headers=headers
-                ) as response:
-                    status = response.status_code
-                    reason = await read_at_most(response, MAX_REASON_BYTES)
-        except TimeoutError:
-            return _Outcome(event.event_id, "retry", f"{self.url}: no answer within {deadline_s} s")
-        except (httpx.HTTPError, ssl.SSLError, OSError) as exc:
-            return _Outcome(
-                event.event_id, "retry", describe_https_error(exc, self.url, self._files)
-            )
-        text = reason.decode("utf-8", "replace").strip() or response.reason_phrase
-        answer = classify_answer(
-            self.url,
-            status,
-            response.headers,
-            text,
-            max_retry_after_s=self.config.max_retry_after_s,
-        )
-        return _Outcome(event.event_id, answer.outcome, answer.detail, answer.retry_after_s)
-
     async def aclose(self) -> None:
         """Close the pooled connections; safe before ``open`` and after a failed one."""
-        client, self._client = self._client, None
-        if client is not None:
-            with anyio.move_on_after(self.config.timeout_s, shield=True):
-                await client.aclose()
+        await self._poster.aclose()

@@ -1,11 +1,12 @@
 """The options of one HTTPS C2 endpoint, shared by the sinks and sources that talk to it.
 
-``HttpsEndpoint`` is a pydantic options model (frozen, unknown keys refused) holding a base
-URL (``https://`` only, no credentials, query or fragment), the pinned CA, the client
-certificate and a deadline. Subclass it together with ``SinkConfig`` for a sink, or alone for
-a source. On the node (validation context ``{"environment": True}``: ``run`` and
-``check-config``) its validator loads the TLS material, so a missing CA or a wrong password
-is a config error naming the file and its line, not a retry loop at the first request.
+``HttpsClientOptions`` is a pydantic options model (frozen, unknown keys refused) holding the
+pinned CA, the client certificate and a deadline; ``HttpsEndpoint`` adds a base URL
+(``https://`` only, no credentials, query or fragment) that fixed paths are appended to.
+Subclass either together with ``SinkConfig`` for a sink, or alone for a source. On the node
+(validation context ``{"environment": True}``: ``run`` and ``check-config``) the validator
+loads the TLS material, so a missing CA or a wrong password is a config error naming the
+file and its line, not a retry loop at the first request.
 """
 
 from __future__ import annotations
@@ -17,11 +18,14 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validat
 
 from gateway.transports.tls import TlsFiles, tls_problem
 
-__all__ = ["HttpsEndpoint", "check_https_url"]
+__all__ = ["HttpsClientOptions", "HttpsEndpoint", "check_https_url"]
 
 
-def check_https_url(value: str) -> str:
-    """``value`` if it is ``https://HOST[:PORT][/PATH]``, else ``ValueError`` saying why."""
+def check_https_url(value: str, *, allow_query: bool = False) -> str:
+    """``value`` if it is ``https://HOST[:PORT][/PATH]``, else ``ValueError`` saying why.
+
+    A query is refused unless ``allow_query`` (a full URL, not a base that paths follow).
+    """
     parts = urlsplit(value)
     try:
         port = parts.port
@@ -31,21 +35,18 @@ def check_https_url(value: str) -> str:
         raise ValueError("expected https://HOST[:PORT][/PATH]")
     if parts.username is not None or parts.password is not None:
         raise ValueError("no credentials in the URL; the client certificate identifies us")
-    if parts.query:
+    if parts.query and not allow_query:
         raise ValueError("no query in a base URL; the paths below it are fixed")
     if parts.fragment:
         raise ValueError("a fragment is never sent: drop it")
     return value
 
 
-class HttpsEndpoint(BaseModel):
-    """Where one HTTPS C2 server listens and the TLS material to reach it."""
+class HttpsClientOptions(BaseModel):
+    """The TLS material and the deadline of an HTTPS client with a client certificate."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    base_url: str = Field(
-        description="https://HOST[:PORT][/PATH]; the endpoints' paths are appended to it."
-    )
     ca_file: Path = Field(description="The CA pinned for the server's certificate.")
     trust_system_store: bool = Field(
         default=False,
@@ -64,18 +65,15 @@ class HttpsEndpoint(BaseModel):
         description="Deadline of each request, whole: connect, send and read the answer.",
     )
 
-    @field_validator("base_url")
-    @classmethod
-    def _https_only(cls, value: str) -> str:
-        return check_https_url(value).rstrip("/")
-
     @model_validator(mode="after")
-    def _one_client_certificate(self, info: ValidationInfo) -> HttpsEndpoint:
+    def _one_client_certificate(self, info: ValidationInfo) -> HttpsClientOptions:
         if (self.cert_file is None) == (self.pkcs12_file is None):
             raise ValueError("give exactly one of cert_file (PEM) or pkcs12_file")
         if self.key_file is not None and self.cert_file is None:
             raise ValueError("key_file goes with cert_file")
         if isinstance(info.context, dict) and info.context.get("environment"):
+            # On the node (run, check-config): read the files now, so a missing CA or a wrong
+            # password is a config error with its line, not a retry loop at the first request.
             problem = tls_problem(self.tls_files)
             if problem is not None:
                 raise ValueError(problem)
@@ -92,6 +90,19 @@ class HttpsEndpoint(BaseModel):
             self.password_file,
             self.trust_system_store,
         )
+
+
+class HttpsEndpoint(HttpsClientOptions):
+    """Where one HTTPS C2 server listens (a base URL) and the TLS material to reach it."""
+
+    base_url: str = Field(
+        description="https://HOST[:PORT][/PATH]; the endpoints' paths are appended to it."
+    )
+
+    @field_validator("base_url")
+    @classmethod
+    def _https_only(cls, value: str) -> str:
+        return check_https_url(value).rstrip("/")
 
     def url(self, path: str) -> str:
         """The URL of ``path`` (starting with ``/``) below ``base_url``."""
