@@ -22,6 +22,7 @@ from gateway.codecs.nffi import (
     MAX_TRACKS,
     NffiError,
     NffiOptions,
+    ParsedMessage,
     encode_message,
     encode_track,
     fit_identifier,
@@ -31,6 +32,7 @@ from gateway.codecs.nffi import (
 from gateway.codecs.nffi_stream import MessageSplitter
 from gateway.errors import FrameError
 from gateway.events import BlueForce, Position, Telemetry, Velocity
+from gateway.testing import fuzz_examples
 
 PROBLEMS = {"oversize", "dtd", "xml", "root"}
 XSD_NAME = "nffi/nffi13_sip3/SIP3_Service_ReqRes.xsd_1.xsd"
@@ -56,6 +58,14 @@ def xsd() -> etree.XMLSchema:
     if path is None:
         pytest.skip(f"the NFFI 1.3 XSD ({XSD_NAME}) is not in shared/corpus")
     return etree.XMLSchema(etree.parse(str(path)))
+
+
+def parse_or_problem(data: bytes, max_bytes: int = 1 << 20) -> ParsedMessage | str:
+    """The message, or the problem code of the ``NffiError`` (any other exception escapes)."""
+    try:
+        return parse_message(data, max_bytes=max_bytes)
+    except NffiError as exc:
+        return exc.problem
 
 
 def validate(xsd: etree.XMLSchema, document: bytes) -> None:
@@ -142,7 +152,7 @@ class TestEncoding:
         assert encode_track(telemetry(position=None), OPTS) is None
         assert encode_track(blue(position=Position(lat_deg=0.0, lon_deg=0.0)), OPTS) is None
 
-    @settings(max_examples=100, deadline=None)
+    @settings(max_examples=fuzz_examples(100), deadline=None)
     @given(st.text(max_size=120), st.integers(min_value=1, max_value=60))
     def test_identifiers_always_fit_the_schema_alphabet(self, text: str, size: int) -> None:
         fitted = fit_identifier(text, size)
@@ -159,7 +169,9 @@ positions = st.builds(
 
 
 @settings(
-    max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+    max_examples=fuzz_examples(150),
+    deadline=None,
+    suppress_health_check=[HealthCheck.function_scoped_fixture],
 )
 @given(
     position=positions,
@@ -235,17 +247,13 @@ class TestParsing:
         data = f'<n:NFFIMessage xmlns:n="urn:nato:fft:protocols:nffi14">{good}</n:NFFIMessage>'
         assert len(parse_message(data.encode()).tracks) == 1
 
-    @settings(max_examples=400, deadline=None)
+    @settings(max_examples=fuzz_examples(400), deadline=None)
     @given(st.binary(max_size=2048))
     def test_arbitrary_bytes_are_tracks_or_an_nffi_error(self, data: bytes) -> None:
-        try:
-            message = parse_message(data, max_bytes=1024)
-        except NffiError as exc:
-            assert exc.problem in PROBLEMS
-        else:
-            assert len(message.tracks) + len(message.skipped) <= MAX_TRACKS + 1
+        outcome = parse_or_problem(data, max_bytes=1024)
+        assert outcome in PROBLEMS or isinstance(outcome, ParsedMessage)
 
-    @settings(max_examples=300, deadline=None)
+    @settings(max_examples=fuzz_examples(300), deadline=None)
     @given(st.lists(st.tuples(st.integers(0, 10**6), st.binary(max_size=4)), max_size=6))
     def test_a_mangled_valid_document_is_tracks_or_an_nffi_error(
         self, edits: list[tuple[int, bytes]]
@@ -257,12 +265,11 @@ class TestParsing:
         for where, replacement in edits:
             at = where % len(data)
             data[at : at + len(replacement)] = replacement
-        try:
-            message = parse_message(bytes(data))
-        except NffiError as exc:
-            assert exc.problem in PROBLEMS
-            return
-        assert len(message.tracks) + len(message.skipped) <= 2
+        outcome = parse_or_problem(bytes(data))
+        if isinstance(outcome, ParsedMessage):
+            assert len(outcome.tracks) + len(outcome.skipped) <= 2
+        else:
+            assert outcome in PROBLEMS
 
 
 class TestFraming:
@@ -284,7 +291,7 @@ class TestFraming:
         assert splitter.feed(b"<NFFIMessage>" + b"<track>" * 200) == []
         assert splitter.is_overflowing
 
-    @settings(max_examples=300, deadline=None)
+    @settings(max_examples=fuzz_examples(300), deadline=None)
     @given(st.lists(st.binary(max_size=600), max_size=8), st.sampled_from([b"", b"</NFFIMessage>"]))
     def test_arbitrary_streams_split_and_parse_without_surprises(
         self, chunks: list[bytes], tail: bytes
@@ -293,10 +300,8 @@ class TestFraming:
         for chunk in [*chunks, tail]:
             for document in splitter.feed(chunk):
                 assert document.rstrip().endswith(b">")
-                try:
-                    parse_message(document, max_bytes=2048)
-                except NffiError as exc:
-                    assert exc.problem in PROBLEMS
+                outcome = parse_or_problem(document, max_bytes=2048)
+                assert outcome in PROBLEMS or isinstance(outcome, ParsedMessage)
             if splitter.is_overflowing:
                 break
         assert splitter.buffered <= 2048 + 600 + len(tail)
