@@ -114,7 +114,9 @@ class NffiSinkConfig(SinkConfig):
     @classmethod
     def _known_kinds(cls, value: frozenset[EventKind]) -> frozenset[EventKind]:
         if extra := value - _KINDS:
-            raise ValueError(f"NFFI carries telemetry and blue_force, not {sorted(extra)}")
+            raise ValueError(
+                f"NFFI carries telemetry and blue_force, not {sorted(k.value for k in extra)}"
+            )
         return value
 
     @field_validator("uri")

@@ -44,6 +44,7 @@ from gateway.codecs.nffi_stream import MessageSplitter
 from gateway.events import BlueForce, Event, Position, event_id
 from gateway.ops.logsetup import RateLimit
 from gateway.transports.listener import Connection, TcpListener
+from gateway.transports.tls import TlsFiles, unreadable_file
 
 __all__ = ["FUTURE_TOLERANCE", "LOG_INTERVAL_S", "NffiSource", "NffiSourceConfig", "NffiSourceTls"]
 
@@ -121,6 +122,9 @@ class NffiSourceConfig(BaseModel):
 
 def _server_context(tls: NffiSourceTls) -> ssl.SSLContext:
     """TLS 1.2+ server context that demands a client certificate from ``client_ca_file``."""
+    files = TlsFiles(tls.client_ca_file, tls.cert_file, tls.key_file, None, tls.password_file)
+    if (problem := unreadable_file(files)) is not None:
+        raise ValueError(problem)
     context = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
     context.minimum_version = ssl.TLSVersion.TLSv1_2
     context.verify_mode = ssl.CERT_REQUIRED
