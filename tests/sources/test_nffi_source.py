@@ -231,3 +231,27 @@ async def test_tls_needs_a_client_certificate_from_the_ca(tmp_path: Path) -> Non
             await stream.send(report("member"))
             await wait(lambda: len(published) == 1, "the report over TLS")
     assert [e.uid for e in published if isinstance(e, BlueForce)] == ["SWE.JAS39-RELAY.member"]
+
+
+@pytest.mark.anyio
+async def test_silent_peers_are_closed_and_evicted_for_new_ones() -> None:
+    published: list[Event] = []
+    nffi = source(published, idle_timeout_s=0.5, max_clients=1)
+    async with serving(nffi) as port:
+        silent = await anyio.connect_tcp("127.0.0.1", port)
+        async with silent, await anyio.connect_tcp("127.0.0.1", port) as reporter:
+            # The silent one never sent a document: the reporter takes its place.
+            with (
+                anyio.fail_after(10),
+                pytest.raises((anyio.EndOfStream, anyio.BrokenResourceError)),
+            ):
+                await silent.receive()
+            await reporter.send(report())
+            await wait(lambda: len(published) == 1, "the reporter's track")
+            with (
+                anyio.fail_after(10),
+                pytest.raises((anyio.EndOfStream, anyio.BrokenResourceError)),
+            ):
+                await reporter.receive()  # then silent for idle_timeout_s: closed
+    assert nffi.counts["idle_closed"] == 1
+    assert nffi.status()["connections"]["evicted"] == 1  # type: ignore[index]
