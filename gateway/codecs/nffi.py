@@ -23,6 +23,7 @@ import xml.etree.ElementTree as ET
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
+from functools import lru_cache
 from xml.sax.saxutils import escape, quoteattr
 
 from defusedxml import DefusedXmlException
@@ -146,8 +147,18 @@ def _element(tag: str, value: str, **attrs: str | None) -> str:
     return f"<{tag}{attributes}>{escape(value)}</{tag}>"
 
 
-def _labels(opts: NffiOptions) -> dict[str, str | None]:
-    return {"secPolicyName": opts.sec_policy_name, "secClassification": opts.sec_classification}
+@lru_cache(maxsize=64)
+def _releaser(opts: NffiOptions) -> tuple[str, str]:
+    """The ``sourceSystem`` children and the security-label attributes: the same every track."""
+    system = "".join(
+        (
+            _element("country", opts.country) if opts.country else "",
+            _element("system", fit_identifier(opts.system, 30)),
+            _element("subsystem", fit_identifier(opts.subsystem, 30)) if opts.subsystem else "",
+        )
+    )
+    labels = {"secPolicyName": opts.sec_policy_name, "secClassification": opts.sec_classification}
+    return system, "".join(f" {k}={quoteattr(v)}" for k, v in labels.items() if v is not None)
 
 
 def _course_speed(event: Telemetry | BlueForce) -> tuple[float | None, float | None]:
@@ -202,17 +213,11 @@ def encode_track(event: Event, opts: NffiOptions) -> str | None:
         return None
     if position.lat_deg == 0.0 and position.lon_deg == 0.0:
         return None  # no fix: never a track at Null Island
-    lon = 180.0 if position.lon_deg == -180.0 else position.lon_deg  # schema: (-180, 180]
-    system = "".join(
-        (
-            _element("country", opts.country) if opts.country else "",
-            _element("system", fit_identifier(opts.system, 30)),
-            _element("subsystem", fit_identifier(opts.subsystem, 30)) if opts.subsystem else "",
-        )
-    )
-    coordinates = _element("latitude", _number(position.lat_deg)) + _element(
-        "longitude", _number(lon)
-    )
+    system, labels = _releaser(opts)
+    longitude = _number(position.lon_deg)
+    if longitude.startswith("-180") and float(longitude) <= -180.0:
+        longitude = "180"  # the same meridian: the schema's longitude is (-180, 180]
+    coordinates = _element("latitude", _number(position.lat_deg)) + _element("longitude", longitude)
     altitude = _altitude_msl(position, opts.geoid)
     if altitude is not None:
         coordinates += _element("altitude", _number(altitude))
@@ -231,7 +236,6 @@ def encode_track(event: Event, opts: NffiOptions) -> str | None:
     identification = _element("unitSymbol", symbol) + _element(
         "unitShortName", fit_identifier(short_name, 15)
     )
-    labels = "".join(f" {k}={quoteattr(v)}" for k, v in _labels(opts).items() if v is not None)
     return (
         f"<track><positionalData{labels}>{positional}</positionalData>"
         f"<identificationData{labels}>{identification}</identificationData></track>"
@@ -262,17 +266,19 @@ def _local(tag: object) -> tuple[str | None, str]:
     return None, tag
 
 
-def _child(parent: ET.Element, name: str) -> ET.Element | None:
-    for child in parent:
-        if _local(child.tag)[1] == name:
-            return child
-    return None
+def _children(parent: ET.Element | None) -> dict[str, ET.Element]:
+    """``parent``'s child elements by local name (the first of each name wins)."""
+    found: dict[str, ET.Element] = {}
+    if parent is not None:
+        for child in parent:
+            tag = child.tag
+            if isinstance(tag, str):
+                found.setdefault(tag.rpartition("}")[2], child)
+    return found
 
 
-def _text(parent: ET.Element | None, name: str) -> str | None:
-    if parent is None:
-        return None
-    child = _child(parent, name)
+def _text(children: dict[str, ET.Element], name: str) -> str | None:
+    child = children.get(name)
     if child is None or child.text is None:
         return None
     return child.text.strip() or None
@@ -283,8 +289,8 @@ class _TrackProblem(Exception):
         self.problem = problem
 
 
-def _float(parent: ET.Element | None, name: str, low: float, high: float) -> float | None:
-    text = _text(parent, name)
+def _float(children: dict[str, ET.Element], name: str, low: float, high: float) -> float | None:
+    text = _text(children, name)
     if text is None:
         return None
     try:
@@ -296,32 +302,39 @@ def _float(parent: ET.Element | None, name: str, low: float, high: float) -> flo
     return value
 
 
+def _time(stamp: str | None) -> datetime:
+    if stamp is None or not _DIGITS14.fullmatch(stamp):
+        raise _TrackProblem("dateTime")
+    try:
+        return datetime(
+            int(stamp[0:4]), int(stamp[4:6]), int(stamp[6:8]),
+            int(stamp[8:10]), int(stamp[10:12]), int(stamp[12:14]), tzinfo=UTC,
+        )  # fmt: skip
+    except ValueError:  # month 13, 30 February, hour 24 ...
+        raise _TrackProblem("dateTime") from None
+
+
 def _track(element: ET.Element) -> NffiTrack:
-    positional = _child(element, "positionalData")
-    if positional is None:
+    parts = _children(element)
+    if "positionalData" not in parts:
         raise _TrackProblem("positionalData")
-    source = _child(positional, "trackSource")
-    system_element = None if source is None else _child(source, "sourceSystem")
-    system = _text(system_element, "system")
+    positional = _children(parts["positionalData"])
+    source = _children(positional.get("trackSource"))
+    system_parts = _children(source.get("sourceSystem"))
+    system = _text(system_parts, "system")
     transponder = _text(source, "transponderId")
     if not system or not transponder or len(system) > 30 or len(transponder) > 60:
         raise _TrackProblem("trackSource")
     if _NOT_ALLOWED.search(system) or _NOT_ALLOWED.search(transponder):
         raise _TrackProblem("trackSource")
-    country = _text(system_element, "country")
+    country = _text(system_parts, "country")
     if country is not None and not _COUNTRY.fullmatch(country):
         raise _TrackProblem("country")
-    subsystem = _text(system_element, "subsystem")
+    subsystem = _text(system_parts, "subsystem")
     if subsystem is not None and (len(subsystem) > 30 or _NOT_ALLOWED.search(subsystem)):
         raise _TrackProblem("subsystem")
-    stamp = _text(positional, "dateTime")
-    if stamp is None or not _DIGITS14.fullmatch(stamp):
-        raise _TrackProblem("dateTime")
-    try:
-        time = datetime.strptime(stamp, "%Y%m%d%H%M%S").replace(tzinfo=UTC)
-    except ValueError:
-        raise _TrackProblem("dateTime") from None
-    coordinates = _child(positional, "coordinates")
+    time = _time(_text(positional, "dateTime"))
+    coordinates = _children(positional.get("coordinates"))
     lat = _float(coordinates, "latitude", -90.0, 90.0)
     lon = _float(coordinates, "longitude", -180.0, 180.0)
     if lat is None or lon is None or lon == -180.0:
@@ -331,7 +344,7 @@ def _track(element: ET.Element) -> NffiTrack:
     if bearing == 360.0:
         raise _TrackProblem("bearing")
     speed_kmh = _float(positional, "speed", 0.0, _MAX_SPEED_KMH)
-    identification = _child(element, "identificationData")
+    identification = _children(parts.get("identificationData"))
     symbol = _text(identification, "unitSymbol")
     if symbol is not None and not _SIDC.fullmatch(symbol):
         raise _TrackProblem("unitSymbol")
@@ -379,7 +392,7 @@ def parse_message(data: bytes, *, max_bytes: int = MAX_MESSAGE_BYTES) -> ParsedM
     tracks: list[NffiTrack] = []
     skipped: list[str] = []
     for element in root:
-        if _local(element.tag)[1] != "track":
+        if str(element.tag).rpartition("}")[2] != "track":
             continue
         if len(tracks) + len(skipped) >= MAX_TRACKS:
             skipped.append("too_many_tracks")

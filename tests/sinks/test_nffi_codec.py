@@ -124,6 +124,15 @@ class TestEncoding:
         assert track.bearing_deg == 0.0  # never 360: the schema's bearing is < 360
         assert track.speed_mps == pytest.approx(10.0)
 
+    def test_a_longitude_that_rounds_to_minus_180_is_written_180(
+        self, xsd: etree.XMLSchema
+    ) -> None:
+        """Found by hypothesis: -179.99999999 printed with 7 decimals is -180, out of range."""
+        event = telemetry(position=Position(lat_deg=1.0, lon_deg=-179.99999999))
+        document = encode_message(tracks_of([event], OPTS))
+        validate(xsd, document)
+        assert parse_message(document).tracks[0].lon_deg == 180.0
+
     def test_relayed_friend_with_odd_names_is_schema_valid(self, xsd: etree.XMLSchema) -> None:
         event = blue(
             uid="ANDROID abc/def " + "x" * 80,
@@ -195,8 +204,10 @@ def test_any_telemetry_encodes_valid_and_reads_back(
     (track,) = parse_message(document).tracks
     assert track.time == time
     assert track.lat_deg == pytest.approx(position.lat_deg, abs=1e-7)
-    lon = 180.0 if position.lon_deg == -180.0 else position.lon_deg
-    assert track.lon_deg == pytest.approx(lon, abs=1e-7)
+    if track.lon_deg == 180.0 and position.lon_deg < 0:
+        assert position.lon_deg <= -180.0 + 5e-8  # written as 180: the same meridian
+    else:
+        assert track.lon_deg == pytest.approx(position.lon_deg, abs=1e-7)
     if position.alt_msl_m is not None:
         assert track.alt_msl_m == pytest.approx(position.alt_msl_m, abs=1e-6)
     assert track.speed_mps == pytest.approx(math.hypot(north, east), abs=1e-3)
