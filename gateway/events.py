@@ -245,6 +245,10 @@ class BlueForce(BaseModel):
     callsign: str = ""
     position: Position
     source: str
+    course_deg: float | None = Field(default=None, ge=0.0, lt=360.0)
+    speed_mps: float | None = Field(default=None, ge=0.0)
+    sidc: str | None = Field(default=None, pattern=r"^[A-Z0-9*-]{15}$")
+    """The unit's 15-character letter SIDC (APP-6A / 2525B/C) when the report gave one."""
 
 
 class EffectorOption(BaseModel):

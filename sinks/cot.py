@@ -1,5 +1,10 @@
 """The CoT sink: own airframes, detections and tracks to ATAK/WinTAK/iTAK and TAK servers.
 
+Relayed friendly units (``blue_force``, e.g. from the NFFI source) are sent too when a route
+gives them to the sink (not by default): with their own uid, a friendly type from their SIDC
+(``a-f-G`` without one), ``how="h-e"`` and ``stale.blue_force_s``. Do not route the CoT
+source's blue force back to the mesh it came from: ATAK devices already see each other.
+
 Destinations are URIs: ``udp://`` (unicast, or multicast when the address is a group) and
 ``udp+multicast://`` (ATAK's SA mesh is ``udp+multicast://239.2.3.1:6969``; ``?ttl=`` and
 ``?iface=`` set TTL and interface), ``tcp://HOST:8087`` and ``tls://HOST:8089`` (a TAK server
@@ -62,7 +67,13 @@ CotProtocol = Literal["xml", "protobuf", "negotiate"]
 _FROZEN = ConfigDict(frozen=True, extra="forbid")
 _SCHEMES = ("udp", "udp+multicast", "tcp", "tls")
 _ACCEPTED_KINDS = frozenset(
-    {EventKind.TELEMETRY, EventKind.DETECTION, EventKind.TRACK, EventKind.LINK_STATE}
+    {
+        EventKind.TELEMETRY,
+        EventKind.DETECTION,
+        EventKind.TRACK,
+        EventKind.LINK_STATE,
+        EventKind.BLUE_FORCE,
+    }
 )
 
 
@@ -187,6 +198,9 @@ class CotStale(BaseModel):
     telemetry_s: float = Field(default=15.0, ge=1.0, description="Own airframes.")
     detection_s: float = Field(default=120.0, ge=1.0, description="Single detections.")
     track_s: float = Field(default=300.0, ge=1.0, description="Fused tracks.")
+    blue_force_s: float = Field(
+        default=600.0, ge=1.0, description="Relayed friendly units (blue_force)."
+    )
 
 
 def _uri_strings_too(schema: dict[str, Any]) -> None:
@@ -252,7 +266,9 @@ class CotSinkConfig(SinkConfig):
     @classmethod
     def _known_kinds(cls, value: frozenset[EventKind]) -> frozenset[EventKind]:
         if extra := value - _ACCEPTED_KINDS:
-            raise ValueError(f"the cot sink takes telemetry, detection and track, not {extra}")
+            raise ValueError(
+                f"the cot sink takes telemetry, detection, track and blue_force, not {extra}"
+            )
         return value
 
 
@@ -276,7 +292,9 @@ class CotSink:
         self.options = CotOptions(
             uid_prefix=config.uid_prefix,
             callsign_prefix=config.callsign_prefix,
-            stale=StaleTimes(stale.telemetry_s, stale.detection_s, stale.track_s),
+            stale=StaleTimes(
+                stale.telemetry_s, stale.detection_s, stale.track_s, stale.blue_force_s
+            ),
             loitering_munition=config.loitering_munition,
             detection_hostility=config.detection_hostility,
             geoid=geoid.undulation,

@@ -27,6 +27,7 @@ DESCRIPTIONS = {
     "durability.md": "durable delivery: the spool, detection acknowledgements, dead letters",
     "detection-ack.md": "FISCHER_DETECTION_ACK: what an airframe must do to lose no detection",
     "slb.md": "the SLB sink and order source: endpoints, JC3IEDM payload, options",
+    "nffi.md": "the NFFI sink and source: mapping, IP1 framing, trust, options",
     "sweccis.md": "the SWECCIS sink and order source: FAS documents, framing, XSD, options",
     "security.md": "threat model per link mode and port, listener limits, the attack tests",
     "README.md": "what works today",

@@ -6,8 +6,9 @@ mesh protobuf, UDP multicast on loopback, TCP, TLS with a client certificate (tr
 TCP with TAK protocol v1 negotiation, the GUTE II sink to an HTTPS battery (client
 certificate, JSON Schema checked) fed by the fusion and counter_uas processors, the SLB sink
 (detections and tracks as JC3IEDM object items over HTTPS), the SWECCIS sink and order source to
-one SWECCIS server (TLS, client certificate, XSD checked), plus a UDP and a TCP CoT source and
-the SLB order source. The simulator
+one SWECCIS server (TLS, client certificate, XSD checked), the NFFI sink (IP1 TCP and a file,
+NFFI 1.3 XSD checked), plus a UDP and a TCP CoT source, the SLB order source and the NFFI
+source (a JAS 39 relay's friendly track over IP1). The simulator
 (``fischer-gateway simulate --scenario loitering-munitions``: two airframes, two Lancets seen
 on EO and IR) feeds it for more than ten seconds while every peer here decodes
 what it receives with takproto and /readyz is sampled; then SIGTERM must stop it cleanly.
@@ -37,10 +38,14 @@ import pytest
 import trustme
 from anyio.streams.tls import TLSListener
 from gute_peer import GutePeer
+from lxml import etree
 from slb_peer import SlbPeer
 from sweccis_peer import SweccisPeer, order_document
 
 from gateway.codecs.cot.proto import read_varint
+from gateway.codecs.nffi import NffiOptions, encode_message, parse_message, tracks_of
+from gateway.codecs.nffi_stream import MessageSplitter
+from gateway.events import BlueForce, Position
 
 takproto = pytest.importorskip("takproto")
 
@@ -175,6 +180,79 @@ async def http_get(port: int, path: str) -> tuple[int, bytes]:
     return int(head.split()[1]), body
 
 
+NFFI_XSD = "nffi/nffi13_sip3/SIP3_Service_ReqRes.xsd_1.xsd"
+
+
+def nffi_xsd() -> etree.XMLSchema | None:
+    """NATO's NFFI 1.3 XSD from the shared corpus (never shipped: its licence), if there."""
+    for root in (
+        Path(__file__).resolve().parents[3] / "shared" / "corpus",
+        Path("/work/shared/corpus"),
+    ):
+        if (root / NFFI_XSD).is_file():
+            return etree.XMLSchema(etree.parse(str(root / NFFI_XSD)))
+    return None
+
+
+@dataclass
+class NffiLeg:
+    """The NFFI sink's IP1 peer (documents as received), its file, and the source's port."""
+
+    tmp: Path
+    source_port: int = 0
+    port: int = 0
+    documents: list[bytes] = field(default_factory=list)
+
+    async def run(self, *, task_status: anyio.abc.TaskStatus[None]) -> None:
+        listener = await anyio.create_tcp_listener(local_host="127.0.0.1", local_port=0)
+        self.port = listener.extra(anyio.abc.SocketAttribute.local_port)
+        task_status.started()
+        async with listener:
+            await listener.serve(self.handle)
+
+    async def handle(self, stream: anyio.abc.ByteStream) -> None:
+        splitter = MessageSplitter(1 << 20)
+        with contextlib.suppress(anyio.BrokenResourceError, OSError):
+            async with stream:
+                async for chunk in stream:
+                    self.documents += splitter.feed(chunk)
+
+    def config(self) -> dict[str, list[dict[str, Any]]]:
+        """Its sink (own airframes and relayed friends), source and routes."""
+        options = {"uri": f"tcp://127.0.0.1:{self.port}", "path": str(self.tmp / "nffi.xml")}
+        return {
+            "sinks": [{"name": "nffi", "type": "nffi", "options": options | {"country": "SWE"}}],
+            "sources": [
+                {
+                    "name": "nffi_in",
+                    "type": "nffi",
+                    "uri": f"tcp://127.0.0.1:{self.source_port}",
+                    "allow": ["127.0.0.1/32"],
+                }
+            ],
+            "routes": [{"sinks": ["nffi"], "kinds": ["telemetry", "blue_force"]}],
+        }
+
+    async def feed(self) -> None:
+        """A JAS 39 relay sends one friendly fighter's track to the NFFI source."""
+        fighter = BlueForce(
+            event_id="-",
+            uid="39-7",
+            time=datetime.now(UTC),
+            callsign="GRIPEN 7",
+            position=Position(lat_deg=65.9, lon_deg=21.8, alt_msl_m=4000.0),
+            source="-",
+            speed_mps=250.0,
+            sidc="SFAPMFF--------",
+        )
+        document = encode_message(tracks_of([fighter], NffiOptions(system="JAS39", country="SWE")))
+        async with await anyio.connect_tcp("127.0.0.1", self.source_port) as stream:
+            await stream.send(document)
+
+    def file_documents(self) -> list[bytes]:
+        return MessageSplitter(1 << 24).feed((self.tmp / "nffi.xml").read_bytes())
+
+
 @dataclass
 class MatrixRun:
     """Everything the run left behind, for the tests to check."""
@@ -197,6 +275,8 @@ class MatrixRun:
     """The SLB the slb sink reports to and the slb source takes an order from."""
     sweccis: SweccisPeer | None = None
     """The SWECCIS server of the sweccis sink and order source."""
+    nffi: NffiLeg | None = None
+    """The NFFI sink's IP1 peer and file, and the NFFI source's port."""
 
 
 def write_config(run: MatrixRun, ports: dict[str, int], pki: dict[str, str]) -> Path:
@@ -269,6 +349,9 @@ def write_config(run: MatrixRun, ports: dict[str, int], pki: dict[str, str]) -> 
             {"sinks": ["sweccis"], "kinds": ["telemetry", "detection", "track"]},
         ],
     }
+    if run.nffi is not None:
+        for key, items in run.nffi.config().items():
+            config[key] += items
     path = run.tmp / "config.yaml"
     path.write_text(json.dumps(config, indent=1))  # JSON is YAML
     return path
@@ -329,6 +412,8 @@ async def scenario(run: MatrixRun, pki_files: dict[str, str], server_tls: ssl.SS
             SweccisPeer(run.tmp / "sweccis") as sweccis,
         ):
             run.gute, run.slb, run.sweccis = gute, slb, sweccis
+            run.nffi = NffiLeg(run.tmp, source_port=free_port(socket.SOCK_STREAM))
+            await tg.start(run.nffi.run)
             slb.queue_order(SLB_ORDER)
             await sweccis.push_order(order_document("m-doc-1", "M-1"))  # sent on registering
             for peer in run.peers.values():
@@ -359,6 +444,7 @@ async def scenario(run: MatrixRun, pki_files: dict[str, str], server_tls: ssl.SS
                 ]  # fmt: skip
                 async with await anyio.open_process(simulate) as simulator:
                     await feed_sources(ports)
+                    await run.nffi.feed()
                     with anyio.fail_after(RUN_S + 10):
                         while simulator.returncode is None:
                             run.ready_samples.append(
@@ -505,7 +591,7 @@ class TestCotSource:
         assert counts["stream_in"] == {"fragment": 1, "accepted": 1}
         lines = [json.loads(line) for line in (matrix.tmp / "a.jsonl").read_text().splitlines()]
         uids = {line["uid"] for line in lines if line["kind"] == "blue_force"}
-        assert uids == {"ANDROID-MESH", "ANDROID-TCP"}
+        assert uids - {"SWE.JAS39.39-7"} == {"ANDROID-MESH", "ANDROID-TCP"}  # that one is NFFI's
 
 
 class TestCounterUas:
@@ -583,3 +669,33 @@ class TestSweccis:
         assert [o["event_id"] for o in orders] == ["sweccis-order-M-1"]
         counts = {s["source"]: s["counts"] for s in matrix.status["sources"]}
         assert counts["orders_in"] == {"accepted": 1}
+
+
+class TestNffi:
+    """NFFI 1.3 both ways: own airframes and relayed friends out over IP1 and to a file (XSD
+    checked); a JAS 39 relay's track in through the NFFI source as blue force."""
+
+    def test_the_ip1_peer_and_the_file_got_valid_tracks(self, matrix: MatrixRun) -> None:
+        leg = matrix.nffi
+        assert leg is not None
+        status = sink_status(matrix, "nffi")
+        assert (status["state"], status["open"], status["dead_letters"]) == ("open", True, 0)
+        tracks = [t for d in leg.documents for t in parse_message(d).tracks]
+        units = {t.transponder_id for t in tracks}
+        # Own airframes, and the friends relayed from ATAK and from the JAS 39 relay.
+        assert {"F26E-001", "F26E-002", "ANDROID-MESH", "ANDROID-TCP"} <= units
+        assert "SWE.JAS39.39-7" in units
+        assert {d.strip() for d in leg.documents} <= {d.strip() for d in leg.file_documents()}
+        xsd = nffi_xsd()
+        if xsd is None:
+            pytest.skip(f"the NFFI 1.3 XSD ({NFFI_XSD}) is not in shared/corpus")
+        for document in leg.documents + leg.file_documents():
+            assert xsd.validate(etree.fromstring(document)), str(xsd.error_log)
+
+    def test_the_relayed_fighter_came_in_as_blue_force(self, matrix: MatrixRun) -> None:
+        counts = {s["source"]: s["counts"] for s in matrix.status["sources"]}
+        assert counts["nffi_in"] == {"accepted": 1}
+        lines = [json.loads(line) for line in (matrix.tmp / "a.jsonl").read_text().splitlines()]
+        (fighter,) = [e for e in lines if e["kind"] == "blue_force" and e["source"] == "nffi"]
+        assert (fighter["uid"], fighter["sidc"]) == ("SWE.JAS39.39-7", "SFAPMFF--------")
+        assert fighter["speed_mps"] == pytest.approx(250.0)

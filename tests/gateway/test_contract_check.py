@@ -28,6 +28,7 @@ from sinks.example import ExampleSink
 OPTIONS: dict[str, Any] = {
     "jsonl": lambda tmp: {"path": str(tmp / "contract.jsonl")},
     "cot": lambda tmp: {"destinations": [{"uri": "udp://127.0.0.1:9"}]},
+    "nffi": lambda tmp: {"path": str(tmp / "contract.nffi.xml")},
 }
 
 

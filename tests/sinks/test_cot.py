@@ -554,7 +554,7 @@ class TestConfig:
         kinds = ["telemetry", "link_state"]
         assert CotSinkConfig.model_validate({"destinations": ["udp://h:1"], "kinds": kinds})
         with pytest.raises(ValidationError, match="not"):
-            CotSinkConfig.model_validate({"destinations": ["udp://h:1"], "kinds": ["blue_force"]})
+            CotSinkConfig.model_validate({"destinations": ["udp://h:1"], "kinds": ["handoff"]})
 
     def test_a_partial_stale_table_is_completed_at_load(self) -> None:
         """Issue 10: a partial stale table must not reach ``send`` as a KeyError."""

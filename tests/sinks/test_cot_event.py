@@ -14,7 +14,16 @@ from gateway.codecs.cot.event import CotOptions, StaleTimes, build
 from gateway.codecs.cot.symbols import cot_type_from_sidc, object_symbol, own_symbol
 from gateway.codecs.cot.validate import UNKNOWN
 from gateway.domain.geoid import GeoidGrid, bundled_geoid
-from gateway.events import Detection, LinkState, Position, Sensor, Telemetry, Track, Velocity
+from gateway.events import (
+    BlueForce,
+    Detection,
+    LinkState,
+    Position,
+    Sensor,
+    Telemetry,
+    Track,
+    Velocity,
+)
 
 T0 = datetime(2026, 11, 22, 10, 15, 30, 250000, tzinfo=UTC)
 DATA = Path(__file__).resolve().parents[2] / "gateway" / "data"
@@ -348,3 +357,40 @@ class TestGeoid:
         grid.write_bytes(grid.read_bytes()[:100])
         with pytest.raises(ValueError, match="disagree"):
             GeoidGrid.from_gtx(grid)
+
+
+class TestBlueForce:
+    """Relayed friendly units (NFFI, CoT): friendly whatever the report says, never at 0,0."""
+
+    def friend(self, **changes: object) -> BlueForce:
+        values: dict[str, object] = {
+            "event_id": "nffi-SWE.JAS39.39-7-1",
+            "uid": "SWE.JAS39.39-7",
+            "time": datetime(2026, 11, 22, 10, 10, tzinfo=UTC),
+            "callsign": "GRIPEN-7",
+            "position": Position(lat_deg=65.9, lon_deg=21.8, alt_msl_m=4000.0),
+            "source": "nffi",
+            "speed_mps": 250.0,
+            "course_deg": 359.999,
+            "sidc": "SFAPMFF--------",
+        }
+        return BlueForce.model_validate(values | changes)
+
+    def test_typed_from_its_sidc_with_its_own_uid_course_and_speed(self) -> None:
+        cot = build(self.friend(), CotOptions())
+        assert cot is not None
+        assert (cot.uid, cot.type, cot.how, cot.callsign) == (
+            "SWE.JAS39.39-7", "a-f-A-M-F-F", "h-e", "GRIPEN-7",
+        )  # fmt: skip
+        assert (cot.course_deg, cot.speed_mps) == (0.0, 250.0)
+        assert cot.stale - cot.time == timedelta(seconds=600)
+        assert "COT_MAPPING_2525C/a-f/a-f-A-M-F-F" in cot.xml_detail
+
+    def test_never_drawn_hostile_and_never_at_null_island(self) -> None:
+        hostile = build(self.friend(sidc="SHGPUCI--------"), CotOptions())
+        assert hostile is not None
+        assert hostile.type == "a-f-G-U-C-I"
+        plain = build(self.friend(sidc=None), CotOptions())
+        assert plain is not None
+        assert plain.type == "a-f-G"
+        assert build(self.friend(position=Position(lat_deg=0.0, lon_deg=0.0)), CotOptions()) is None

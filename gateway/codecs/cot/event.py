@@ -19,11 +19,17 @@ from dataclasses import dataclass, field
 from datetime import datetime, timedelta
 from xml.sax.saxutils import escape, quoteattr
 
-from gateway.codecs.cot.symbols import LoiteringMunition, Symbol, object_symbol, own_symbol
+from gateway.codecs.cot.symbols import (
+    LoiteringMunition,
+    Symbol,
+    cot_type_from_sidc,
+    object_symbol,
+    own_symbol,
+)
 from gateway.codecs.cot.validate import UNKNOWN
 from gateway.domain.sidc import Hostility
 from gateway.domain.targeting import CEP50_FACTOR
-from gateway.events import Detection, Event, Position, Telemetry, Track
+from gateway.events import BlueForce, Detection, Event, Position, Telemetry, Track
 
 __all__ = ["CotEvent", "CotOptions", "Geoid", "StaleTimes", "build", "how_and_source", "xml_safe"]
 
@@ -47,6 +53,7 @@ class StaleTimes:
     telemetry_s: float = 15.0
     detection_s: float = 120.0
     track_s: float = 300.0
+    blue_force_s: float = 600.0
 
 
 @dataclass(frozen=True)
@@ -276,6 +283,38 @@ def _track(event: Track, opts: CotOptions, own_types: Mapping[str, str]) -> CotE
     )
 
 
+def _blue_force(event: BlueForce, opts: CotOptions) -> CotEvent:
+    # NFFI and CoT carry friendly units only: whatever the SIDC says, the type stays friendly
+    # ("a" assumed friend kept), so a relayed report can never draw a unit as hostile.
+    cot_type = cot_type_from_sidc(event.sidc) if event.sidc else "a-f-G"
+    if cot_type[2] not in "fa":
+        cot_type = cot_type[:2] + "f" + cot_type[3:]
+    hae, _ = _hae(event.position, opts.geoid)
+    callsign = xml_safe(event.callsign or event.uid)
+    detail = _element("remarks", f"Blue force relay ({event.source.upper()})")
+    if event.sidc:
+        affiliation = cot_type[2]
+        detail = (
+            _element("usericon", iconsetpath=f"COT_MAPPING_2525C/a-{affiliation}/{cot_type}")
+            + detail
+        )
+    return CotEvent(
+        uid=_uid(event.uid),
+        type=cot_type,
+        how="h-e",  # a relayed report: not our own measurement (cot.md §5)
+        time=event.time,
+        start=event.time,
+        stale=event.time + timedelta(seconds=opts.stale.blue_force_s),
+        lat=event.position.lat_deg,
+        lon=event.position.lon_deg,
+        hae=_num(hae),
+        callsign=callsign,
+        course_deg=None if event.course_deg is None else round(event.course_deg, 2) % 360.0,
+        speed_mps=event.speed_mps,
+        xml_detail=detail,
+    )
+
+
 def build(
     event: Event, opts: CotOptions, own_types: dict[str, str] | None = None
 ) -> CotEvent | None:
@@ -293,4 +332,6 @@ def build(
         return None if not _has_fix(event.position) else _detection(event, opts, types)
     if isinstance(event, Track):
         return None if not _has_fix(event.position) else _track(event, opts, types)
+    if isinstance(event, BlueForce):
+        return None if not _has_fix(event.position) else _blue_force(event, opts)
     return None
