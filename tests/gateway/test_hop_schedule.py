@@ -1,0 +1,200 @@
+"""The hop schedule in the gateway (gateway/fleet/hopschedule.py) against the simulated
+airframe's radio (gateway/sim/radio.py) over real UDP on loopback: upload, answer, re-send
+after a lost answer, refusal, a schedule lost by the airframe, and hop events in."""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime
+from typing import Any
+
+import anyio
+import pytest
+from pymavlink.dialects.v20 import ardupilotmega as apm
+
+from gateway.app import Gateway
+from gateway.config import Config, HopPlanConfig
+from gateway.events import HopEvent, HopReason
+from gateway.fleet.hopdialect import (
+    HOP_RESULT_ACCEPTED,
+    HOP_RESULT_UNSUPPORTED_DWELL,
+    FischerHopEvent,
+    FischerHopSchedule,
+)
+from gateway.fleet.hopschedule import PUBLISH_BURST, hop_schedule_message, schedule_id
+from gateway.sim.airframe import SimProfile, SimulatedAirframe
+from gateway.sim.radio import SimRadio
+from gateway.testing import MemorySink, eventually
+
+PLAN = {
+    "frequencies_mhz": [2405.0, 2420.0, 2435.0, 5800.0],
+    "bandwidth_mhz": 10.0,
+    "dwell_us": 12.0,
+    "ack_timeout_s": 0.3,
+    "retry_max_s": 1.0,
+}
+
+
+def gateway_config(plan: dict[str, Any] | None = PLAN) -> Config:
+    airframe: dict[str, Any] = {
+        "id": "F26E-001",
+        "sysid": 1,
+        "links": [{"uri": "udp://127.0.0.1:0", "security": "unsecured"}],
+    }
+    if plan is not None:
+        airframe["hop_plan"] = plan
+    return Config.model_validate(
+        {
+            "health": {"enabled": False},
+            "airframes": [airframe],
+            "sinks": [{"name": "mem", "type": "memory"}],
+            "routes": [{"sinks": ["mem"], "kinds": ["hop"]}],
+        }
+    )
+
+
+def fast_profile() -> SimProfile:
+    return SimProfile(position_hz=2.0, gps_hz=1.0, status_hz=1.0, hop_event_hz=10.0)
+
+
+async def fly(gateway: Gateway, sim: SimulatedAirframe, until: Any, timeout_s: float = 15) -> None:
+    """Run the gateway and the simulated airframe until ``until()`` holds."""
+    with anyio.fail_after(timeout_s):
+        async with anyio.create_task_group() as tg:
+            await tg.start(gateway.run)
+            port = next(iter(gateway.links.values())).local_port  # type: ignore[attr-defined]
+            tg.start_soon(lambda: sim.run_udp("127.0.0.1", port, duration_s=None))
+            await eventually(until)
+            gateway.shutdown()
+            await gateway.stopped.wait()
+            tg.cancel_scope.cancel()
+
+
+def hop_events(mem: MemorySink) -> list[HopEvent]:
+    return [e for e in mem.events if isinstance(e, HopEvent)]
+
+
+@pytest.mark.anyio
+async def test_the_plan_is_accepted_and_hops_come_back_as_events() -> None:
+    mem = MemorySink("mem")
+    gateway = Gateway(gateway_config(), sinks={"mem": mem})
+    sim = SimulatedAirframe(1, fast_profile())
+    await fly(gateway, sim, lambda: len({e.reason for e in hop_events(mem)}) == 2)
+    (upload,) = gateway.hops.status()
+    sid = schedule_id(HopPlanConfig.model_validate(PLAN))
+    assert upload == {
+        "airframe": "F26E-001",
+        "schedule_id": f"{sid:08x}",
+        "state": "accepted",
+        "sends": 1,
+        "last_result": "accepted",
+        "active_schedule_id": f"{sid:08x}",
+    }
+    assert sim.radio.schedules == [sid]
+    assert sim.radio.active is not None
+    assert list(sim.radio.active.frequencies[:4]) == [2405e6, 2420e6, 2435e6, 5800e6]
+    assert (sim.radio.active.dwell, sim.radio.active.bandwidth) == (12_000, 10_000_000)
+    events = hop_events(mem)
+    assert all(e.schedule_id == sid and e.is_gateway_schedule for e in events)
+    assert {e.frequency_hz for e in events} <= {2405e6, 2420e6, 2435e6, 5800e6}
+    jammed = [e for e in events if e.reason is HopReason.JAMMED]
+    assert jammed[0].interference_dbm == -27.0
+    inst = gateway.instruments
+    assert inst.hop_events.labels("F26E-001", "jammed").value == len(jammed)
+    assert inst.hops.labels("F26E-001").value == max(e.hop_count for e in events)
+    assert inst.hop_schedule_answers.labels("F26E-001", "accepted").value == 1
+    assert 'fg_hop_schedule_state{airframe="F26E-001",state="accepted"} 1' in (
+        inst.registry.render()
+    )
+
+
+@pytest.mark.anyio
+async def test_a_lost_answer_is_sent_again_until_it_is_answered() -> None:
+    mem = MemorySink("mem")
+    gateway = Gateway(gateway_config(), sinks={"mem": mem})
+    sim = SimulatedAirframe(1, fast_profile())
+    sim.radio.ignore_first = 2
+    await fly(gateway, sim, lambda: gateway.hops.status()[0]["state"] == "accepted")
+    assert gateway.hops.status()[0]["sends"] == 3
+    assert len(sim.radio.schedules) == 3
+    assert len(set(sim.radio.schedules)) == 1  # the same schedule, re-sent
+
+
+@pytest.mark.anyio
+async def test_a_plan_the_airframe_cannot_fly_is_refused_and_not_sent_again() -> None:
+    mem = MemorySink("mem")
+    # 0.3 µs beats the jammer and suits the AD9361, but the simulated radio needs 0.5 µs.
+    gateway = Gateway(gateway_config({**PLAN, "dwell_us": 0.3}), sinks={"mem": mem})
+    sim = SimulatedAirframe(1, fast_profile())
+    await fly(gateway, sim, lambda: gateway.hops.status()[0]["state"] == "refused")
+    (upload,) = gateway.hops.status()
+    assert (upload["last_result"], upload["sends"], upload["active_schedule_id"]) == (
+        "unsupported_dwell",
+        1,
+        "00000000",
+    )
+    assert sim.radio.active is None
+    assert not hop_events(mem)
+    answers = gateway.instruments.hop_schedule_answers
+    assert answers.labels("F26E-001", "unsupported_dwell").value == 1
+
+
+@pytest.mark.anyio
+async def test_an_airframe_that_reports_another_schedule_gets_the_plan_again() -> None:
+    mem = MemorySink("mem")
+    gateway = Gateway(gateway_config(), sinks={"mem": mem})
+    sim = SimulatedAirframe(1, fast_profile())
+    sid = schedule_id(HopPlanConfig.model_validate(PLAN))
+    other = hop_schedule_message(HopPlanConfig.model_validate({**PLAN, "dwell_us": 15}), 1, 77)
+
+    def rebooted_with_its_old_plan() -> bool:
+        if gateway.hops.status()[0]["state"] == "accepted" and len(sim.radio.schedules) == 1:
+            sim.radio.active = other  # the radio came back on the plan it had stored
+        return len(sim.radio.schedules) >= 2 and sim.radio.active_id == sid
+
+    await fly(gateway, sim, rebooted_with_its_old_plan)
+    assert sim.radio.schedules[:2] == [sid, sid]
+    assert gateway.hops.status()[0]["state"] == "accepted"
+
+
+def test_the_radio_answers_each_kind_of_plan() -> None:
+    radio = SimRadio(1)
+    mine = apm.MAVLink(None, srcSystem=255, srcComponent=191)
+    good = HopPlanConfig.model_validate(PLAN)
+
+    def answered(msg: FischerHopSchedule) -> int:
+        (back,) = apm.MAVLink(None).parse_buffer(msg.pack(mine))  # as it arrives
+        ack = radio.answer(back, 1_763_800_000.0)
+        assert ack is not None
+        assert (ack.target_system, ack.target_component) == (255, 191)
+        return int(ack.result)
+
+    assert answered(hop_schedule_message(good, 1, 5)) == HOP_RESULT_ACCEPTED
+    short = hop_schedule_message(good, 1, 6)
+    short.dwell = 100
+    assert answered(short) == HOP_RESULT_UNSUPPORTED_DWELL
+    assert radio.active_id == 5  # a refused plan leaves the old one active
+    assert radio.answer(hop_schedule_message(good, 2, 7), 0.0) is None  # another airframe's
+
+
+@pytest.mark.anyio
+async def test_a_flood_of_hop_events_is_counted_but_published_at_a_capped_rate() -> None:
+    mem = MemorySink("mem")
+    gateway = Gateway(gateway_config(None), sinks={"mem": mem})
+    session = gateway.sessions["F26E-001"]
+    now_us = int(datetime.now(UTC).timestamp() * 1e6)
+    published: list[HopEvent] = []
+    gateway.hops._publish = lambda e: published.append(e) or True  # type: ignore[assignment,func-returns-value]
+    for n in range(5000):
+        msg = FischerHopEvent(now_us + n, 2_405_000_000, 9, n + 1, 0, n % 2, -60, 127)
+        session.dispatch("l", "FISCHER_HOP_EVENT", msg)
+    bad = FischerHopEvent(now_us, 10, 9, 1, 0, 0, -60, 127)  # 10 Hz: no AD9361 channel
+    session.dispatch("fleet", "FISCHER_HOP_EVENT", bad)
+    inst = gateway.instruments
+    counted = sum(inst.hop_events.labels("F26E-001", r).value for r in ("scheduled", "jammed"))
+    assert counted == 5000
+    assert inst.hops.labels("F26E-001").value == 5000
+    assert len(published) <= 2 * (PUBLISH_BURST + 1)  # per reason, in the test's short time
+    assert inst.hop_events_dropped.labels("F26E-001").value == 5000 - len(published)
+    assert inst.link_rejected.labels("fleet", "malformed").value == 1
+    assert published[0].rssi_dbm == -60.0
+    assert published[0].interference_dbm is None
