@@ -13,6 +13,8 @@ from pymavlink.dialects.v20 import ardupilotmega as apm
 
 from gateway.app import Gateway
 from gateway.config import Config, HopPlanConfig
+from gateway.configfile import load_config_text
+from gateway.errors import ConfigError
 from gateway.events import HopEvent, HopReason
 from gateway.fleet.hopdialect import (
     HOP_RESULT_ACCEPTED,
@@ -198,3 +200,69 @@ async def test_a_flood_of_hop_events_is_counted_but_published_at_a_capped_rate()
     assert inst.link_rejected.labels("fleet", "malformed").value == 1
     assert published[0].rssi_dbm == -60.0
     assert published[0].interference_dbm is None
+
+
+NODE = """\
+airframes:
+  - id: F26E-001
+    sysid: 1
+    links: [{uri: 'udp://127.0.0.1:14550', security: unsecured}]
+    hop_plan:
+      frequencies_mhz: FREQS
+      bandwidth_mhz: BW
+      dwell_us: DWELL
+"""
+
+
+def config_issues(freqs: str = "[2405, 2430]", bw: str = "10", dwell: str = "12") -> list[str]:
+    text = NODE.replace("FREQS", freqs).replace("BW", bw).replace("DWELL", dwell)
+    try:
+        load_config_text(text, "node.yaml")
+    except ConfigError as exc:
+        return [str(issue) for issue in exc.issues]
+    return []
+
+
+def test_a_flyable_plan_that_beats_the_jammer_loads() -> None:
+    assert config_issues() == []
+    plan = HopPlanConfig.model_validate(PLAN)
+    assert plan.jammer_reaction_us == 20.0  # the default jammer
+    assert plan.plan().beats_reactive_jammer(plan.jammer_reaction_s)
+
+
+@pytest.mark.parametrize(
+    ("freqs", "bw", "dwell", "expected"),
+    [
+        (
+            "[2405, 2430]",
+            "10",
+            "20",
+            "node.yaml:8 airframes[0].hop_plan.dwell_us: a dwell of 20 µs does not beat a "
+            "reactive jammer reacting in 20 µs (jammer_reaction_us): the dwell must be shorter",
+        ),
+        ("[2405, 6001]", "10", "12", "node.yaml:6 airframes[0].hop_plan.frequencies_mhz[1]:"),
+        ("[2405, 65]", "10", "12", "node.yaml:6 airframes[0].hop_plan.frequencies_mhz[1]:"),
+        ("[2405, 2430]", "57", "12", "node.yaml:7 airframes[0].hop_plan.bandwidth_mhz:"),
+        (
+            "[100, 200, 300, 400, 500, 600, 700, 800, 900]",
+            "10",
+            "12",
+            "node.yaml:6 airframes[0].hop_plan.frequencies_mhz:",
+        ),
+        ("[]", "10", "12", "node.yaml:6 airframes[0].hop_plan.frequencies_mhz:"),
+    ],
+)
+def test_a_plan_the_radio_cannot_fly_is_a_config_error_naming_key_and_line(
+    freqs: str, bw: str, dwell: str, expected: str
+) -> None:
+    (issue,) = config_issues(freqs, bw, dwell)
+    assert issue.startswith(expected)
+
+
+def test_the_plan_is_checked_again_right_before_upload() -> None:
+    """A plan that no longer beats the jammer (a changed jammer figure) is never sent."""
+    gateway = Gateway(gateway_config(), sinks={"mem": MemorySink("mem")})
+    upload = gateway.hops.uploads["F26E-001"]
+    upload.config = upload.config.model_copy(update={"jammer_reaction_us": 10.0})
+    assert gateway.hops._checked_frame(upload) is None
+    assert upload.state == "invalid"
