@@ -9,6 +9,8 @@ from typing import Any
 
 import anyio
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 from pymavlink.dialects.v20 import ardupilotmega as apm
 
 from gateway.app import Gateway
@@ -17,16 +19,24 @@ from gateway.configfile import load_config_text
 from gateway.errors import ConfigError
 from gateway.events import HopEvent, HopReason
 from gateway.fleet.hopdialect import (
+    HOP_REASON_NAMES,
     HOP_RESULT_ACCEPTED,
     HOP_RESULT_UNSUPPORTED_DWELL,
     FischerHopEvent,
     FischerHopSchedule,
+    FischerHopScheduleAck,
 )
-from gateway.fleet.hopschedule import PUBLISH_BURST, hop_schedule_message, schedule_id
+from gateway.fleet.hopschedule import (
+    PUBLISH_BURST,
+    STATES,
+    hop_schedule_message,
+    schedule_id,
+)
 from gateway.sim.airframe import SimProfile, SimulatedAirframe
 from gateway.sim.radio import SimRadio
 from gateway.testing import MemorySink, eventually
 
+HOP_REASONS = tuple(HOP_REASON_NAMES.values())
 PLAN = {
     "frequencies_mhz": [2405.0, 2420.0, 2435.0, 5800.0],
     "bandwidth_mhz": 10.0,
@@ -266,3 +276,41 @@ def test_the_plan_is_checked_again_right_before_upload() -> None:
     upload.config = upload.config.model_copy(update={"jammer_reaction_us": 10.0})
     assert gateway.hops._checked_frame(upload) is None
     assert upload.state == "invalid"
+
+
+u8 = st.integers(0, 255)
+u32 = st.integers(0, 2**32 - 1)
+u64 = st.integers(0, 2**64 - 1)
+i8 = st.integers(-128, 127)
+
+
+@pytest.mark.anyio
+@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    event=st.tuples(u64, u64, u32, u32, u8, u8, i8, i8),
+    ack=st.tuples(u32, u32, u8, u8, u8),
+    noise=st.binary(max_size=64),
+)
+async def test_any_hop_frame_becomes_an_event_or_a_count_never_an_error(
+    event: tuple[int, ...], ack: tuple[int, ...], noise: bytes
+) -> None:
+    """Hop events and answers with any values, and bytes around them, from the airframe."""
+    gateway = Gateway(gateway_config(), sinks={"mem": MemorySink("mem")})
+    published: list[HopEvent] = []
+    gateway.hops._publish = lambda e: published.append(e) or True  # type: ignore[assignment,func-returns-value]
+    airframe = apm.MAVLink(None, srcSystem=1, srcComponent=1)
+    link = next(iter(gateway.links.values())).label
+    for frame in (
+        FischerHopEvent(*event).pack(airframe),
+        FischerHopScheduleAck(*ack).pack(airframe),
+        noise,
+        noise + FischerHopEvent(*event).pack(airframe),
+    ):
+        gateway.ingest.on_data(link, ("127.0.0.1", 5), frame)
+    inst = gateway.instruments
+    assert inst.link_ignored.labels(link, "handler_error").value == 0
+    counted = sum(inst.hop_events.labels("F26E-001", r).value for r in HOP_REASONS)
+    rejected = inst.link_rejected.labels(link, "malformed").value
+    assert len(published) <= counted
+    assert counted + rejected >= 1  # the first event frame was counted or refused
+    assert gateway.hops.status()[0]["state"] in STATES
