@@ -530,6 +530,9 @@ def _simulate_scenario(args: argparse.Namespace, host: str, port: int) -> int:
 
     if args.airframes is not None:
         raise _usage_error("--airframes", "the scenario names its airframes; drop --airframes")
+    if args.hop_result is not None or args.hop_ignore:
+        option = "--hop-result" if args.hop_result is not None else "--hop-ignore"
+        raise _usage_error(option, "applies to the demo fleet, not to a --scenario")
     scenario = load_scenario(args.scenario)
     cot = _udp_target(args.cot, "--cot") if args.cot is not None else None
     if cot is None and scenario.blue_forces:

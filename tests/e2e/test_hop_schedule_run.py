@@ -134,3 +134,19 @@ def test_a_refused_schedule_is_shown_and_not_sent_again(tmp_path: Path) -> None:
     assert (refused, state) == (1.0, 1.0)
     assert refusal["result"] == "unsupported_frequency"
     assert not hops(archive)
+
+
+@pytest.mark.parametrize(
+    ("extra", "expected"),
+    [
+        (["--hop-ignore", "-1"], "--hop-ignore: expected 0 or more, got -1"),
+        (
+            ["--scenario", "t72-column", "--hop-result", "denied"],
+            "--hop-result: applies to the demo fleet, not to a --scenario",
+        ),
+    ],
+)
+def test_simulate_refuses_hop_options_it_cannot_apply(extra: list[str], expected: str) -> None:
+    played = simulate(free_udp_port(), *extra)
+    assert played.returncode == 2
+    assert expected in played.stderr.decode()
