@@ -147,6 +147,7 @@ def test_a_refused_schedule_is_shown_and_not_sent_again(tmp_path: Path) -> None:
     ],
 )
 def test_simulate_refuses_hop_options_it_cannot_apply(extra: list[str], expected: str) -> None:
-    played = simulate(free_udp_port(), *extra)
+    command = [*GATEWAY, "simulate", "--to", f"udp://127.0.0.1:{free_udp_port()}", *extra]
+    played = subprocess.run(command, capture_output=True, timeout=60, check=False)
     assert played.returncode == 2
     assert expected in played.stderr.decode()
