@@ -111,6 +111,8 @@ class HopUpload:
     accepted_mono: float | None = None
     answered: anyio.Event = field(default_factory=anyio.Event)
     answer: int | None = None
+    is_awaiting: bool = False
+    """True from a send until its first answer: only then is an answer taken."""
     wake: anyio.Event = field(default_factory=anyio.Event)
 
     def answer_received(self) -> int | None:
@@ -214,6 +216,7 @@ class HopSchedules:
                 continue
             upload.answered = anyio.Event()
             upload.answer = None
+            upload.is_awaiting = True
             try:
                 await upload.session.send(frame)
             except (LinkError, FrameError):
@@ -265,9 +268,10 @@ class HopSchedules:
         name = HOP_RESULT_NAMES.get(result, f"unknown_{result}" if result < 256 else "unknown")
         self._inst.hop_schedule_answers.labels(session.id, name).inc()
         upload.active_schedule_id = int(msg.active_schedule_id)
+        if not upload.is_awaiting:
+            return  # nothing sent, or a second answer (a re-send crossed the first answer)
+        upload.is_awaiting = False
         upload.last_result = name
-        if upload.answered.is_set():
-            return  # a second answer to the same send (a re-send crossed the first answer)
         upload.answer = result
         upload.answered.set()
         if result == HOP_RESULT_ACCEPTED:

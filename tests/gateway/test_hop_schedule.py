@@ -314,3 +314,13 @@ async def test_any_hop_frame_becomes_an_event_or_a_count_never_an_error(
     assert len(published) <= counted
     assert counted + rejected >= 1  # the first event frame was counted or refused
     assert gateway.hops.status()[0]["state"] in STATES
+
+
+@pytest.mark.anyio
+async def test_an_answer_nobody_asked_for_is_not_taken() -> None:
+    gateway = Gateway(gateway_config(), sinks={"mem": MemorySink("mem")})
+    session = gateway.sessions["F26E-001"]
+    sid = gateway.hops.uploads["F26E-001"].schedule_id
+    session.dispatch("l", "FISCHER_HOP_SCHEDULE_ACK", FischerHopScheduleAck(sid, sid, 255, 191, 0))
+    (upload,) = gateway.hops.status()
+    assert (upload["state"], upload["last_result"]) == ("waiting_link", None)
