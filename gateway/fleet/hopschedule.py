@@ -112,6 +112,8 @@ class HopUpload:
     answered: anyio.Event = field(default_factory=anyio.Event)
     answer: int | None = None
     is_awaiting: bool = False
+    link_lost: bool = False
+    """Every link of the airframe went down since the schedule was accepted."""
     """True from a send until its first answer: only then is an answer taken."""
     wake: anyio.Event = field(default_factory=anyio.Event)
 
@@ -200,10 +202,16 @@ class HopSchedules:
     async def _upload(self, upload: HopUpload) -> None:
         attempt = 0
         while True:
-            if upload.state in ("accepted", "refused", "invalid"):
+            if upload.state in ("refused", "invalid"):
                 await upload.wake.wait()
                 upload.wake = anyio.Event()
+                continue
+            if upload.state == "accepted":
+                with anyio.move_on_after(LINK_POLL_S):
+                    await upload.wake.wait()
+                upload.wake = anyio.Event()
                 attempt = 0
+                self._watch_reconnect(upload)
                 continue
             if upload.session.health.active is None:
                 upload.state = "waiting_link"
@@ -237,6 +245,18 @@ class HopSchedules:
             if answer in _TRANSIENT_RESULTS:
                 upload.state = "retrying"
                 await anyio.sleep(upload.config.retry_max_s)
+
+    def _watch_reconnect(self, upload: HopUpload) -> None:
+        """After every link of an accepted airframe was down, send the plan again: the
+        airframe may have rebooted without it (and one without a schedule reports no hops)."""
+        if upload.state != "accepted":
+            return
+        if upload.session.health.active is None:
+            upload.link_lost = True
+        elif upload.link_lost:
+            upload.link_lost = False
+            upload.state = "sent"
+            log.info("hop_schedule_reverified", airframe=upload.session.id, reason="reconnected")
 
     def _checked_frame(self, upload: HopUpload) -> bytes | None:
         """The upload's frame, or None (state ``invalid``) if the plan fails its checks."""

@@ -324,3 +324,32 @@ async def test_an_answer_nobody_asked_for_is_not_taken() -> None:
     session.dispatch("l", "FISCHER_HOP_SCHEDULE_ACK", FischerHopScheduleAck(sid, sid, 255, 191, 0))
     (upload,) = gateway.hops.status()
     assert (upload["state"], upload["last_result"]) == ("waiting_link", None)
+
+
+@pytest.mark.anyio
+async def test_an_airframe_back_after_losing_every_link_gets_the_plan_again() -> None:
+    """It may have rebooted without the plan; without one it reports no hops to say so."""
+    config = gateway_config()
+    airframe = config.airframes[0].model_copy(update={"link_timeout_s": 0.5})
+    gateway = Gateway(
+        config.model_copy(update={"airframes": (airframe,)}), sinks={"mem": MemorySink("mem")}
+    )
+    upload = gateway.hops.uploads["F26E-001"]
+    before, after = SimulatedAirframe(1, fast_profile()), SimulatedAirframe(1, fast_profile())
+    with anyio.fail_after(20):
+        async with anyio.create_task_group() as tg:
+            await tg.start(gateway.run)
+            port = next(iter(gateway.links.values())).local_port  # type: ignore[attr-defined]
+            async with anyio.create_task_group() as first:
+                first.start_soon(lambda: before.run_udp("127.0.0.1", port))
+                await eventually(lambda: upload.state == "accepted")
+                first.cancel_scope.cancel()
+            await eventually(lambda: upload.link_lost)
+            tg.start_soon(lambda: after.run_udp("127.0.0.1", port))
+            await eventually(lambda: after.radio.active_id == upload.schedule_id)
+            await eventually(lambda: upload.state == "accepted")
+            gateway.shutdown()
+            await gateway.stopped.wait()
+            tg.cancel_scope.cancel()
+    assert before.radio.schedules == after.radio.schedules == [upload.schedule_id]
+    assert upload.sends == 2
