@@ -4,7 +4,9 @@ after a lost answer, refusal, a schedule lost by the airframe, and hop events in
 
 from __future__ import annotations
 
+import hashlib
 from datetime import UTC, datetime
+from pathlib import Path
 from typing import Any
 
 import anyio
@@ -46,12 +48,15 @@ PLAN = {
 }
 
 
-def gateway_config(plan: dict[str, Any] | None = PLAN) -> Config:
+def gateway_config(plan: dict[str, Any] | None = PLAN, signing_key: Path | None = None) -> Config:
     airframe: dict[str, Any] = {
         "id": "F26E-001",
         "sysid": 1,
         "links": [{"uri": "udp://127.0.0.1:0", "security": "unsecured"}],
     }
+    if signing_key is not None:
+        airframe["links"][0]["security"] = "signed"
+        airframe["signing"] = {"key_file": str(signing_key)}
     if plan is not None:
         airframe["hop_plan"] = plan
     return Config.model_validate(
@@ -117,6 +122,23 @@ async def test_the_plan_is_accepted_and_hops_come_back_as_events() -> None:
     assert 'fg_hop_schedule_state{airframe="F26E-001",state="accepted"} 1' in (
         inst.registry.render()
     )
+
+
+@pytest.mark.anyio
+async def test_on_a_signed_link_the_schedule_and_its_answer_go_signed(
+    tmp_path: Path,
+) -> None:
+    key = hashlib.sha256(b"hop airframe 1 signing key").digest()
+    (tmp_path / "s.key").write_bytes(key)
+    (tmp_path / "s.key").chmod(0o600)
+    mem = MemorySink("mem")
+    gateway = Gateway(gateway_config(signing_key=tmp_path / "s.key"), sinks={"mem": mem})
+    sim = SimulatedAirframe(1, fast_profile(), signing_key=key)
+    await fly(gateway, sim, lambda: bool(hop_events(mem)))
+    assert gateway.hops.status()[0]["state"] == "accepted"
+    assert sim.radio.schedules == [gateway.hops.uploads["F26E-001"].schedule_id]
+    assert sim.link.uplink_rejected == 0  # the sim reads only validly signed uplink frames
+    assert gateway.status()["airframes"][0]["signing"]["unsigned"] == 0
 
 
 @pytest.mark.anyio
