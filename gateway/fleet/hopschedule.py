@@ -285,7 +285,7 @@ class HopSchedules:
         ):
             return  # for someone else, or for a schedule that is not ours
         result = int(msg.result)
-        name = HOP_RESULT_NAMES.get(result, f"unknown_{result}" if result < 256 else "unknown")
+        name = HOP_RESULT_NAMES.get(result, "unknown")  # one label for every future value
         self._inst.hop_schedule_answers.labels(session.id, name).inc()
         upload.active_schedule_id = int(msg.active_schedule_id)
         if not upload.is_awaiting:
