@@ -18,8 +18,9 @@ from pymavlink.dialects.v20 import ardupilotmega as apm
 from gateway.app import Gateway
 from gateway.config import Config, HopPlanConfig
 from gateway.configfile import load_config_text
+from gateway.contract import sample_events
 from gateway.errors import ConfigError
-from gateway.events import HopEvent, HopReason
+from gateway.events import EventKind, HopEvent, HopReason
 from gateway.fleet.hopdialect import (
     HOP_REASON_NAMES,
     HOP_RESULT_ACCEPTED,
@@ -37,6 +38,7 @@ from gateway.fleet.hopschedule import (
 from gateway.sim.airframe import SimProfile, SimulatedAirframe
 from gateway.sim.radio import SimRadio
 from gateway.testing import MemorySink, eventually
+from sinks.console import describe
 
 HOP_REASONS = tuple(HOP_REASON_NAMES.values())
 PLAN = {
@@ -375,3 +377,11 @@ async def test_an_airframe_back_after_losing_every_link_gets_the_plan_again() ->
             tg.cancel_scope.cancel()
     assert before.radio.schedules == after.radio.schedules == [upload.schedule_id]
     assert upload.sends == 2
+
+
+def test_the_console_line_of_a_hop() -> None:
+    (hop,) = sample_events(frozenset({EventKind.HOP}))
+    assert describe(hop) == (
+        "12:00:00.000Z hop        F26E-001 jammed to slot 2 2435.000 MHz schedule 1234abcd"
+        " hops 41000 rssi -62 dBm interference -31 dBm"
+    )
