@@ -299,6 +299,7 @@ class HopSchedules:
                 log.info("hop_schedule_accepted", airframe=session.id, sends=upload.sends)
             upload.state = "accepted"
             upload.accepted_mono = time.monotonic()
+            upload.link_lost = False
         elif result not in _TRANSIENT_RESULTS:
             upload.state = "refused"
             log.warning("hop_schedule_refused", airframe=session.id, result=name)
