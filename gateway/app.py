@@ -27,6 +27,7 @@ from gateway.config import Config
 from gateway.domain.terrain import DemSource, TerrainModel
 from gateway.errors import FrameError, LinkError, LinkUnavailable
 from gateway.events import Event
+from gateway.fleet.hopschedule import HopSchedules
 from gateway.fleet.ingest import Ingest, LinkIntake
 from gateway.fleet.links import Link, make_link
 from gateway.fleet.passthrough import Passthrough
@@ -160,6 +161,7 @@ class Gateway:
         self.sessions = self.ingest.sessions
         for session in self.sessions.values():
             session.transmit = self.send_to_airframe
+        self.hops = HopSchedules(self.sessions.values(), self.bus.publish, self.instruments, clock)
         self.links: dict[str, Link] = {}
         self._links_by_label: dict[str, Link] = {}
         self._link_security: dict[str, str] = {}
@@ -301,6 +303,7 @@ class Gateway:
                 ingest.start_soon(self._watch_links)
                 if self.ingest.acks is not None:
                     ingest.start_soon(self.ingest.acks.run)
+                ingest.start_soon(self.hops.run)
                 self._links_up = True
                 outer.start_soon(self.notifier.run_watchdog)
                 self.notifier.ready(self.status_line())
@@ -389,6 +392,7 @@ class Gateway:
                 {**link.status(), "security": self._link_security[link.label]}
                 for link in self.links.values()
             ],
+            "hop_schedules": self.hops.status(),
             "passthroughs": [p.status() for p in self.passthroughs.values()],
             "sources": [
                 {**s.status(), "state": r.state, "reason": r.reason, "restarts": r.restarts}

@@ -36,6 +36,7 @@ from gateway.clock import utc_now
 from gateway.configcheck import NodeCheck
 from gateway.configfile import load_config
 from gateway.errors import ConfigError, ConfigIssue, GatewayError
+from gateway.fleet.hopdialect import HOP_RESULT_NAMES
 from gateway.fleet.security.keys import load_day_keys, read_key_file, write_day_keys
 from gateway.fleet.security.tunnel import DayKeys, Sealer
 from gateway.ops.logsetup import configure_logging, install_loop_exception_handler
@@ -51,6 +52,8 @@ __all__ = ["main"]
 log = structlog.get_logger(__name__)
 
 EXIT_OK, EXIT_FAILURE, EXIT_CONFIG = 0, 1, 2
+#: ``simulate --hop-result`` names: FISCHER_HOP_SCHEDULE_RESULT values.
+_HOP_RESULTS = {name: value for value, name in HOP_RESULT_NAMES.items()}
 #: MAVLink system ids are 8 bits and 0 is broadcast; every airframe needs its own.
 MAX_AIRFRAMES = 255
 
@@ -182,6 +185,20 @@ def _parser() -> argparse.ArgumentParser:
         default=2.0,
         metavar="S",
         help="after --duration, wait up to S seconds for the last acknowledgements (default 2)",
+    )
+    simulate.add_argument(
+        "--hop-result",
+        choices=sorted(_HOP_RESULTS),
+        default=None,
+        help="answer every hop schedule with this result (default: accepted if the simulated "
+        "radio can fly it)",
+    )
+    simulate.add_argument(
+        "--hop-ignore",
+        type=int,
+        default=0,
+        metavar="N",
+        help="leave the first N hop schedules unanswered, as a lost uplink would (default 0)",
     )
     for sub_parser in (replay, simulate):
         sub_parser.add_argument(
@@ -461,9 +478,17 @@ def _resend_policy(args: argparse.Namespace) -> ResendPolicy | None:
 
 
 def _print_summaries(airframes: dict[str, SimulatedAirframe]) -> None:
-    """One line per airframe on stdout: what became of its detections."""
+    """One line per airframe on stdout: what became of its detections (and, for one that
+    received hop schedules, a second line on them)."""
     for name, airframe in airframes.items():
         print(f"{name} (sysid {airframe.sysid}): {airframe.summary()}")  # noqa: T201 - the output
+        radio = airframe.radio
+        if radio.schedules:
+            print(  # noqa: T201 - the output
+                f"{name} (sysid {airframe.sysid}): hop schedules received "
+                f"{len(radio.schedules)}, active {radio.active_id:08x}, hop reports "
+                f"{radio.reports}"
+            )
 
 
 def _simulate(args: argparse.Namespace) -> int:
@@ -475,6 +500,12 @@ def _simulate(args: argparse.Namespace) -> int:
     if args.cot is not None:
         raise _usage_error("--cot", "friendly units come from a scenario: add --scenario")
     fleet = build_demo_fleet(args.airframes or 2, resend=_resend_policy(args))
+    if args.hop_ignore < 0:
+        raise _usage_error("--hop-ignore", f"expected 0 or more, got {args.hop_ignore}")
+    for airframe in fleet:
+        airframe.radio.ignore_first = args.hop_ignore
+        if args.hop_result is not None:
+            airframe.radio.result = _HOP_RESULTS[args.hop_result]
     sealers = _sealers(args, len(fleet))
     try:
         _run_async(
@@ -499,6 +530,9 @@ def _simulate_scenario(args: argparse.Namespace, host: str, port: int) -> int:
 
     if args.airframes is not None:
         raise _usage_error("--airframes", "the scenario names its airframes; drop --airframes")
+    if args.hop_result is not None or args.hop_ignore:
+        option = "--hop-result" if args.hop_result is not None else "--hop-ignore"
+        raise _usage_error(option, "applies to the demo fleet, not to a --scenario")
     scenario = load_scenario(args.scenario)
     cot = _udp_target(args.cot, "--cot") if args.cot is not None else None
     if cot is None and scenario.blue_forces:

@@ -20,11 +20,14 @@ from pydantic import (
     ConfigDict,
     Field,
     PlainSerializer,
+    ValidationInfo,
     WithJsonSchema,
     field_validator,
+    model_validator,
 )
 
 from gateway.domain.energy import EnergyProfile, EwMode
+from gateway.domain.hopping import AD9361_MAX_BW_HZ, AD9361_RANGE_HZ, HopPlan, HopPlanError
 from gateway.events import LATEST_WINS_KINDS, EventKind
 
 __all__ = [
@@ -34,6 +37,7 @@ __all__ = [
     "Endpoint",
     "GatewayConfig",
     "HealthConfig",
+    "HopPlanConfig",
     "LinkConfig",
     "ProcessorEntry",
     "RouteConfig",
@@ -235,6 +239,93 @@ class LinkConfig(BaseModel):
         return self.name or str(self.uri)
 
 
+_MAX_DWELL_US = 4_000_000.0  # FISCHER_HOP_SCHEDULE carries nanoseconds in a uint32
+
+
+class HopPlanConfig(BaseModel):
+    """The AD9361 hop plan the gateway uploads to an airframe (docs/hopping.md).
+
+    Validated at load like the rest of the config: every frequency within the AD9361's
+    70 MHz to 6 GHz, the bandwidth within its 56 MHz, at most 8 fastlock slots, and a dwell
+    that beats a reactive jammer reacting in ``jammer_reaction_us`` (the dwell must be
+    shorter). The same checks run again right before each upload.
+    """
+
+    model_config = _FROZEN
+
+    frequencies_mhz: tuple[
+        Annotated[float, Field(ge=AD9361_RANGE_HZ[0] / 1e6, le=AD9361_RANGE_HZ[1] / 1e6)], ...
+    ] = Field(
+        min_length=1,
+        max_length=8,
+        description="Centre frequency of each fastlock slot in hop order, 70 to 6000 MHz; "
+        "1 to 8 of them.",
+    )
+    bandwidth_mhz: float = Field(
+        gt=0, le=AD9361_MAX_BW_HZ / 1e6, description="RF bandwidth on every channel, MHz."
+    )
+    jammer_reaction_us: float = Field(
+        default=20.0,
+        gt=0,
+        le=_MAX_DWELL_US,
+        description="Reaction time of the reactive (follower) jammer the plan must beat.",
+    )
+    dwell_us: float = Field(
+        ge=0.001,
+        le=_MAX_DWELL_US,
+        description="Time on each channel, µs; must be shorter than jammer_reaction_us.",
+    )
+    settle_us: float = Field(
+        default=0.0,
+        ge=0,
+        le=_MAX_DWELL_US,
+        description="PLL settling per hop the plan allows, µs (0: hidden by a second synthesizer).",
+    )
+    ack_timeout_s: float = Field(
+        default=1.0, gt=0, le=60, description="First wait for the airframe's answer."
+    )
+    retry_max_s: float = Field(
+        default=30.0,
+        gt=0,
+        le=3600,
+        description="Longest wait between two uploads (the backoff doubles up to it).",
+    )
+
+    @field_validator("dwell_us")
+    @classmethod
+    def _beats_jammer(cls, dwell_us: float, info: ValidationInfo) -> float:
+        reaction_us = info.data.get("jammer_reaction_us")
+        if reaction_us is not None and not dwell_us < reaction_us:
+            raise ValueError(
+                f"a dwell of {dwell_us:g} µs does not beat a reactive jammer reacting in "
+                f"{reaction_us:g} µs (jammer_reaction_us): the dwell must be shorter"
+            )
+        return dwell_us
+
+    @model_validator(mode="after")
+    def _flyable(self) -> HopPlanConfig:
+        try:
+            self.plan()
+        except HopPlanError as exc:
+            raise ValueError(str(exc)) from exc
+        return self
+
+    def plan(self) -> HopPlan:
+        """The domain's ``HopPlan`` of this config (Hz and seconds); ``HopPlanError`` if the
+        AD9361 cannot run it."""
+        return HopPlan(
+            frequencies_hz=tuple(round(f * 1e6) * 1.0 for f in self.frequencies_mhz),
+            bandwidth_hz=round(self.bandwidth_mhz * 1e6) * 1.0,
+            dwell_s=self.dwell_us * 1e-6,
+            settle_s=self.settle_us * 1e-6,
+        )
+
+    @property
+    def jammer_reaction_s(self) -> float:
+        """``jammer_reaction_us`` in seconds."""
+        return self.jammer_reaction_us * 1e-6
+
+
 class AirframeConfig(BaseModel):
     """One airframe of the fleet."""
 
@@ -278,6 +369,11 @@ class AirframeConfig(BaseModel):
         default=False,
         description="The passthrough is plain MAVLink: it may bind beyond loopback only if "
         "this says so.",
+    )
+    hop_plan: HopPlanConfig | None = Field(
+        default=None,
+        description="An AD9361 hop plan uploaded to the airframe once it is linked "
+        "(FISCHER_HOP_SCHEDULE; docs/hopping.md).",
     )
 
 

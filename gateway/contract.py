@@ -33,6 +33,8 @@ from gateway.events import (
     EventKind,
     FiveLineOrder,
     Handoff,
+    HopEvent,
+    HopReason,
     LinkState,
     OrderArea,
     OrderTask,
@@ -122,6 +124,19 @@ def sample_events(kinds: frozenset[EventKind]) -> list[Event]:
         time=t,
         task=OrderTask.OBSERVE_POINT,
         location=OrderArea(point=where),
+    )
+    every[EventKind.HOP] = HopEvent(
+        event_id="c-hop",
+        airframe="F26E-001",
+        time=t,
+        schedule_id=0x1234ABCD,
+        is_gateway_schedule=True,
+        slot=2,
+        frequency_hz=2_435_000_000.0,
+        reason=HopReason.JAMMED,
+        hop_count=41_000,
+        rssi_dbm=-62.0,
+        interference_dbm=-31.0,
     )
     return [every[kind] for kind in EventKind if kind in kinds]
 

@@ -32,6 +32,8 @@ __all__ = [
     "EventKind",
     "FiveLineOrder",
     "Handoff",
+    "HopEvent",
+    "HopReason",
     "LinkState",
     "OrderArea",
     "OrderPriority",
@@ -69,11 +71,12 @@ class EventKind(StrEnum):
     BLUE_FORCE = "blue_force"
     HANDOFF = "handoff"
     ORDER = "order"
+    HOP = "hop"
 
 
 #: Kinds where only the newest event per key matters: a slow sink gets fresh data, not a backlog.
 LATEST_WINS_KINDS: frozenset[EventKind] = frozenset(
-    {EventKind.TELEMETRY, EventKind.LINK_STATE, EventKind.BLUE_FORCE}
+    {EventKind.TELEMETRY, EventKind.LINK_STATE, EventKind.BLUE_FORCE, EventKind.HOP}
 )
 #: Kinds that must never be dropped silently: delivered at least once, in order per sink.
 DURABLE_KINDS: frozenset[EventKind] = frozenset(EventKind) - LATEST_WINS_KINDS
@@ -397,8 +400,43 @@ class FiveLineOrder(BaseModel):
         return self
 
 
+class HopReason(StrEnum):
+    """Why an airframe's radio hopped (FISCHER_HOP_REASON)."""
+
+    SCHEDULED = "scheduled"
+    JAMMED = "jammed"
+    INTERFERENCE = "interference"
+
+
+class HopEvent(BaseModel):
+    """One hop of an airframe's frequency-hopping radio, as the airframe reported it.
+
+    Latest wins per airframe and ``reason``: the event says which channel the radio is on now
+    and why it last left one, so a slow sink gets the newest, and a jam-triggered hop is never
+    replaced by a routine one. Counts are never lost to that: ``hop_count`` is the airframe's
+    running count of hops on ``schedule_id``, and the gateway's metrics count every report.
+    ``is_gateway_schedule`` is True when ``schedule_id`` is the schedule the gateway uploaded
+    and the airframe acknowledged. Powers are None when the airframe did not measure them.
+    """
+
+    model_config = _FROZEN
+
+    kind: Literal[EventKind.HOP] = EventKind.HOP
+    event_id: str
+    airframe: str
+    time: AwareDatetime
+    schedule_id: int = Field(ge=0, lt=2**32)
+    is_gateway_schedule: bool = False
+    slot: int = Field(ge=0, le=7)
+    frequency_hz: float = Field(ge=70e6, le=6e9)
+    reason: HopReason
+    hop_count: int = Field(ge=0, lt=2**32)
+    rssi_dbm: float | None = Field(default=None, ge=-128.0, le=126.0)
+    interference_dbm: float | None = Field(default=None, ge=-128.0, le=126.0)
+
+
 Event = Annotated[
-    Telemetry | LinkState | Detection | Track | BlueForce | Handoff | FiveLineOrder,
+    Telemetry | LinkState | Detection | Track | BlueForce | Handoff | FiveLineOrder | HopEvent,
     Field(discriminator="kind"),
 ]
 
@@ -410,6 +448,7 @@ _SLOTS: dict[type, Callable[[Any], str]] = {
     Telemetry: lambda e: "telemetry\x00" + e.airframe,
     LinkState: lambda e: f"link_state\x00{e.airframe}\x00{e.link}",
     BlueForce: lambda e: "blue_force\x00" + e.uid,
+    HopEvent: lambda e: f"hop\x00{e.airframe}\x00{e.reason.value}",
 }
 
 

@@ -31,6 +31,7 @@ from gateway.events import (
     EventKind,
     FiveLineOrder,
     Handoff,
+    HopEvent,
     LinkState,
     Position,
     Telemetry,
@@ -135,6 +136,13 @@ def describe(event: Event) -> str:
         return (
             f"{head} {event.source} {event.order_id} {event.priority.value} {event.task.value}"
             f" {place} for {event.airframe or 'any airframe'}"
+        )
+    if isinstance(event, HopEvent):
+        return (
+            f"{head} {event.airframe} {event.reason.value} to slot {event.slot}"
+            f" {event.frequency_hz / 1e6:.3f} MHz schedule {event.schedule_id:08x}"
+            f" hops {event.hop_count} rssi {_num(event.rssi_dbm, '.0f', ' dBm')}"
+            f" interference {_num(event.interference_dbm, '.0f', ' dBm')}"
         )
     assert_never(event)
 

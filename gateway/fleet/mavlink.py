@@ -14,8 +14,11 @@ from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as dialect
 
-import gateway.fleet.dialect  # noqa: F401 - registers FISCHER_DETECTION with the parser
 from gateway.errors import Malformed, Oversize
+
+# Imported for their side effect: they register the project dialect's messages with the parser.
+from gateway.fleet import dialect as _detection_messages  # noqa: F401
+from gateway.fleet import hopdialect as _hop_messages  # noqa: F401
 
 _STX_V1 = 0xFE
 _STX_V2 = 0xFD

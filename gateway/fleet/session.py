@@ -158,6 +158,14 @@ class AirframeSession:
         msg = fischer_detection_ack(time_usec, detection_id, self.config.sysid, 1, result)
         return bytes(msg.pack(mav))
 
+    def encode(self, msg: MavMessage) -> bytes:
+        """``msg`` (a pymavlink message) as a frame from the gateway, in this session's
+        sequence numbering."""
+        mav = dialect.MAVLink(None, srcSystem=GATEWAY_SYSID, srcComponent=GATEWAY_COMPID)
+        mav.seq = self._seq
+        self._seq = (self._seq + 1) % 256
+        return bytes(msg.pack(mav))
+
     def _encode_command_long(
         self, command: int, params: tuple[float, ...], confirmation: int
     ) -> bytes:

@@ -151,4 +151,36 @@ class Instruments:
             "DEM tiles or sources that failed, by source and reason (unreadable, missing, ...).",
             ("source", "reason"),
         )
+        self.hop_events = r.counter(
+            "fg_hop_events_total",
+            "FISCHER_HOP_EVENTs from an airframe, by reason (scheduled, jammed, interference); "
+            "jammed counts the jam-triggered hops.",
+            ("airframe", "reason"),
+        )
+        self.hops = r.counter(
+            "fg_hops_total",
+            "Hops the airframe's radio reported flying (from the hop counts of its events).",
+            ("airframe",),
+        )
+        self.hop_events_dropped = r.counter(
+            "fg_hop_events_dropped_total",
+            "Hop events counted but not published: over the per-airframe rate cap.",
+            ("airframe",),
+        )
+        self.hop_schedule_state = r.gauge(
+            "fg_hop_schedule_state",
+            "1 for the state of the airframe's hop-schedule upload (waiting_link, sent, "
+            "accepted, refused, retrying, invalid), 0 for the others.",
+            ("airframe", "state"),
+        )
+        self.hop_schedule_sends = r.counter(
+            "fg_hop_schedule_sends_total",
+            "FISCHER_HOP_SCHEDULE uploads sent to an airframe (re-sends included).",
+            ("airframe",),
+        )
+        self.hop_schedule_answers = r.counter(
+            "fg_hop_schedule_answers_total",
+            "FISCHER_HOP_SCHEDULE_ACKs for the gateway's schedule, by result.",
+            ("airframe", "result"),
+        )
         register_process_metrics(r)

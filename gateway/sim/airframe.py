@@ -24,8 +24,10 @@ import structlog
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
 from gateway.fleet.dialect import FischerDetection, FischerDetectionAck, fischer_detection
+from gateway.fleet.hopdialect import FischerHopSchedule
 from gateway.fleet.security.signing import mavlink_timestamp_now
 from gateway.sim.datalink import AirframeLink, LinkCounts
+from gateway.sim.radio import SimRadio
 from gateway.sim.resend import ResendPolicy, ResendStore
 
 if TYPE_CHECKING:
@@ -84,10 +86,13 @@ class SimProfile:
     battery_wh: float = 600.0
     power_w: float = 355.0
     home_alt_msl_m: float = 150.0
+    hop_event_hz: float = 2.0  # FISCHER_HOP_EVENT reports, only while a hop schedule is active
 
     def __post_init__(self) -> None:
         positive = {"radius_m", "speed_mps", "battery_wh", "power_w"}
-        rates = {"position_hz", "status_hz", "gps_hz", "heartbeat_hz", "detection_hz"}
+        rates = {
+            "position_hz", "status_hz", "gps_hz", "heartbeat_hz", "detection_hz", "hop_event_hz",
+        }  # fmt: skip
         for f in fields(self):
             value = getattr(self, f.name)
             if not math.isfinite(value):
@@ -187,6 +192,9 @@ class SimulatedAirframe:
             _Schedule(_period(p.status_hz), self._status),
             _Schedule(_period(p.detection_hz), self._detection),
         ]
+        # Hop reports are due only while the radio hops on a schedule (see next_due_s).
+        self._hop_schedule = _Schedule(_period(p.hop_event_hz), self._hop_events)
+        self._schedules.append(self._hop_schedule)
         self._feed = feed
         #: UNIX time of sim time 0, for FISCHER_DETECTION.time_usec (``run_udp`` sets it).
         self.boot_unix_s = 0.0
@@ -213,6 +221,8 @@ class SimulatedAirframe:
         #: What the UDP link saw (refusals while nothing listened, uplink rejected).
         self.link = LinkCounts()
         self._acked: anyio.Event | None = None  # set by each acknowledgement, wakes the sender
+        #: The AD9361: answers FISCHER_HOP_SCHEDULE, reports hops while a schedule is active.
+        self.radio = SimRadio(sysid)
 
     def frames_at(self, t_s: float) -> list[bytes]:
         """The frames due at sim time ``t_s`` (seconds since boot), in a fixed order.
@@ -257,7 +267,11 @@ class SimulatedAirframe:
 
     def next_due_s(self) -> float:
         """The sim time at which ``frames_at`` will next return frames (inf if never)."""
-        due = min(schedule.next_s for schedule in self._schedules)
+        due = min(
+            schedule.next_s
+            for schedule in self._schedules
+            if schedule is not self._hop_schedule or self.radio.active is not None
+        )
         return due if self._feed is None else min(due, self._feed.next_due_s())
 
     def unix_s(self, t_s: float) -> float:
@@ -349,6 +363,9 @@ class SimulatedAirframe:
                 subtype="T-72" if is_tank else "",
             )
         ]
+
+    def _hop_events(self, t_s: float) -> list[Any]:
+        return list(self.radio.events_at(self.unix_s(t_s)))
 
     def _status(self, t_s: float) -> list[Any]:
         p = self.profile
@@ -471,6 +488,10 @@ class SimulatedAirframe:
                     self.resend.acknowledge(msg)
                     if self._acked is not None:
                         self._acked.set()
+                elif isinstance(msg, FischerHopSchedule):
+                    answer = self.radio.answer(msg, time.time())
+                    if answer is not None and await link.send(self._pack(answer)):
+                        self.frames_sent += 1
                 elif msg.get_type() == "COMMAND_LONG" and msg.target_system == self.sysid:
                     self.commands.append((int(msg.command), int(msg.confirmation)))
                     if self.ack_commands:
