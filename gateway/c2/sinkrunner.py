@@ -565,8 +565,10 @@ class SinkRunner:
             return len(self.dead_letters)
 
     def status(self) -> dict[str, object]:
-        """The runner's state for /status."""
+        """The runner's state for /status, and the sink's own under ``detail`` if it has one."""
         latest, durable = self.depth
+        own = getattr(self.sink, "status", None)
+        detail = own() if callable(own) else None
         return {
             "sink": self.name,
             "type": self.entry.type,
@@ -580,4 +582,5 @@ class SinkRunner:
             "queue_max": self.entry.queue_max,
             "dead_letters": self._dead_letters_held(),
             "sent": int(self._sent.value),
+            **({"detail": detail} if detail is not None else {}),
         }
