@@ -69,7 +69,7 @@ def drain(b: Budget, now: float, until_s: float) -> list[tuple[float, Outgoing]]
 
 
 class TestBurst:
-    """Fifty tracks at once: within bytes_per_minute, in priority order, the rest held and counted."""
+    """Fifty tracks at once: within bytes_per_minute, in priority order, the rest held."""
 
     def test_a_burst_of_50_tracks_fits_the_budget_highest_priority_first(self) -> None:
         b = budget()
@@ -88,7 +88,8 @@ class TestBurst:
             assert b.offer(track(n, hostility="suspect")) == "held"
         assert b.held == 50
         sent = drain(b, start, start + 3600.0)
-        assert len(sent) == 50 and b.held == 0
+        assert len(sent) == 50
+        assert b.held == 0
         # Never more than bytes_per_minute in any 60 s window.
         for t0, _ in sent:
             window = sum(len(i.frame) for t, i in sent if t0 <= t <= t0 + 60.0)
@@ -103,7 +104,9 @@ class TestBurst:
         assert order[40:] == [(Priority.UPDATE, "hostile")] * 10
         assert all(i.cdm.type == "UPPD" for _, i in sent[40:])
         c = b.counts
-        assert c.sent == 60 and c.sent_new == 50 and c.sent_update == 10
+        assert c.sent == 60
+        assert c.sent_new == 50
+        assert c.sent_update == 10
         assert c.held_back >= 40  # most of the burst waited for the budget
         assert c.bytes_sent == sum(len(i.frame) for _, i in first + sent)
 
@@ -116,7 +119,8 @@ class TestWhatIsWorthSending:
         b.offer(track(1))
         drain(b, 0.0, 10.0)
         assert b.offer(track(1, north_m=40.0, status="updated")) == "suppressed"
-        assert b.held == 0 and b.counts.suppressed == 1
+        assert b.held == 0
+        assert b.counts.suppressed == 1
         assert b.offer(track(1, north_m=150.0, status="updated")) == "held"
 
     def test_a_newer_message_replaces_the_held_one_and_keeps_its_place(self) -> None:
@@ -124,11 +128,13 @@ class TestWhatIsWorthSending:
         for n in (1, 2, 3):
             b.offer(track(n))
         first = b.next_due(0.0)
-        assert first is not None and first.track_id == "T-001"
+        assert first is not None
+        assert first.track_id == "T-001"
         b.sent(first, 0.0)
         assert b.next_due(0.0) is None  # the bucket is spent: T-002 and T-003 wait
         assert b.offer(track(2, north_m=300.0, status="updated")) == "held"  # still new
-        assert b.held == 2 and b.counts.superseded == 1
+        assert b.held == 2
+        assert b.counts.superseded == 1
         sent = drain(b, 0.0, 600.0)
         assert [i.track_id for _, i in sent] == ["T-002", "T-003"]  # its place kept
         assert sent[0][1].cdm.type == "MAL"
@@ -138,13 +144,15 @@ class TestWhatIsWorthSending:
         b = budget(burst_bytes=100, bytes_per_minute=200)
         b.offer(track(1))
         assert b.offer(track(1, status="lost")) == "dropped_lost"
-        assert b.held == 0 and b.wait_s(0.0) is None
+        assert b.held == 0
+        assert b.wait_s(0.0) is None
 
     def test_hostilities_not_reported_are_counted_not_held(self) -> None:
         b = budget(report=frozenset({"hostile"}))
         assert b.offer(track(1, hostility="suspect")) == "not_reported"
         assert b.offer(track(2, hostility="friend")) == "not_reported"
-        assert b.held == 0 and b.counts.not_reported == 2
+        assert b.held == 0
+        assert b.counts.not_reported == 2
 
     def test_held_memory_is_bounded_by_max_tracks(self) -> None:
         b = budget(burst_bytes=100, bytes_per_minute=200, max_tracks=20)
@@ -153,5 +161,6 @@ class TestWhatIsWorthSending:
         assert b.held <= 20
         assert b.counts.dropped_full >= 480
         # What is left are the newest-remembered tracks, the hostile ones first in line.
-        head = b._head()  # noqa: SLF001 - the line's order is what is tested
-        assert head is not None and head.hostility == "hostile"
+        head = b._head()
+        assert head is not None
+        assert head.hostility == "hostile"
