@@ -221,7 +221,7 @@ class _SerialRadio:
         self.describe = f"serial://{config.device}?baud={config.baud}"
 
     async def send(self, frame: bytes) -> None:
-        await self._port.write(frame + SERIAL_END)
+        await self._port.write(frame)
 
     async def aclose(self) -> None:
         self._port.close()
@@ -276,7 +276,7 @@ class Ra180Sink:
             originator=self.config.originator,
             min_speed_mps=self.config.min_speed_mps,
         ).fitted(self.config.max_chars)
-        frame = " ".join(cdm.fields()).encode("ascii")
+        frame = " ".join(cdm.fields()).encode("ascii") + self._frame_end
         return cdm, frame
 
     async def open(self) -> None:
@@ -325,7 +325,7 @@ class Ra180Sink:
         while True:
             item = await self._next_due()
             try:
-                await self._radio.send(item.frame + self._frame_end)
+                await self._radio.send(item.frame)
             except OSError as exc:
                 await self._radio.aclose()
                 reason = f"{self._radio.describe}: {exc.strerror or exc}"
