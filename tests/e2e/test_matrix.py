@@ -7,7 +7,8 @@ TCP with TAK protocol v1 negotiation, the GUTE II sink to an HTTPS battery (clie
 certificate, JSON Schema checked) fed by the fusion and counter_uas processors, the SLB sink
 (detections and tracks as JC3IEDM object items over HTTPS), the SWECCIS sink and order source to
 one SWECCIS server (TLS, client certificate, XSD checked), plus a UDP and a TCP CoT source and
-the SLB order source. The simulator
+the SLB order source, and the Ra 180 sink to a UDP radio gateway with its Swedish voice. The
+simulator
 (``fischer-gateway simulate --scenario loitering-munitions``: two airframes, two Lancets seen
 on EO and IR) feeds it for more than ten seconds while every peer here decodes
 what it receives with takproto and /readyz is sampled; then SIGTERM must stop it cleanly.
@@ -20,6 +21,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import shutil
 import signal
 import socket
 import ssl
@@ -33,14 +35,17 @@ from typing import Any
 
 import anyio
 import anyio.abc
+import mgrs
 import pytest
 import trustme
 from anyio.streams.tls import TLSListener
+from geographiclib.geodesic import Geodesic
 from gute_peer import GutePeer
 from slb_peer import SlbPeer
 from sweccis_peer import SweccisPeer, order_document
 
 from gateway.codecs.cot.proto import read_varint
+from gateway.codecs.ra180 import parse_cdm
 
 takproto = pytest.importorskip("takproto")
 
@@ -199,6 +204,18 @@ class MatrixRun:
     """The SWECCIS server of the sweccis sink and order source."""
 
 
+def ra180_sink(run: MatrixRun, ports: dict[str, int]) -> dict[str, Any]:
+    """The Ra 180 leg: tracks as CDMs to a UDP radio gateway, new ones spoken to WAV files."""
+    return {
+        "name": "ra180",
+        "type": "ra180",
+        "options": {
+            "udp": {"host": "127.0.0.1", "port": ports["ra180"]},
+            "voice": {"directory": str(run.tmp / "ra180-wav"), "max_files": 10},
+        },
+    }
+
+
 def write_config(run: MatrixRun, ports: dict[str, int], pki: dict[str, str]) -> Path:
     def udp(name: str, uri: str, **extra: Any) -> dict[str, Any]:
         return {"name": name, "type": "cot", "options": {"destinations": [{"uri": uri, **extra}]}}
@@ -251,6 +268,7 @@ def write_config(run: MatrixRun, ports: dict[str, int], pki: dict[str, str]) -> 
             },
         ],
         "sinks": [
+            ra180_sink(run, ports),
             {"name": "archive", "type": "jsonl", "options": {"path": str(run.tmp / "a.jsonl")}},
             {"name": "console", "type": "console", "options": {"format": "json"}},
             {"name": "mem", "type": "memory"},
@@ -267,6 +285,7 @@ def write_config(run: MatrixRun, ports: dict[str, int], pki: dict[str, str]) -> 
             {"sinks": ["gute"], "kinds": ["handoff"]},
             {"sinks": ["slb"], "kinds": ["detection", "track"]},
             {"sinks": ["sweccis"], "kinds": ["telemetry", "detection", "track"]},
+            {"sinks": ["ra180"], "kinds": ["track"]},
         ],
     }
     path = run.tmp / "config.yaml"
@@ -314,7 +333,8 @@ async def scenario(run: MatrixRun, pki_files: dict[str, str], server_tls: ssl.SS
         "source_tcp": free_port(socket.SOCK_STREAM),
     }
     with contextlib.ExitStack() as sockets:
-        receivers = {name: sockets.enter_context(udp_receiver()) for name in ("udp", "mesh")}
+        names = ("udp", "mesh", "ra180")
+        receivers = {name: sockets.enter_context(udp_receiver()) for name in names}
         try:
             receivers["mcast"] = sockets.enter_context(udp_receiver(multicast=True))
         except OSError as exc:
@@ -583,3 +603,38 @@ class TestSweccis:
         assert [o["event_id"] for o in orders] == ["sweccis-order-M-1"]
         counts = {s["source"]: s["counts"] for s in matrix.status["sources"]}
         assert counts["orders_in"] == {"accepted": 1}
+
+
+class TestRa180:
+    """Fused hostile tracks to the Ra 180 net: CDMs where the tracks are, and Swedish voice."""
+
+    def test_the_radio_gateway_heard_each_new_munition_where_it_was(
+        self, matrix: MatrixRun
+    ) -> None:
+        cdms = [parse_cdm(d.decode("ascii")) for d in matrix.datagrams["ra180"]]
+        assert cdms, f"nothing reached the radio gateway: {sink_status(matrix, 'ra180')}"
+        assert {(c.hostility, c.class_abbreviation) for c in cdms} == {("FIENDE", "LUFT-MUN")}
+        new = [c for c in cdms if c.type == "MAL"]
+        assert len({c.number for c in new}) == len(new) >= 1  # each target announced once
+        lines = [json.loads(line) for line in (matrix.tmp / "a.jsonl").read_text().splitlines()]
+        tracks = [e for e in lines if e["kind"] == "track" and e["hostility"] == "hostile"]
+        for cdm in cdms:  # each grid reference is one of the fused positions, to its 10 m cell
+            lat, lon = mgrs.MGRS().toLatLon(cdm.mgrs.replace(" ", ""))
+            nearest = min(
+                Geodesic.WGS84.Inverse(
+                    lat, lon, t["position"]["lat_deg"], t["position"]["lon_deg"]
+                )["s12"]
+                for t in tracks
+            )
+            assert nearest < 7.1 + 0.1
+        detail = sink_status(matrix, "ra180")["detail"]
+        assert detail["sent"] == len(cdms)
+        assert detail["radio_state"] == "sending"
+
+    def test_new_targets_were_spoken_to_wav_files(self, matrix: MatrixRun) -> None:
+        voice = sink_status(matrix, "ra180")["detail"]["voice"]
+        if shutil.which("espeak-ng") is None:
+            assert voice["state"] == "unavailable", voice
+            pytest.skip("espeak-ng is not installed (Debian package espeak-ng)")
+        assert voice["rendered"] >= 1, voice
+        assert list((matrix.tmp / "ra180-wav").glob("*-MAL.wav"))
