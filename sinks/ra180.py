@@ -362,6 +362,31 @@ class Ra180Sink:
         self._wake = None
         await self._radio.aclose()
 
+    def counts(self) -> dict[str, int]:
+        """Monotonic counts by outcome, for ``fg_sink_outcomes_total{sink, outcome}``."""
+        c = self.budget.counts
+        counts = {
+            "offered": c.offered,
+            "sent": c.sent,
+            "held_back": c.held_back,
+            "suppressed": c.suppressed,
+            "superseded": c.superseded,
+            "not_reported": c.not_reported,
+            "unencodable": c.unencodable,
+            "dropped_full": c.dropped_full,
+            "dropped_lost": c.dropped_lost,
+            "bytes_sent": c.bytes_sent,
+        }
+        if self.voice is not None:
+            v = self.voice.counts
+            counts |= {
+                "voice_rendered": v.rendered,
+                "voice_failed": v.failed,
+                "voice_dropped": v.dropped,
+                "voice_unavailable": v.unavailable,
+            }
+        return counts
+
     def status(self) -> dict[str, Any]:
         """The radio, the budget and the voice, for ``/status`` (the sink's ``detail``)."""
         c = self.budget.counts

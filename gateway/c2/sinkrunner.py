@@ -564,6 +564,11 @@ class SinkRunner:
         except SpoolError:  # /status after the spool closed at shutdown
             return len(self.dead_letters)
 
+    def outcome_counts(self) -> Mapping[str, int]:
+        """The sink's own monotonic counts (its optional ``counts()``), for /metrics."""
+        own = getattr(self.sink, "counts", None)
+        return cast("Mapping[str, int]", own()) if callable(own) else {}
+
     def status(self) -> dict[str, object]:
         """The runner's state for /status, and the sink's own under ``detail`` if it has one."""
         latest, durable = self.depth

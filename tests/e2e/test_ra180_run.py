@@ -108,6 +108,10 @@ def test_a_hostile_track_reaches_the_radio_gateway_and_is_announced(tmp_path: Pa
             else:
                 wait_until(lambda: detail()["voice"]["state"] == "unavailable", 20, "no voice")  # type: ignore[index]
             final = detail()
+            metrics = {
+                outcome: daemon.metric("fg_sink_outcomes_total", sink="radio", outcome=outcome)
+                for outcome in ("sent", "suppressed", "held_back")
+            }
     text = datagram.decode("ascii")
     cdm = parse_cdm(text)
     assert text.startswith("MAL FIENDE LUFT-MUN POS ")
@@ -118,6 +122,9 @@ def test_a_hostile_track_reaches_the_radio_gateway_and_is_announced(tmp_path: Pa
     assert reported < 7.1 + 1.0  # the 10 m cell's centre, plus a fused track's wobble
     assert (final["sent_new"], final["sent_update"], final["held"]) == (1, 0, 0)
     assert final["radio_state"] == "sending"
+    assert metrics["sent"] == 1
+    assert metrics["suppressed"] >= 1
+    assert metrics["held_back"] == 0  # one message is well within the default budget
     if espeak is None:
         assert "install the Debian package espeak-ng" in final["voice"]["reason"]  # type: ignore[index]
         return
