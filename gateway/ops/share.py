@@ -28,6 +28,7 @@ DESCRIPTIONS = {
     "detection-ack.md": "FISCHER_DETECTION_ACK: what an airframe must do to lose no detection",
     "slb.md": "the SLB sink and order source: endpoints, JC3IEDM payload, options",
     "sweccis.md": "the SWECCIS sink and order source: FAS documents, framing, XSD, options",
+    "ra180.md": "the Ra 180 sink: the 127-character message, budget, serial/UDP, Swedish voice",
     "security.md": "threat model per link mode and port, listener limits, the attack tests",
     "README.md": "what works today",
 }

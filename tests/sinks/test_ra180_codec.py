@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import math
 from datetime import UTC, datetime, timedelta
+from pathlib import Path
 
 import mgrs
 import pytest
@@ -218,3 +219,18 @@ class TestVoiceText:
         assert "Position trea, trea, Victor, Whiskey, Echo. trea, sexa, trea, nolla." in text
         assert "Kurs nolla, nia, nolla." in text
         assert not any(ch.isdigit() for ch in text)
+
+
+def test_the_messages_and_voice_in_the_doc_are_what_the_code_makes() -> None:
+    """docs/ra180.md's example lines parse, and its spoken example is the code's."""
+    doc = (Path(__file__).resolve().parents[2] / "docs" / "ra180.md").read_text()
+    examples = [line for line in doc.splitlines() if line.startswith(("MAL ", "UPPD "))]
+    assert len(examples) == 2
+    for line in examples:
+        assert " ".join(parse_cdm(line).fields()) == line
+    cdm = compose(track(), message_type="MAL", number=17)
+    assert cdm.text() == examples[0]
+    spoken = " ".join(
+        line.removeprefix("> ").strip() for line in doc.splitlines() if line.startswith(">")
+    )
+    assert spoken == announcement(cdm)
