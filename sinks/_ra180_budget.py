@@ -176,6 +176,9 @@ class Budget:
             return "not_reported"
         if track.hostility not in self.report:
             c.not_reported += 1
+            # No longer what the net hears (say hostile → suspect): its waiting message goes.
+            if self._held.pop(track.track_id, None) is not None:
+                c.superseded += 1
             return "not_reported"
         known = self._remember(track.track_id)
         position = (track.position.lat_deg, track.position.lon_deg)

@@ -161,7 +161,7 @@ class Ra180SinkConfig(SinkConfig):
         default=0.5, ge=0, le=1000, description="Course and speed are sent from this speed up."
     )
     max_tracks: int = Field(
-        default=1000, ge=1, le=100_000, description="Tracks remembered and held at most."
+        default=1000, ge=1, le=10_000, description="Tracks remembered and held at most."
     )
     retry_initial_s: float = Field(default=1.0, gt=0, le=60, description="First retry delay.")
     retry_max_s: float = Field(default=30.0, gt=0, le=600, description="Longest retry delay.")

@@ -269,3 +269,38 @@ class TestVoice:
             "20261124-x.wav",
             "20261125-x.wav",
         ]
+
+
+class TestBudgetOnTheWire:
+    """Through the sink and a real socket: the burst goes out highest priority first."""
+
+    async def test_a_burst_of_50_sends_the_bucket_then_holds_the_rest(self) -> None:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as peer:
+            peer.bind(("127.0.0.1", 0))
+            peer.setblocking(False)
+            options = {
+                "udp": {"host": "127.0.0.1", "port": peer.getsockname()[1]},
+                "report": ["hostile", "suspect"],
+                "bytes_per_minute": 300,  # the bucket (260 bytes) at once, then 40 a minute
+            }
+            sink = Ra180Sink("radio", Ra180SinkConfig.model_validate(options))
+            suspect = [track(n).model_copy(update={"hostility": "suspect"}) for n in range(1, 11)]
+            hostile = [track(n) for n in range(11, 51)]
+            async with lifetime(sink):
+                await sink.send(suspect + hostile)  # the suspect ones offered first
+                # 91 bytes a message: two fit the bucket, the third waits 2 minutes.
+                await wait_for(lambda: sink.status()["sent"] == 2, "the bucket spent")
+                with anyio.move_on_after(0.3):  # nothing more may come for a while
+                    await wait_for(lambda: sink.status()["sent"] > 2, "more")
+                received = []
+                while True:
+                    try:
+                        received.append(peer.recv(1024).decode("ascii"))
+                    except BlockingIOError:
+                        break
+            detail = sink.status()
+        assert len(received) == 2
+        assert sum(map(len, received)) <= 260
+        assert [parse_cdm(r).hostility for r in received] == ["FIENDE"] * 2
+        assert [parse_cdm(r).number for r in received] == [11, 12]  # numbered as taken
+        assert (detail["held"], detail["held_back"], detail["sent"]) == (48, 1, 2)

@@ -154,6 +154,14 @@ class TestWhatIsWorthSending:
         assert b.held == 0
         assert b.counts.not_reported == 2
 
+    def test_a_track_no_longer_reported_drops_its_held_message(self) -> None:
+        b = budget(burst_bytes=100, bytes_per_minute=200, report=frozenset({"hostile"}))
+        b.offer(track(1))
+        b.sent(b.next_due(0.0), 0.0)  # type: ignore[arg-type]
+        b.offer(track(2))
+        assert b.offer(track(2, hostility="suspect", status="updated")) == "not_reported"
+        assert b.held == 0
+
     def test_held_memory_is_bounded_by_max_tracks(self) -> None:
         b = budget(burst_bytes=100, bytes_per_minute=200, max_tracks=20)
         for n in range(500):
