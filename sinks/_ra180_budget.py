@@ -23,6 +23,7 @@ content plus a minute's refill go out, so never more than ``bytes_per_minute``.
 
 from __future__ import annotations
 
+import contextlib
 from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -92,6 +93,7 @@ class Outgoing:
     lon_deg: float
     object_class: str
     hostility: str
+    track: Track
     has_waited: bool = False
 
     def order(self) -> tuple[int, int, int]:
@@ -180,6 +182,10 @@ class Budget:
             if self._held.pop(track.track_id, None) is not None:
                 c.superseded += 1
             return "not_reported"
+        return self._place(track)
+
+    def _place(self, track: Track) -> str:
+        c = self.counts
         known = self._remember(track.track_id)
         position = (track.position.lat_deg, track.position.lon_deg)
         priority = Priority.NEW if known.sent is None else Priority.UPDATE
@@ -218,6 +224,7 @@ class Budget:
             *position,
             track.object_class,
             track.hostility,
+            track,
             waited,
         )
         if previous is None and len(self._held) >= self.max_tracks and not self._make_room(item):
@@ -273,11 +280,15 @@ class Budget:
     def sent(self, item: Outgoing, now: float) -> None:
         """``item`` went out whole: spend its bytes and remember what the net now knows."""
         self.bucket.spend(len(item.frame), now)
-        if self._held.get(item.track_id) is item:
-            del self._held[item.track_id]
         known = self._known.get(item.track_id)
         if known is not None:
             known.sent = (item.lat_deg, item.lon_deg, item.object_class, item.hostility)
+        newer = self._held.pop(item.track_id, None)
+        if newer is not None and newer is not item:
+            # Offered while this one was on its way: weigh it again against what the net now
+            # knows (a new target's second message is an update, or a repeat).
+            with contextlib.suppress(CdmError):  # encoded once already; counted if not now
+                self._place(newer.track)
         c = self.counts
         c.sent += 1
         c.bytes_sent += len(item.frame)

@@ -140,6 +140,29 @@ class TestWhatIsWorthSending:
         assert sent[0][1].cdm.type == "MAL"
         assert sent[0][1].lat_deg > LAT + 0.002  # the newer position went out
 
+    def test_a_message_offered_while_the_first_was_on_its_way_is_weighed_again(self) -> None:
+        b = budget()
+        b.offer(track(1))
+        b.offer(track(2))
+        first = b.next_due(0.0)
+        assert first is not None
+        b.offer(track(1, north_m=500.0, status="updated"))  # while the MAL is being sent
+        b.offer(track(2, north_m=10.0, status="updated"))
+        b.sent(first, 0.0)
+        second = b.next_due(0.0)
+        assert second is not None
+        assert second.track_id == "T-002"  # still the new target T-002 before T-001's update
+        b.sent(second, 0.0)
+        third = b.next_due(0.0)
+        assert third is not None
+        assert (third.track_id, third.priority, third.cdm.type) == (
+            "T-001",
+            Priority.UPDATE,
+            "UPPD",
+        )
+        b.sent(third, 0.0)
+        assert b.held == 0
+
     def test_a_lost_track_drops_its_held_message(self) -> None:
         b = budget(burst_bytes=100, bytes_per_minute=200)
         b.offer(track(1))
