@@ -19,7 +19,9 @@ shows the radio and voice state and what was held back under the sink's ``detail
 from __future__ import annotations
 
 import math
+import os
 import random
+import shutil
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, Literal, Protocol
@@ -278,6 +280,20 @@ class Ra180Sink:
         ).fitted(self.config.max_chars)
         frame = " ".join(cdm.fields()).encode("ascii") + self._frame_end
         return cdm, frame
+
+    def environment_warnings(self) -> list[str]:
+        """What on this node the sink will wait for or do without (``check-config``)."""
+        notes = []
+        serial = self.config.serial
+        if serial is not None and not os.path.exists(serial.device):
+            notes.append(f"{serial.device} does not exist now; messages wait for it")
+        voice = self.config.voice
+        if voice is not None and shutil.which(voice.program) is None:
+            notes.append(
+                f"{voice.program} not found on PATH: no voice announcements until the Debian "
+                "package espeak-ng is installed (the messages still go out)"
+            )
+        return notes
 
     async def open(self) -> None:
         """Nothing to connect: the lifetime opens the radio and retries it while it is away."""

@@ -7,6 +7,8 @@ import math
 import os
 import shutil
 import socket
+import subprocess
+import sys
 import wave
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
@@ -122,6 +124,36 @@ class TestConfig:
         )
         assert config.originator == "JAGARE1"
         assert config.abbreviations == {"tank": "STRV-122"}
+
+    def test_check_config_warns_of_a_missing_device_and_synthesiser(self, tmp_path: Path) -> None:
+        config = tmp_path / "node.yaml"
+        config.write_text(
+            "airframes:\n"
+            "  - {id: A, sysid: 1, links: [{uri: 'udp://127.0.0.1:9', security: unsecured}]}\n"
+            "sinks:\n"
+            "  - name: radio\n"
+            "    type: ra180\n"
+            "    options:\n"
+            f"      serial: {{device: '{tmp_path / 'ttyNONE'}'}}\n"
+            f"      voice: {{directory: '{tmp_path}', program: no-such-espeak}}\n"
+            "routes: [{sinks: [radio], kinds: [track]}]\n"
+        )
+        done = subprocess.run(
+            [sys.executable, "-m", "gateway", "check-config", str(config)],
+            capture_output=True,
+            text=True,
+            timeout=60,
+            check=False,
+        )
+        assert done.returncode == 0, done.stderr
+        warnings = [line for line in done.stderr.splitlines() if line.endswith("(warning)")]
+        assert len(warnings) == 2
+        assert all(
+            line.startswith(f"{config}:6 sinks[0].options: sink 'radio': ") for line in warnings
+        )
+        assert "ttyNONE does not exist now; messages wait for it" in warnings[0]
+        assert "install" in warnings[1]
+        assert "espeak-ng" in warnings[1]
 
 
 class TestUdp:
