@@ -13,8 +13,9 @@ a repeat and suppressed. A lost track's held message is dropped.
 
 **Latest wins.** At most one message per track is held: a newer one replaces it (keeping
 its place in line, so a track updated every second is not starved), so what is held is
-bounded by the number of tracks, itself capped at ``max_tracks`` (the least recently heard
-track is forgotten first; when every slot holds a message, the least important gives way).
+bounded by the number of tracks, itself capped at ``max_tracks``: a new track takes the
+place of the least recently heard one with nothing held; when every track holds a message,
+the least important message gives way, unless the newcomer's would matter less still.
 
 **Budget.** A token bucket of ``burst_bytes`` refilled at ``(bytes_per_minute -
 burst_bytes) / 60`` bytes a second, starting full. In any 60 s window at most the bucket's
@@ -24,6 +25,7 @@ content plus a minute's refill go out, so never more than ``bytes_per_minute``.
 from __future__ import annotations
 
 import contextlib
+import heapq
 from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -149,6 +151,8 @@ class Budget:
         self.counts = BudgetCounts()
         self._known: OrderedDict[str, _Known] = OrderedDict()
         self._held: dict[str, Outgoing] = {}
+        self._line: list[tuple[int, int, int, int, Outgoing]] = []
+        self._pushes = 0
         self._seq = 0
         self._next_number = 1
 
@@ -186,7 +190,10 @@ class Budget:
 
     def _place(self, track: Track) -> str:
         c = self.counts
-        known = self._remember(track.track_id)
+        known = self._remember(track)
+        if known is None:
+            c.dropped_full += 1
+            return "dropped_full"
         position = (track.position.lat_deg, track.position.lon_deg)
         priority = Priority.NEW if known.sent is None else Priority.UPDATE
         if known.sent is not None:
@@ -227,34 +234,53 @@ class Budget:
             track,
             waited,
         )
-        if previous is None and len(self._held) >= self.max_tracks and not self._make_room(item):
-            c.dropped_full += 1
-            return "dropped_full"
-        self._held[track.track_id] = item
+        self._hold(item)
         return "held"
 
-    def _remember(self, track_id: str) -> _Known:
-        known = self._known.get(track_id)
+    def _remember(self, track: Track) -> _Known | None:
+        """The track's state, made room for if new; None if every slot matters more."""
+        known = self._known.get(track.track_id)
         if known is not None:
-            self._known.move_to_end(track_id)
+            self._known.move_to_end(track.track_id)
             return known
-        while len(self._known) >= self.max_tracks:
-            oldest, _ = self._known.popitem(last=False)
-            if self._held.pop(oldest, None) is not None:
-                self.counts.dropped_full += 1
-        known = self._known[track_id] = _Known(self._number())
+        if len(self._known) >= self.max_tracks and not self._forget_one(track):
+            return None
+        known = self._known[track.track_id] = _Known(self._number())
         return known
 
-    def _make_room(self, item: Outgoing) -> bool:
+    def _forget_one(self, track: Track) -> bool:
+        # The least recently heard track with nothing waiting costs only the net's memory of
+        # it (its next update is announced as new); only if every track has a message
+        # waiting does the least important message give way, unless the newcomer's would
+        # be less important still.
+        for track_id in self._known:
+            if track_id not in self._held:
+                del self._known[track_id]
+                return True
         worst = max(self._held.values(), key=Outgoing.order)
-        if worst.order() < item.order():
-            return False  # everything held matters more than this one
+        if (Priority.NEW, _RANK.get(track.hostility, len(_RANK))) > worst.order()[:2]:
+            return False
         del self._held[worst.track_id]
+        del self._known[worst.track_id]
         self.counts.dropped_full += 1
         return True
 
+    def _hold(self, item: Outgoing) -> None:
+        """Put ``item`` in the line (a heap; entries of replaced or sent items are skipped)."""
+        self._held[item.track_id] = item
+        self._pushes += 1
+        heapq.heappush(self._line, (*item.order(), self._pushes, item))
+        if len(self._line) > 2 * len(self._held) + 64:  # keep the stale entries bounded
+            self._line = [e for e in self._line if self._held.get(e[-1].track_id) is e[-1]]
+            heapq.heapify(self._line)
+
     def _head(self) -> Outgoing | None:
-        return min(self._held.values(), key=Outgoing.order, default=None)
+        while self._line:
+            item = self._line[0][-1]
+            if self._held.get(item.track_id) is item:
+                return item
+            heapq.heappop(self._line)
+        return None
 
     def next_due(self, now: float) -> Outgoing | None:
         """The message to send now, or None (nothing held, or the budget is spent).

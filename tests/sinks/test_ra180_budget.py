@@ -185,6 +185,18 @@ class TestWhatIsWorthSending:
         assert b.offer(track(2, hostility="suspect", status="updated")) == "not_reported"
         assert b.held == 0
 
+    def test_a_new_track_takes_the_place_of_one_with_nothing_waiting(self) -> None:
+        b = budget(max_tracks=3)
+        for n in (1, 2, 3):
+            b.offer(track(n))
+        drain(b, 0.0, 600.0)
+        b.offer(track(2, north_m=10.0, status="updated"))  # heard again: 1 is now the oldest
+        assert b.offer(track(4)) == "held"
+        assert b.counts.dropped_full == 0
+        # Track 1 was forgotten: the net hears it again as a new target.
+        assert b.offer(track(1, north_m=10.0, status="updated")) == "held"
+        assert [i.cdm.type for _, i in drain(b, 600.0, 1200.0)] == ["MAL", "MAL"]
+
     def test_held_memory_is_bounded_by_max_tracks(self) -> None:
         b = budget(burst_bytes=100, bytes_per_minute=200, max_tracks=20)
         for n in range(500):
