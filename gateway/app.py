@@ -143,6 +143,7 @@ class Gateway:
             spool=self.spool,
         )
         self.instruments.sink_queue.set_function(self._queue_depths)
+        self.instruments.sink_outcomes.set_function(self._sink_outcomes)
         self._instrument_spool()
         self.security = Security.from_config(config, clock)
         self.terrain = terrain_model(config)
@@ -225,6 +226,14 @@ class Gateway:
             latest, durable = runner.depth
             depths += [((name, "latest"), float(latest)), ((name, "durable"), float(durable))]
         return depths
+
+    def _sink_outcomes(self) -> list[tuple[tuple[str, ...], float]]:
+        series: list[tuple[tuple[str, ...], float]] = []
+        for name, runner in self.runners.items():
+            for outcome, count in runner.outcome_counts().items():
+                if isinstance(count, int | float):  # a third-party sink's may be anything
+                    series.append(((name, outcome), float(count)))
+        return series
 
     def _instrument_spool(self) -> None:
         inst, spool = self.instruments, self.spool

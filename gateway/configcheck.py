@@ -155,6 +155,10 @@ class NodeCheck:
                 continue
             self.sinks[name] = sink
             kinds[name] = frozenset(sink_kinds)
+            # A sink may say what on this node it will wait for (a device, a program).
+            notes = getattr(sink, "environment_warnings", None)
+            for note in notes() if callable(notes) else ():
+                yield ("sinks", i, "options"), f"sink {name!r}: {note}", False
         return kinds
 
     def _routes(

@@ -564,9 +564,16 @@ class SinkRunner:
         except SpoolError:  # /status after the spool closed at shutdown
             return len(self.dead_letters)
 
+    def outcome_counts(self) -> Mapping[str, int]:
+        """The sink's own monotonic counts (its optional ``counts()``), for /metrics."""
+        own = getattr(self.sink, "counts", None)
+        return cast("Mapping[str, int]", own()) if callable(own) else {}
+
     def status(self) -> dict[str, object]:
-        """The runner's state for /status."""
+        """The runner's state for /status, and the sink's own under ``detail`` if it has one."""
         latest, durable = self.depth
+        own = getattr(self.sink, "status", None)
+        detail = own() if callable(own) else None
         return {
             "sink": self.name,
             "type": self.entry.type,
@@ -580,4 +587,5 @@ class SinkRunner:
             "queue_max": self.entry.queue_max,
             "dead_letters": self._dead_letters_held(),
             "sent": int(self._sent.value),
+            **({"detail": detail} if detail is not None else {}),
         }

@@ -81,6 +81,12 @@ class Instruments:
             "Latest-wins events thinned by a route's max_rate_hz.",
             ("sink",),
         )
+        self.sink_outcomes = r.counter(
+            "fg_sink_outcomes_total",
+            "A sink's own counts of what became of what it took, by outcome (the ra180 sink: "
+            "sent, held_back, suppressed, superseded, dropped_full ...).",
+            ("sink", "outcome"),
+        )
         self.sink_queue = r.gauge(
             "fg_sink_queue_depth", "Events waiting for a sink, by class.", ("sink", "class")
         )

@@ -29,6 +29,7 @@ DESCRIPTIONS = {
     "slb.md": "the SLB sink and order source: endpoints, JC3IEDM payload, options",
     "nffi.md": "the NFFI sink and source: mapping, IP1 framing, trust, options",
     "sweccis.md": "the SWECCIS sink and order source: FAS documents, framing, XSD, options",
+    "ra180.md": "the Ra 180 sink: the 127-character message, budget, serial/UDP, Swedish voice",
     "security.md": "threat model per link mode and port, listener limits, the attack tests",
     "README.md": "what works today",
 }

@@ -7,8 +7,9 @@ TCP with TAK protocol v1 negotiation, the GUTE II sink to an HTTPS battery (clie
 certificate, JSON Schema checked) fed by the fusion and counter_uas processors, the SLB sink
 (detections and tracks as JC3IEDM object items over HTTPS), the SWECCIS sink and order source to
 one SWECCIS server (TLS, client certificate, XSD checked), the NFFI sink (IP1 TCP and a file,
-NFFI 1.3 XSD checked), plus a UDP and a TCP CoT source, the SLB order source and the NFFI
-source (a JAS 39 relay's friendly track over IP1). The simulator
+NFFI 1.3 XSD checked), the Ra 180 sink to a UDP radio gateway with its Swedish voice, plus a
+UDP and a TCP CoT source, the SLB order source and the NFFI source (a JAS 39 relay's
+friendly track over IP1). The simulator
 (``fischer-gateway simulate --scenario loitering-munitions``: two airframes, two Lancets seen
 on EO and IR) feeds it for more than ten seconds while every peer here decodes
 what it receives with takproto and /readyz is sampled; then SIGTERM must stop it cleanly.
@@ -21,6 +22,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import shutil
 import signal
 import socket
 import ssl
@@ -34,9 +36,11 @@ from typing import Any
 
 import anyio
 import anyio.abc
+import mgrs
 import pytest
 import trustme
 from anyio.streams.tls import TLSListener
+from geographiclib.geodesic import Geodesic
 from gute_peer import GutePeer
 from lxml import etree
 from slb_peer import SlbPeer
@@ -45,6 +49,7 @@ from sweccis_peer import SweccisPeer, order_document
 from gateway.codecs.cot.proto import read_varint
 from gateway.codecs.nffi import NffiOptions, encode_message, parse_message, tracks_of
 from gateway.codecs.nffi_stream import MessageSplitter
+from gateway.codecs.ra180 import parse_cdm
 from gateway.events import BlueForce, Position
 
 takproto = pytest.importorskip("takproto")
@@ -279,6 +284,18 @@ class MatrixRun:
     """The NFFI sink's IP1 peer and file, and the NFFI source's port."""
 
 
+def ra180_sink(run: MatrixRun, ports: dict[str, int]) -> dict[str, Any]:
+    """The Ra 180 leg: tracks as CDMs to a UDP radio gateway, new ones spoken to WAV files."""
+    return {
+        "name": "ra180",
+        "type": "ra180",
+        "options": {
+            "udp": {"host": "127.0.0.1", "port": ports["ra180"]},
+            "voice": {"directory": str(run.tmp / "ra180-wav"), "max_files": 10},
+        },
+    }
+
+
 def write_config(run: MatrixRun, ports: dict[str, int], pki: dict[str, str]) -> Path:
     def udp(name: str, uri: str, **extra: Any) -> dict[str, Any]:
         return {"name": name, "type": "cot", "options": {"destinations": [{"uri": uri, **extra}]}}
@@ -331,6 +348,7 @@ def write_config(run: MatrixRun, ports: dict[str, int], pki: dict[str, str]) -> 
             },
         ],
         "sinks": [
+            ra180_sink(run, ports),
             {"name": "archive", "type": "jsonl", "options": {"path": str(run.tmp / "a.jsonl")}},
             {"name": "console", "type": "console", "options": {"format": "json"}},
             {"name": "mem", "type": "memory"},
@@ -347,6 +365,7 @@ def write_config(run: MatrixRun, ports: dict[str, int], pki: dict[str, str]) -> 
             {"sinks": ["gute"], "kinds": ["handoff"]},
             {"sinks": ["slb"], "kinds": ["detection", "track"]},
             {"sinks": ["sweccis"], "kinds": ["telemetry", "detection", "track"]},
+            {"sinks": ["ra180"], "kinds": ["track"]},
         ],
     }
     if run.nffi is not None:
@@ -397,7 +416,8 @@ async def scenario(run: MatrixRun, pki_files: dict[str, str], server_tls: ssl.SS
         "source_tcp": free_port(socket.SOCK_STREAM),
     }
     with contextlib.ExitStack() as sockets:
-        receivers = {name: sockets.enter_context(udp_receiver()) for name in ("udp", "mesh")}
+        names = ("udp", "mesh", "ra180")
+        receivers = {name: sockets.enter_context(udp_receiver()) for name in names}
         try:
             receivers["mcast"] = sockets.enter_context(udp_receiver(multicast=True))
         except OSError as exc:
@@ -699,3 +719,38 @@ class TestNffi:
         (fighter,) = [e for e in lines if e["kind"] == "blue_force" and e["source"] == "nffi"]
         assert (fighter["uid"], fighter["sidc"]) == ("SWE.JAS39.39-7", "SFAPMFF--------")
         assert fighter["speed_mps"] == pytest.approx(250.0)
+
+
+class TestRa180:
+    """Fused hostile tracks to the Ra 180 net: CDMs where the tracks are, and Swedish voice."""
+
+    def test_the_radio_gateway_heard_each_new_munition_where_it_was(
+        self, matrix: MatrixRun
+    ) -> None:
+        cdms = [parse_cdm(d.decode("ascii")) for d in matrix.datagrams["ra180"]]
+        assert cdms, f"nothing reached the radio gateway: {sink_status(matrix, 'ra180')}"
+        assert {(c.hostility, c.class_abbreviation) for c in cdms} == {("FIENDE", "LUFT-MUN")}
+        new = [c for c in cdms if c.type == "MAL"]
+        assert len({c.number for c in new}) == len(new) >= 1  # each target announced once
+        lines = [json.loads(line) for line in (matrix.tmp / "a.jsonl").read_text().splitlines()]
+        tracks = [e for e in lines if e["kind"] == "track" and e["hostility"] == "hostile"]
+        for cdm in cdms:  # each grid reference is one of the fused positions, to its 10 m cell
+            lat, lon = mgrs.MGRS().toLatLon(cdm.mgrs.replace(" ", ""))
+            nearest = min(
+                Geodesic.WGS84.Inverse(
+                    lat, lon, t["position"]["lat_deg"], t["position"]["lon_deg"]
+                )["s12"]
+                for t in tracks
+            )
+            assert nearest < 7.1 + 0.1
+        detail = sink_status(matrix, "ra180")["detail"]
+        assert detail["sent"] == len(cdms)
+        assert detail["radio_state"] == "sending"
+
+    def test_new_targets_were_spoken_to_wav_files(self, matrix: MatrixRun) -> None:
+        voice = sink_status(matrix, "ra180")["detail"]["voice"]
+        if shutil.which("espeak-ng") is None:
+            assert voice["state"] == "unavailable", voice
+            pytest.skip("espeak-ng is not installed (Debian package espeak-ng)")
+        assert voice["rendered"] >= 1, voice
+        assert list((matrix.tmp / "ra180-wav").glob("*-MAL.wav"))
