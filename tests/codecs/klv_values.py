@@ -9,7 +9,8 @@ from hypothesis import strategies as st
 
 from gateway.codecs.klv.st0601 import TAGS, Tag
 
-ASCII = st.text(st.characters(min_codepoint=0x20, max_codepoint=0x7E), max_size=40)
+#: Text as ST 0107 wants it: printable ASCII, not starting or ending with a blank.
+ASCII = st.from_regex(r"\A[!-~]([ -~]{0,38}[!-~])?\Z")
 TIMES = st.datetimes(
     # hypothesis takes naive bounds and adds the zone itself.
     min_value=datetime(1971, 1, 1),  # noqa: DTZ001

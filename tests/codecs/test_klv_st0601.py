@@ -142,13 +142,26 @@ class TestErrorIndicators:
     def test_unsigned_tags_without_indicator_are_left_out(self, tag: int, value: Any) -> None:
         assert tag not in decode(encode({tag: value, 65: 19}))
 
+    @pytest.mark.parametrize("value", [-1000.0, 50_000.0, math.inf, math.nan])
+    def test_imapb_tags_out_of_range_are_left_out(self, value: float) -> None:
+        assert 113 not in decode(encode({113: value, 65: 19}))
+
     @pytest.mark.parametrize(
-        ("value", "special"),
-        [(-1000.0, Special.BELOW_MINIMUM), (50_000.0, Special.ABOVE_MAXIMUM),
-         (math.inf, Special.POSITIVE_INFINITY), (math.nan, Special.NAN)],
+        ("first", "special"),
+        [(0xE0, Special.BELOW_MINIMUM), (0xE1, Special.ABOVE_MAXIMUM),
+         (0xC8, Special.POSITIVE_INFINITY), (0xD0, Special.NAN), (0xC1, Special.OTHER)],
     )  # fmt: skip
-    def test_imapb_tags_send_code_words(self, value: float, special: Special) -> None:
-        assert decode(encode({113: value}))[113] is special
+    def test_imapb_code_words_decode_as_special(self, first: int, special: Special) -> None:
+        assert (
+            decode(
+                encode({113: 0.0, 65: 19}).replace(
+                    b"\x71\x03" + Imapb(-900, 40_000, 3).encode(0.0),
+                    b"\x71\x03" + bytes((first, 0, 0)),
+                ),
+                verify_checksum=False,
+            )[113]
+            is special
+        )
 
 
 class TestImapb:

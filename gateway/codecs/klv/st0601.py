@@ -7,10 +7,11 @@ back ``{tag: value}``. Values are Python numbers in the tag's units (degrees, me
 tags, and ``Special`` for an error indicator or an IMAPB code word.
 
 Out-of-range inputs: a signed mapped tag (pitch, latitude, frame centre ...) is sent as its
-reserved error indicator (``0x80…``), an IMAPB tag as its "below minimum" / "above maximum"
-code word, and an unsigned mapped or integer tag, which has no indicator, is left out of the
-packet. ``decode`` never interprets an item whose length does not fit its tag: it is kept as
-``bytes``. Unknown tags are skipped by their length, as the standard asks.
+reserved error indicator (``0x80…``); an unsigned mapped, IMAPB or integer tag is left out
+of the packet (ST 0601.19 permits no IMAPB code words in its tags, and the unsigned legacy
+tags have no indicator). ``decode`` still reads IMAPB code words as ``Special``, and never
+interprets an item whose length does not fit its tag: it is kept as ``bytes``. Unknown tags
+are skipped by their length, as the standard asks.
 """
 
 from __future__ import annotations
@@ -52,6 +53,7 @@ Kind = Literal["time", "text", "umap", "smap", "uint", "int", "imapb", "bytes"]
 _EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
 _MAX_MICROS = (datetime(9999, 1, 1, tzinfo=UTC) - _EPOCH) // timedelta(microseconds=1)
 _CHECKSUM_TAG = 1
+_TRIM = " \t\r\n\x00"
 _TIME_TAG = 2
 _MAX_TEXT = 127
 
@@ -191,7 +193,9 @@ def _encode_value(t: Tag, value: Value) -> bytes | None:
     if kind == "text":
         if not isinstance(value, str):
             raise TypeError(f"ST 0601 tag {t.tag}: expected str, got {type(value).__name__}")
-        return value.encode("ascii", "replace")[: t.length]
+        # ST 0107: text is trimmed of blanks and controls at both ends.
+        text = value.strip(_TRIM).encode("ascii", "replace")[: t.length].strip(_TRIM.encode())
+        return text or None  # a zero-length item means "unknown" to receivers: leave it out
     if kind == "bytes":
         if not isinstance(value, bytes):
             raise TypeError(f"ST 0601 tag {t.tag}: expected bytes, got {type(value).__name__}")
@@ -209,13 +213,13 @@ def _encode_value(t: Tag, value: Value) -> bytes | None:
             return (1 << bits).to_bytes(t.length, "big")  # the reserved error indicator
         raw = round(value * ((1 << bits) - 1) / t.high)
         return raw.to_bytes(t.length, "big", signed=True)
-    if kind == "imapb":
-        return _imapb(t.low, t.high, t.default_length).encode(value)
     if isinstance(value, Special):
         return None  # an unsigned tag has no error indicator
+    if kind in ("umap", "imapb") and not t.low <= value <= t.high:  # NaN fails too
+        return None
+    if kind == "imapb":
+        return _imapb(t.low, t.high, t.default_length).encode(value)
     if kind == "umap":
-        if not t.low <= value <= t.high:
-            return None
         raw = round((value - t.low) * ((1 << (8 * t.length)) - 1) / (t.high - t.low))
         return raw.to_bytes(t.length, "big")
     # Integers ("uint", "int"): whole numbers that fit the tag's largest length.
