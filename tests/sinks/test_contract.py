@@ -29,6 +29,7 @@ OPTIONS: dict[str, Any] = {
     "jsonl": lambda tmp: {"path": str(tmp / "contract.jsonl")},
     # The discard port on loopback: nothing listens, and UDP does not care.
     "cot": lambda tmp: {"destinations": [{"uri": "udp://127.0.0.1:9"}]},
+    "klv": lambda tmp: {"udp": {"host": "127.0.0.1", "port": 9}},
 }
 
 
