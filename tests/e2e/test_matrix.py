@@ -259,8 +259,10 @@ def write_config(run: MatrixRun, ports: dict[str, int], pki: dict[str, str]) -> 
             {"name": "slb", "type": "slb", "options": run.slb.sink_options()},
             {"name": "sweccis", "type": "sweccis", "options": run.sweccis.link_options()},
             *cot,
+            klv_sink(ports),
         ],
         "routes": [
+            klv_route(),
             {"sinks": ["archive", "mem", "null"]},
             {"sinks": ["console"], "kinds": ["telemetry"], "max_rate_hz": 1},
             {"sinks": [c["name"] for c in cot], "kinds": ["telemetry", "detection"]},
@@ -272,6 +274,16 @@ def write_config(run: MatrixRun, ports: dict[str, int], pki: dict[str, str]) -> 
     path = run.tmp / "config.yaml"
     path.write_text(json.dumps(config, indent=1))  # JSON is YAML
     return path
+
+
+def klv_sink(ports: dict[str, int]) -> dict[str, Any]:
+    """The KLV leg: ST 0601 packets over UDP to the ``klv`` receiver."""
+    udp = {"host": "127.0.0.1", "port": ports["klv"]}
+    return {"name": "klv", "type": "klv", "options": {"udp": udp, "mission_id": "E2E"}}
+
+
+def klv_route() -> dict[str, Any]:
+    return {"sinks": ["klv"], "kinds": ["video_frame_metadata"]}
 
 
 async def drain(stream: anyio.abc.ByteReceiveStream, into: list[bytes]) -> None:
@@ -314,7 +326,8 @@ async def scenario(run: MatrixRun, pki_files: dict[str, str], server_tls: ssl.SS
         "source_tcp": free_port(socket.SOCK_STREAM),
     }
     with contextlib.ExitStack() as sockets:
-        receivers = {name: sockets.enter_context(udp_receiver()) for name in ("udp", "mesh")}
+        names = ("udp", "mesh", "klv")
+        receivers = {name: sockets.enter_context(udp_receiver()) for name in names}
         try:
             receivers["mcast"] = sockets.enter_context(udp_receiver(multicast=True))
         except OSError as exc:
@@ -583,3 +596,25 @@ class TestSweccis:
         assert [o["event_id"] for o in orders] == ["sweccis-order-M-1"]
         counts = {s["source"]: s["counts"] for s in matrix.status["sources"]}
         assert counts["orders_in"] == {"accepted": 1}
+
+
+class TestKlv:
+    """STANAG 4609 metadata: the camera of F26E-001 as ST 0601 KLV over UDP."""
+
+    def test_packets_decode_alike_in_ours_and_stanag4609(self, matrix: MatrixRun) -> None:
+        from gateway.codecs.klv.st0601 import decode
+
+        stanag = pytest.importorskip("stanag4609.st0601")
+        packets = matrix.datagrams["klv"]
+        assert len(packets) >= 5 * RUN_S  # 5 Hz camera reports for the whole run, and more
+        for packet in packets:
+            ours = decode(packet)  # checksum verified
+            theirs = {f.definition.tag: f.value for f in stanag.decode_uas_local_set(packet).fields}
+            assert theirs[13] == pytest.approx(ours[13], abs=1e-7)
+            assert (ours[3], ours[4], ours[10], ours[65]) == ("E2E", "F26E-001", "Fischer 26E", 19)
+            # The simulated gimbal holds the orbit's centre in view (loitering-munitions.yaml).
+            assert ours[23] == pytest.approx(65.8600, abs=1e-6)
+            assert ours[24] == pytest.approx(21.6400, abs=1e-6)
+            assert ours[21] == pytest.approx((700**2 + 450**2) ** 0.5, rel=0.01)
+        status = sink_status(matrix, "klv")
+        assert (status["state"], status["dead_letters"]) == ("open", 0)
