@@ -5,12 +5,13 @@ Angles are degrees. Azimuth is clockwise from true north (absolute) or from the 
 ``absolute_pointing`` and ``relative_pointing`` turn a line of sight between the platform's
 body axes and local north-east-down with the platform's roll, pitch and yaw.
 
-``ground_intersection`` finds where the axis meets the ground: a spherical earth (the ray's
-height above a sphere of radius ``EARTH_RADIUS_M`` gains ``h²/2R`` at horizontal distance h),
-and a ground elevation looked up at each estimate (a DEM, or a flat ground given by the
-caller), iterated to a fixed point. It returns None when the axis misses the ground (at or
-above the horizon, or grazing past the earth's curve). On steep slopes at grazing angles
-the iteration may stop before it converges; the last estimate is returned then.
+``ground_intersection`` finds where the axis first meets the ground: a spherical earth (the
+ray's height above a sphere of radius ``EARTH_RADIUS_M`` gains ``h²/2R`` at horizontal distance
+h) and the ground elevation looked up along the way (a DEM, or a flat ground given by the
+caller). It marches out in steps sized by the clearance left, so a ridge in front of the
+flat-earth answer is found, and bisects the crossing. It returns None when the axis misses
+the ground (at or above the horizon, grazing past the earth's curve, or beyond range).
+Terrain steeper than ``MAX_SLOPE`` can be stepped over by at most ``MIN_STEP_M``.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ __all__ = [
     "EARTH_RADIUS_M",
     "GroundPoint",
     "absolute_pointing",
+    "flat_intersection",
     "footprint_width_m",
     "ground_intersection",
     "quaternion_to_euler",
@@ -33,8 +35,13 @@ __all__ = [
 
 #: Mean earth radius: the curvature term only, where metres of error are negligible.
 EARTH_RADIUS_M = 6_371_000.0
-_ITERATIONS = 12
+#: Steepest terrain (rise per metre) the march assumes it cannot step over.
+MAX_SLOPE = 1.0
+#: Shortest step of the march, in metres of horizontal distance.
+MIN_STEP_M = 5.0
 _CONVERGED_M = 0.5
+_HIGHEST_GROUND_M = 8_900.0
+_LOWEST_GROUND_M = -500.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -98,18 +105,6 @@ def relative_pointing(
     return _angles(body)
 
 
-def _slant_to(height_m: float, depression_rad: float) -> float | None:
-    """Slant range at which a ray ``height_m`` above a sphere's surface meets it, or None."""
-    if height_m <= 0:
-        return 0.0
-    sin_d, cos_d = math.sin(depression_rad), math.cos(depression_rad)
-    a = cos_d * cos_d / (2 * EARTH_RADIUS_M)
-    disc = sin_d * sin_d - 4 * a * height_m
-    if disc < 0 or sin_d <= 0:
-        return None  # the ray passes over the curve of the earth
-    return (sin_d - math.sqrt(disc)) / (2 * a) if a > 0 else height_m / sin_d
-
-
 def ground_intersection(
     lat_deg: float,
     lon_deg: float,
@@ -121,35 +116,103 @@ def ground_intersection(
     fallback_ground_msl_m: float | None = None,
     max_range_m: float = 50_000.0,
 ) -> GroundPoint | None:
-    """Where a line of sight from the sensor meets the ground; None if it does not (or unknown).
+    """Where a line of sight from the sensor first meets the ground; None if it does not.
 
-    ``ground_msl_m(lat, lon)`` gives the ground elevation (None where it is not known, when
-    ``fallback_ground_msl_m`` is used; with neither, the answer is None).
+    ``ground_msl_m(lat, lon)`` gives the ground elevation; where it answers None,
+    ``fallback_ground_msl_m`` is the ground (with neither, the answer is None). The ray is
+    marched outwards in steps no longer than the terrain could rise to meet it on slopes up
+    to ``MAX_SLOPE`` (but at least ``MIN_STEP_M``), and the crossing is bisected to 0.5 m.
     """
     if not elevation_deg < 0 or not all(map(math.isfinite, (lat_deg, lon_deg, alt_msl_m))):
         return None
-    depression = math.radians(-elevation_deg)
-    ground = ground_msl_m(lat_deg, lon_deg)
-    ground = fallback_ground_msl_m if ground is None else ground
-    if ground is None:
+    tan_d = math.tan(math.radians(-elevation_deg))
+    cos_d = math.cos(math.radians(-elevation_deg))
+    north, east = _metres_per_degree(lat_deg)
+    az = math.radians(azimuth_deg)
+    unit_lat, unit_lon = math.cos(az) / north, math.sin(az) / east
+
+    def ground(h: float) -> float | None:
+        found = ground_msl_m(lat_deg + h * unit_lat, lon_deg + h * unit_lon)
+        return fallback_ground_msl_m if found is None else found
+
+    def above(h: float, g: float) -> float:
+        # The ray's height over the ground at horizontal distance h, the earth curving away.
+        return alt_msl_m - h * tan_d + h * h / (2 * EARTH_RADIUS_M) - g
+
+    here, g = 0.0, ground(0.0)
+    if g is None:
         return None
-    slant: float | None = None
-    point = (lat_deg, lon_deg)
-    for _ in range(_ITERATIONS):
-        new = _slant_to(alt_msl_m - ground, depression)
-        if new is None or new > max_range_m:
+    clearance = above(0.0, g)
+    if clearance <= 0:
+        return None  # the sensor is at or below the ground it stands on: no frame centre
+    limit = max_range_m * cos_d
+    while True:
+        step = max(MIN_STEP_M, clearance / (tan_d + MAX_SLOPE))
+        ahead = here + step
+        if ahead > limit or clearance > _HIGHEST_GROUND_M - _LOWEST_GROUND_M:
+            return None  # out of range, or climbing away from any terrain there is
+        g_ahead = ground(ahead)
+        if g_ahead is None:
             return None
-        horizontal = new * math.cos(depression)
-        point = destination(lat_deg, lon_deg, azimuth_deg, horizontal)
-        found = ground_msl_m(*point)
-        ground = found if found is not None else ground
-        if slant is not None and abs(new - slant) < _CONVERGED_M:
-            slant = new
+        c_ahead = above(ahead, g_ahead)
+        if c_ahead <= 0:
             break
-        slant = new
-    assert slant is not None  # noqa: S101 - the loop ran at least once
-    horizontal = slant * math.cos(depression)
-    return GroundPoint(point[0], point[1], ground, slant, horizontal)
+        here, clearance = ahead, c_ahead
+    low, high = here, ahead  # the ray is above the ground at low, at or below it at high
+    c_low, c_high, g_high = clearance, c_ahead, g_ahead
+    while high - low > _CONVERGED_M:
+        mid = (low + high) / 2
+        g_mid = ground(mid)
+        c_mid = -1.0 if g_mid is None else above(mid, g_mid)
+        if c_mid <= 0:
+            high, c_high, g_high = mid, c_mid, g_mid if g_mid is not None else g_high
+        else:
+            low, c_low = mid, c_mid
+    # Within the last interval the ground is taken as a straight line: interpolate.
+    hit = low + (high - low) * c_low / (c_low - c_high) if c_low > c_high else high
+    return _point(lat_deg, lon_deg, azimuth_deg, hit, g_high, cos_d)
+
+
+def _point(
+    lat_deg: float, lon_deg: float, azimuth_deg: float, h: float, ground: float, cos_d: float
+) -> GroundPoint:
+    lat, lon = destination(lat_deg, lon_deg, azimuth_deg, h)
+    return GroundPoint(lat, lon, ground, h / cos_d, h)
+
+
+def flat_intersection(
+    lat_deg: float,
+    lon_deg: float,
+    alt_msl_m: float,
+    azimuth_deg: float,
+    elevation_deg: float,
+    ground_msl_m: float,
+    *,
+    max_range_m: float = 50_000.0,
+) -> GroundPoint | None:
+    """``ground_intersection`` over ground at one elevation everywhere: in closed form."""
+    if not elevation_deg < 0 or not all(map(math.isfinite, (lat_deg, lon_deg, alt_msl_m))):
+        return None
+    height = alt_msl_m - ground_msl_m
+    tan_d = math.tan(math.radians(-elevation_deg))
+    cos_d = math.cos(math.radians(-elevation_deg))
+    # height - h·tan + h²/2R = 0: the nearer root, if the ray reaches the sphere at all.
+    disc = tan_d * tan_d - 2 * height / EARTH_RADIUS_M
+    if height <= 0 or disc < 0:
+        return None
+    h = 2 * height / (tan_d + math.sqrt(disc))  # the stable form of R(tan - √disc)
+    if h > max_range_m * cos_d:
+        return None
+    return _point(lat_deg, lon_deg, azimuth_deg, h, ground_msl_m, cos_d)
+
+
+def _metres_per_degree(lat_deg: float) -> tuple[float, float]:
+    """Metres per degree of latitude and of longitude at ``lat_deg`` (WGS 84)."""
+    s2 = math.sin(math.radians(lat_deg)) ** 2
+    a, e2 = 6_378_137.0, 6.694379990141317e-3
+    north = math.radians(1) * a * (1 - e2) / (1 - e2 * s2) ** 1.5
+    east = math.radians(1) * a / math.sqrt(1 - e2 * s2) * math.cos(math.radians(lat_deg))
+    return north, max(east, 1e-6)
 
 
 def footprint_width_m(slant_range_m: float, hfov_deg: float) -> float:

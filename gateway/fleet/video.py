@@ -23,6 +23,7 @@ from typing import Any
 from gateway.clock import Clock
 from gateway.domain.geodesy import distance_bearing
 from gateway.domain.lookat import (
+    flat_intersection,
     footprint_width_m,
     ground_intersection,
     quaternion_to_euler,
@@ -214,10 +215,11 @@ class CameraView:
         if pointing is None or sensor.alt_msl_m is None:
             return
         azimuth, elevation, _ = pointing
-        hit = ground_intersection(
-            sensor.lat_deg, sensor.lon_deg, sensor.alt_msl_m, azimuth, elevation,
-            self._ground, fallback_ground_msl_m=home,
-        )  # fmt: skip
+        where = (sensor.lat_deg, sensor.lon_deg, sensor.alt_msl_m, azimuth, elevation)
+        if self._terrain is not None:
+            hit = ground_intersection(*where, self._ground, fallback_ground_msl_m=home)
+        else:
+            hit = None if home is None else flat_intersection(*where, home)
         if hit is None:
             # Known ground and a pointing that misses it: the axis is off the earth.
             fields["is_off_earth"] = home is not None or self._terrain is not None
