@@ -7,6 +7,7 @@ here takes bytes from outside: it is bounded by the buffer it is given and raise
 
 from __future__ import annotations
 
+import struct
 from collections.abc import Iterator
 
 from gateway.errors import Malformed
@@ -89,8 +90,8 @@ def checksum(data: bytes | memoryview) -> int:
     trailing byte counts as the high byte of a word.
     """
     view = bytes(data)
-    even = len(view) & ~1
-    total = sum(int.from_bytes(view[i : i + 2], "big") for i in range(0, even, 2))
+    words = len(view) // 2
+    total = int(sum(struct.unpack_from(f">{words}H", view)))
     if len(view) & 1:
         total += view[-1] << 8
     return total & 0xFFFF

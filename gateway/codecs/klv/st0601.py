@@ -190,6 +190,16 @@ def resolution(tag: int, length: int | None = None) -> float:
 def _encode_value(t: Tag, value: Value) -> bytes | None:
     """The bytes of one item's value, or None when it cannot be represented (left out)."""
     kind = t.kind
+    if type(value) is float or type(value) is int:
+        # The hot path: a plain number for a mapped tag (most of every packet).
+        if kind == "smap":
+            if not t.low <= value <= t.high:  # NaN fails too
+                return _INDICATORS[t.length]
+            return round(value * _SCALES[t.tag]).to_bytes(t.length, "big", signed=True)
+        if kind == "umap":
+            if not t.low <= value <= t.high:
+                return None
+            return round((value - t.low) * _SCALES[t.tag]).to_bytes(t.length, "big")
     if kind == "text":
         if not isinstance(value, str):
             raise TypeError(f"ST 0601 tag {t.tag}: expected str, got {type(value).__name__}")
@@ -205,32 +215,24 @@ def _encode_value(t: Tag, value: Value) -> bytes | None:
             raise TypeError(f"ST 0601 tag {t.tag}: expected an aware datetime")
         micros = (value - _EPOCH) // timedelta(microseconds=1)
         return micros.to_bytes(8, "big") if 0 <= micros < 1 << 64 else None
-    if not isinstance(value, Special) and isinstance(value, str | bytes | datetime):
-        raise TypeError(f"ST 0601 tag {t.tag}: expected a number, got {type(value).__name__}")
-    if kind == "smap":
-        bits = 8 * t.length - 1
-        if isinstance(value, Special) or not (t.low <= value <= t.high):  # NaN fails too
-            return (1 << bits).to_bytes(t.length, "big")  # the reserved error indicator
-        raw = round(value * ((1 << bits) - 1) / t.high)
-        return raw.to_bytes(t.length, "big", signed=True)
     if isinstance(value, Special):
-        return None  # an unsigned tag has no error indicator
-    if kind in ("umap", "imapb") and not t.low <= value <= t.high:  # NaN fails too
-        return None
+        # Only the signed mapped tags have an error indicator; the others leave it out.
+        return _INDICATORS[t.length] if kind == "smap" else None
+    if isinstance(value, str | bytes | datetime):
+        raise TypeError(f"ST 0601 tag {t.tag}: expected a number, got {type(value).__name__}")
+    if kind in ("smap", "umap"):
+        return _encode_value(t, float(value))  # a bool or another int or float subclass
     if kind == "imapb":
+        if not t.low <= value <= t.high:  # NaN fails too
+            return None
         return _imapb(t.low, t.high, t.default_length).encode(value)
-    if kind == "umap":
-        raw = round((value - t.low) * ((1 << (8 * t.length)) - 1) / (t.high - t.low))
-        return raw.to_bytes(t.length, "big")
     # Integers ("uint", "int"): whole numbers that fit the tag's largest length.
     if isinstance(value, float) and not value.is_integer():
         raise TypeError(f"ST 0601 tag {t.tag}: expected an integer, got {value!r}")
     number = int(value)
     signed = kind == "int"
     bits = (number if number >= 0 else ~number).bit_length() + (1 if signed else 0)
-    size = max(1, (bits + 7) // 8)
-    fixed = t.tag in _FIXED_INTEGERS
-    size = t.length if fixed else size
+    size = t.length if t.tag in _FIXED_INTEGERS else max(1, (bits + 7) // 8)
     if size > t.length or (number < 0 and not signed):
         return None
     try:
@@ -239,12 +241,29 @@ def _encode_value(t: Tag, value: Value) -> bytes | None:
         return None
 
 
+def _scale(t: Tag) -> float:
+    if t.kind == "smap":
+        return ((1 << (8 * t.length - 1)) - 1) / t.high
+    return ((1 << (8 * t.length)) - 1) / (t.high - t.low)
+
+
+#: Raw units per unit of value, per mapped tag.
+_SCALES: dict[int, float] = {t.tag: _scale(t) for t in TAGS.values() if t.kind in ("smap", "umap")}
+#: The reserved error indicator (0x80 0x00 ...) by length.
+_INDICATORS: dict[int, bytes] = {n: b"\x80" + bytes(n - 1) for n in (1, 2, 4, 8)}
+
 #: Integer tags whose length is fixed (the rest are written in their shortest form).
 _FIXED_INTEGERS = frozenset({1, 8, 9, 34, 39, 47, 56, 65})
 
 
+#: Each interpreted tag's BER-OID bytes, encoded once.
+_OIDS: dict[int, bytes] = {tag: encode_ber_oid(tag) for tag in TAGS}
+
+
 def _item(tag: int, value: bytes) -> bytes:
-    return encode_ber_oid(tag) + encode_ber_length(len(value)) + value
+    oid = _OIDS.get(tag) or encode_ber_oid(tag)
+    n = len(value)
+    return oid + (bytes((n,)) if n < 0x80 else encode_ber_length(n)) + value
 
 
 def encode(values: Mapping[int, Value]) -> bytes:
@@ -255,7 +274,11 @@ def encode(values: Mapping[int, Value]) -> bytes:
     the module docstring's rules.
     """
     body = bytearray()
-    for tag in sorted(values, key=lambda k: (k != _TIME_TAG, k)):
+    order = sorted(values)
+    if _TIME_TAG in values:
+        order.remove(_TIME_TAG)
+        order.insert(0, _TIME_TAG)
+    for tag in order:
         if tag == _CHECKSUM_TAG:
             continue
         value = values[tag]
