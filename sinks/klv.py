@@ -48,7 +48,7 @@ class KlvUdp(BaseModel):
     model_config = _FROZEN
 
     host: str = Field(min_length=1, description="Address, name or multicast group.")
-    port: int = Field(ge=1, le=65535)
+    port: int = Field(ge=1, le=65535, description="UDP port.")
     ttl: int = Field(default=1, ge=0, le=255, description="Multicast TTL.")
     interface: str | None = Field(default=None, description="Multicast interface (address/name).")
 
