@@ -28,6 +28,7 @@ from sinks.example import ExampleSink
 OPTIONS: dict[str, Any] = {
     "jsonl": lambda tmp: {"path": str(tmp / "contract.jsonl")},
     "cot": lambda tmp: {"destinations": [{"uri": "udp://127.0.0.1:9"}]},
+    "klv": lambda tmp: {"udp": {"host": "127.0.0.1", "port": 9}},
 }
 
 

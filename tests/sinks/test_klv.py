@@ -19,6 +19,7 @@ from gateway.codecs.klv.ber import split_packets
 from gateway.codecs.klv.imapb import Special
 from gateway.codecs.klv.st0601 import decode, resolution
 from gateway.codecs.klv.uas import frame_packet, frame_values
+from gateway.errors import TransientSinkError
 from gateway.events import Position, VideoFrameMetadata
 from gateway.testing import fuzz_examples
 from sinks.klv import KlvSink, KlvSinkConfig
@@ -286,3 +287,29 @@ def test_mpegts_beside_test_video_through_ffmpeg(tmp_path: Path) -> None:
     expected = b"".join(frame_packet(e) for e in events)
     assert extract_klv(av, tmp_path) == expected
     assert [decode(p)[2] for p in split_packets(expected)] == [e.time for e in events]
+
+
+def test_video_needs_ffmpeg_on_the_path() -> None:
+    options = {"mpegts": {"host": "127.0.0.1", "port": 9, "video": "in.ts", "ffmpeg": "no-such"}}
+    with pytest.raises(ValueError, match="'no-such' is not on the PATH"):
+        KlvSinkConfig.model_validate(options)
+
+
+@needs_ffmpeg
+@pytest.mark.anyio
+async def test_an_ffmpeg_that_exits_is_reported_by_the_lifetime(tmp_path: Path) -> None:
+    """A video ffmpeg cannot open: the sink's ``run`` raises, naming the sink and ffmpeg."""
+    missing = str(tmp_path / "no-video.ts")
+    options = {"mpegts": {"host": "127.0.0.1", "port": 9, "video": missing}}
+    sink = KlvSink("klv-7", KlvSinkConfig.model_validate(options))
+    await sink.open()
+    try:
+        with anyio.fail_after(30), pytest.raises(TransientSinkError) as caught:
+            await sink.run(task_status=anyio.TASK_STATUS_IGNORED)
+        with pytest.raises(TransientSinkError, match="ffmpeg is not running"):
+            await sink.send([frame()])
+    finally:
+        await sink.aclose()
+    message = str(caught.value)
+    assert "sink klv-7: ffmpeg is not running" in message
+    assert "no-video.ts" in message  # ffmpeg's own last line says what it could not open
