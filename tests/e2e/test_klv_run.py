@@ -122,7 +122,7 @@ def klv_run(tmp_path_factory: pytest.TempPathFactory) -> KlvRun:
             with running(config) as daemon:
                 simulate = [sys.executable, "-m", "gateway", "simulate", "--scenario"]
                 simulate += ["loitering-munitions", "--to", f"udp://127.0.0.1:{link}"]
-                simulate += ["--duration", "30", "--speed", "3"]
+                simulate += ["--duration", "21", "--speed", "3"]
                 played = subprocess.run(simulate, capture_output=True, timeout=60, check=False)
                 assert played.returncode == 0, played.stderr.decode(errors="replace")
                 wait_until(lambda: len(ts.datagrams) > 50, 20.0, "MPEG-TS from ffmpeg")
@@ -134,7 +134,7 @@ def klv_run(tmp_path_factory: pytest.TempPathFactory) -> KlvRun:
 
 
 def test_udp_packets_decode_with_good_checksums(klv_run: KlvRun) -> None:
-    assert len(klv_run.udp) >= 5 * 8  # F26E-001's camera at 5 Hz for about 10 s
+    assert len(klv_run.udp) >= 5 * 15  # F26E-001's camera: 5 Hz of sim time, 21 s of it
     for packet in klv_run.udp:
         values = decode(packet)
         assert (values[3], values[4]) == ("KLV-E2E", "F26E-001")

@@ -6,8 +6,8 @@ mesh protobuf, UDP multicast on loopback, TCP, TLS with a client certificate (tr
 TCP with TAK protocol v1 negotiation, the GUTE II sink to an HTTPS battery (client
 certificate, JSON Schema checked) fed by the fusion and counter_uas processors, the SLB sink
 (detections and tracks as JC3IEDM object items over HTTPS), the SWECCIS sink and order source to
-one SWECCIS server (TLS, client certificate, XSD checked), plus a UDP and a TCP CoT source and
-the SLB order source. The simulator
+one SWECCIS server (TLS, client certificate, XSD checked), the KLV sink (ST 0601 over UDP,
+read by stanag4609), plus a UDP and a TCP CoT source and the SLB order source. The simulator
 (``fischer-gateway simulate --scenario loitering-munitions``: two airframes, two Lancets seen
 on EO and IR) feeds it for more than ten seconds while every peer here decodes
 what it receives with takproto and /readyz is sampled; then SIGTERM must stop it cleanly.
