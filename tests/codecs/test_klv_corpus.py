@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import shutil
+import subprocess
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -62,3 +64,28 @@ def test_st0902_dynamic_constant_original_is_good_and_the_patched_one_is_not() -
     assert good[20] == 0.0
     with pytest.raises(Malformed, match="checksum"):
         decode(klv_file("DynamicConstantMISMMSPacketData.bin"))
+
+
+def test_kwiver_h264_klv_ts_all_tags_including_two_byte_ones(tmp_path: Path) -> None:
+    """The ST 0601 example packets in an MPEG-TS (tags 1-142), extracted with ffmpeg."""
+    ffmpeg = shutil.which("ffmpeg")
+    if ffmpeg is None:
+        pytest.skip("ffmpeg not installed (.ci/run installs it)")
+    source = tmp_path / "h264_klv.ts"
+    source.write_bytes(klv_file("h264_klv.ts"))
+    out = tmp_path / "klv.bin"
+    subprocess.run(
+        [ffmpeg, "-v", "error", "-y", "-i", str(source), "-map", "0:d:0", "-c", "copy",
+         "-f", "data", str(out)],
+        check=True, timeout=60,
+    )  # fmt: skip
+    packets = [decode(p) for p in split_packets(out.read_bytes())]
+    assert len(packets) == 30
+    first = packets[0]
+    assert first[2] == datetime(2008, 10, 24, 0, 13, 29, 913000, tzinfo=UTC)
+    assert (first[3], first[4], first[10], first[11]) == ("MISSION01", "AF-101", "MQ1-B", "EO")
+    assert first[13] == pytest.approx(60.1768230, abs=1e-6)
+    assert first[14] == pytest.approx(128.4267590, abs=1e-6)
+    assert first[65] == 17
+    assert set(range(128, 143)) <= set(first)  # BER-OID two-byte tags, read by their length
+    assert first[113] == pytest.approx(2150.0, abs=0.01)  # IMAPB
