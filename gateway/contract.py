@@ -42,6 +42,7 @@ from gateway.events import (
     Sensor,
     Telemetry,
     Track,
+    VideoFrameMetadata,
 )
 
 __all__ = ["ContractViolation", "check_sink", "sample_events"]
@@ -116,6 +117,24 @@ def sample_events(kinds: frozenset[EventKind]) -> list[Event]:
             ),
         ),
         deconfliction=Deconfliction(clear=True, blue_units_considered=0),
+    )
+    every[EventKind.VIDEO_FRAME_METADATA] = VideoFrameMetadata(
+        event_id="c-vfm",
+        airframe="F26E-001",
+        time=t,
+        sensor_position=Position(lat_deg=59.3300, lon_deg=18.0600, alt_msl_m=600.0),
+        heading_deg=87.5,
+        pitch_deg=-2.5,
+        roll_deg=3.0,
+        hfov_deg=12.5,
+        vfov_deg=7.0,
+        sensor_azimuth_deg=45.0,
+        sensor_elevation_deg=-30.0,
+        sensor_roll_deg=0.0,
+        frame_centre=where,
+        frame_centre_source="camera",
+        slant_range_m=1250.0,
+        target_width_m=274.0,
     )
     every[EventKind.ORDER] = FiveLineOrder(
         event_id="slb-order-c-1",

@@ -43,6 +43,7 @@ __all__ = [
     "Telemetry",
     "Track",
     "Velocity",
+    "VideoFrameMetadata",
     "event_adapter",
     "event_id",
     "latest_key",
@@ -72,11 +73,20 @@ class EventKind(StrEnum):
     HANDOFF = "handoff"
     ORDER = "order"
     HOP = "hop"
+    VIDEO_FRAME_METADATA = "video_frame_metadata"
 
 
 #: Kinds where only the newest event per key matters: a slow sink gets fresh data, not a backlog.
 LATEST_WINS_KINDS: frozenset[EventKind] = frozenset(
-    {EventKind.TELEMETRY, EventKind.LINK_STATE, EventKind.BLUE_FORCE, EventKind.HOP}
+    {
+        EventKind.TELEMETRY,
+        EventKind.LINK_STATE,
+        EventKind.BLUE_FORCE,
+        EventKind.HOP,
+        # Up to 30 a second per airframe, each describing one video frame: a late one is
+        # worthless to a video client, so a slow sink gets the newest, never a backlog.
+        EventKind.VIDEO_FRAME_METADATA,
+    }
 )
 #: Kinds that must never be dropped silently: delivered at least once, in order per sink.
 DURABLE_KINDS: frozenset[EventKind] = frozenset(EventKind) - LATEST_WINS_KINDS
@@ -435,8 +445,57 @@ class HopEvent(BaseModel):
     interference_dbm: float | None = Field(default=None, ge=-128.0, le=126.0)
 
 
+class VideoFrameMetadata(BaseModel):
+    """What one airframe's camera sees now: the sensor, its pointing and the frame centre.
+
+    Built from CAMERA_FOV_STATUS and GIMBAL_DEVICE_ATTITUDE_STATUS with the airframe's
+    telemetry (``gateway.fleet.video``), for STANAG 4609 video clients (the ``klv`` sink).
+    Angles are degrees. ``sensor_azimuth_deg`` (0..360, clockwise), ``sensor_elevation_deg``
+    (±180, negative looks down) and ``sensor_roll_deg`` are relative to the platform's body
+    axes, as MISB ST 0601 wants them. ``frame_centre`` is where the optical axis meets the
+    ground: from the camera (``frame_centre_source`` "camera"), or computed from the pointing
+    and the terrain ("computed"); None with ``is_off_earth`` when the axis misses the ground
+    (above the horizon), None alone when nothing is known. ``slant_range_m`` is from the
+    sensor to the frame centre and ``target_width_m`` the width of the ground the frame
+    spans there.
+    """
+
+    model_config = _FROZEN
+
+    kind: Literal[EventKind.VIDEO_FRAME_METADATA] = EventKind.VIDEO_FRAME_METADATA
+    event_id: str
+    airframe: str
+    time: AwareDatetime
+    sensor_position: Position
+    heading_deg: float | None = Field(default=None, ge=0.0, lt=360.0)
+    pitch_deg: float | None = Field(default=None, ge=-90.0, le=90.0)
+    roll_deg: float | None = Field(default=None, ge=-180.0, le=180.0)
+    airspeed_mps: float | None = None
+    groundspeed_mps: float | None = None
+    alt_agl_m: float | None = None
+    hfov_deg: float | None = Field(default=None, gt=0.0, le=180.0)
+    vfov_deg: float | None = Field(default=None, gt=0.0, le=180.0)
+    sensor_azimuth_deg: float | None = Field(default=None, ge=0.0, lt=360.0)
+    sensor_elevation_deg: float | None = Field(default=None, ge=-180.0, le=180.0)
+    sensor_roll_deg: float | None = Field(default=None, ge=0.0, lt=360.0)
+    frame_centre: Position | None = None
+    frame_centre_source: Literal["camera", "computed"] | None = None
+    is_off_earth: bool = False
+    slant_range_m: float | None = Field(default=None, ge=0.0)
+    target_width_m: float | None = Field(default=None, ge=0.0)
+    image_source: str = Field(default="EO", max_length=32)
+
+
 Event = Annotated[
-    Telemetry | LinkState | Detection | Track | BlueForce | Handoff | FiveLineOrder | HopEvent,
+    Telemetry
+    | LinkState
+    | Detection
+    | Track
+    | BlueForce
+    | Handoff
+    | FiveLineOrder
+    | HopEvent
+    | VideoFrameMetadata,
     Field(discriminator="kind"),
 ]
 
@@ -449,6 +508,7 @@ _SLOTS: dict[type, Callable[[Any], str]] = {
     LinkState: lambda e: f"link_state\x00{e.airframe}\x00{e.link}",
     BlueForce: lambda e: "blue_force\x00" + e.uid,
     HopEvent: lambda e: f"hop\x00{e.airframe}\x00{e.reason.value}",
+    VideoFrameMetadata: lambda e: "video_frame_metadata\x00" + e.airframe,
 }
 
 

@@ -36,6 +36,7 @@ from gateway.events import (
     Position,
     Telemetry,
     Track,
+    VideoFrameMetadata,
 )
 from sinks._story import Story
 
@@ -44,7 +45,8 @@ __all__ = ["ConsoleSink", "ConsoleSinkConfig", "describe"]
 log = structlog.get_logger(__name__)
 
 #: The kind column is padded to the longest kind so the columns after it line up.
-_KIND_WIDTH = max(len(kind.value) for kind in EventKind)
+# Columns line up on the usual kinds; "video_frame_metadata" is too long to pad them all to.
+_KIND_WIDTH = max(len(kind.value) for kind in EventKind if kind != EventKind.VIDEO_FRAME_METADATA)
 
 
 class ConsoleSinkConfig(SinkConfig):
@@ -144,6 +146,14 @@ def describe(event: Event) -> str:
             f" hops {event.hop_count} rssi {_num(event.rssi_dbm, '.0f', ' dBm')}"
             f" interference {_num(event.interference_dbm, '.0f', ' dBm')}"
         )
+    if isinstance(event, VideoFrameMetadata):
+        centre = event.frame_centre
+        looks = (
+            f"frame centre {_where(centre)} ({event.frame_centre_source})"
+            if centre is not None
+            else ("off earth" if event.is_off_earth else "frame centre unknown")
+        )
+        return f"{head} {event.airframe} camera at {_where(event.sensor_position)}, {looks}"
     assert_never(event)
 
 

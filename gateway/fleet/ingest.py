@@ -26,6 +26,7 @@ import asyncio
 import time
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import asdict, dataclass, field
+from functools import partial
 
 import structlog
 
@@ -33,7 +34,7 @@ from gateway.clock import Clock
 from gateway.config import AirframeConfig
 from gateway.domain.terrain import TerrainModel
 from gateway.errors import FrameError
-from gateway.events import Event
+from gateway.events import Event, VideoFrameMetadata
 from gateway.fleet.acks import DetectionAcks, DetectionLedger
 from gateway.fleet.deframe import StreamDeframer
 from gateway.fleet.linkhealth import LinkHealth
@@ -47,6 +48,7 @@ from gateway.fleet.normalise import (
 from gateway.fleet.security.signing import SigningVerifier
 from gateway.fleet.security.tunnel import TunnelOpener
 from gateway.fleet.session import AirframeSession
+from gateway.fleet.video import CameraView
 from gateway.ops.instruments import Instruments
 from gateway.ops.logsetup import RateLimit
 from gateway.ops.metrics import CounterChild
@@ -118,6 +120,9 @@ class Ingest:
                 airframe.on(name, self._telemetry)
             airframe.on("FISCHER_DETECTION", self._detection)
             airframe.on("COMMAND_ACK", airframe.on_command_ack)
+            view = CameraView(cfg.id, state, clock, terrain)
+            airframe.on("CAMERA_FOV_STATUS", partial(self._video, view.camera_fov))
+            airframe.on("GIMBAL_DEVICE_ATTITUDE_STATUS", partial(self._video, view.gimbal_attitude))
             self._by_sysid[cfg.sysid] = airframe
             self._by_id[cfg.id] = airframe
         self._intakes: dict[str, LinkIntake] = {}
@@ -326,6 +331,18 @@ class Ingest:
             self._publish(detection)
         else:
             self.acks.take(airframe, label, detection, int(msg.detection_id), int(msg.time_usec))
+
+    def _video(
+        self,
+        take: Callable[[MavMessage], VideoFrameMetadata | None],
+        _airframe: AirframeSession,
+        _label: str,
+        msg: MavMessage,
+    ) -> None:
+        # Latest-wins like telemetry, but one event per camera report: each describes a frame.
+        event = take(msg)
+        if event is not None:
+            self._publish(event)
 
     def _schedule_flush(self) -> None:
         # Telemetry is latest-wins, so the frames read in one pass of the event loop make one

@@ -100,6 +100,10 @@ class AirframeState:
         handler = self._handlers.get(name)
         return handler is not None and handler(msg)
 
+    def field(self, name: str) -> Any:
+        """The latest merged value of one Telemetry field (None if never reported)."""
+        return self._fields.get(name)
+
     def snapshot(self) -> Telemetry:
         """The merged state now, as a new Telemetry event."""
         self._seq += 1

@@ -87,11 +87,14 @@ class SimProfile:
     power_w: float = 355.0
     home_alt_msl_m: float = 150.0
     hop_event_hz: float = 2.0  # FISCHER_HOP_EVENT reports, only while a hop schedule is active
+    #: CAMERA_FOV_STATUS and GIMBAL_DEVICE_ATTITUDE_STATUS: a camera looking at the centre.
+    camera_hz: float = 0.0
 
     def __post_init__(self) -> None:
         positive = {"radius_m", "speed_mps", "battery_wh", "power_w"}
         rates = {
             "position_hz", "status_hz", "gps_hz", "heartbeat_hz", "detection_hz", "hop_event_hz",
+            "camera_hz",
         }  # fmt: skip
         for f in fields(self):
             value = getattr(self, f.name)
@@ -191,6 +194,7 @@ class SimulatedAirframe:
             _Schedule(_period(p.gps_hz), self._gps),
             _Schedule(_period(p.status_hz), self._status),
             _Schedule(_period(p.detection_hz), self._detection),
+            _Schedule(_period(p.camera_hz), self._camera),
         ]
         # Hop reports are due only while the radio hops on a schedule (see next_due_s).
         self._hop_schedule = _Schedule(_period(p.hop_event_hz), self._hop_events)
@@ -367,6 +371,28 @@ class SimulatedAirframe:
     def _hop_events(self, t_s: float) -> list[Any]:
         return list(self.radio.events_at(self.unix_s(t_s)))
 
+    def _camera(self, t_s: float) -> list[Any]:
+        # The gimbal holds the orbit's centre (on the ground at home altitude) in view: to the
+        # right of the clockwise circle, looking down at the angle the height and radius give.
+        p = self.profile
+        lat_deg, lon_deg, track_rad = self._state(t_s)
+        boot_ms = round(t_s * 1000) % 2**32
+        depression = math.atan2(p.alt_msl_m - p.home_alt_msl_m, p.radius_m)
+        yaw = track_rad + math.pi / 2  # absolute bearing to the centre
+        gimbal = _quaternion(0.0, -depression, math.pi / 2)  # yaw relative to the nose
+        camera = _quaternion(0.0, -depression, yaw)
+        return [
+            self._mav.gimbal_device_attitude_status_encode(
+                0, 0, boot_ms, mav.GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME, gimbal,
+                math.nan, math.nan, math.nan, 0,
+            ),
+            self._mav.camera_fov_status_encode(
+                boot_ms, round(lat_deg * 1e7), round(lon_deg * 1e7), round(p.alt_msl_m * 1000),
+                round(p.centre_lat_deg * 1e7), round(p.centre_lon_deg * 1e7),
+                round(p.home_alt_msl_m * 1000), camera, 12.5, 7.0,
+            ),
+        ]  # fmt: skip
+
     def _status(self, t_s: float) -> list[Any]:
         p = self.profile
         used_wh = min(p.power_w * t_s / 3600.0, p.battery_wh)
@@ -503,6 +529,15 @@ class SimulatedAirframe:
                         )
                         if await link.send(self._pack(ack)):
                             self.frames_sent += 1
+
+
+def _quaternion(roll: float, pitch: float, yaw: float) -> list[float]:
+    """[w, x, y, z] of Z-Y-X Euler angles (radians), as MAVLink sends attitudes."""
+    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
+    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
+    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
+    return [cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy,
+            cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy]  # fmt: skip
 
 
 def _period(rate_hz: float) -> float:

@@ -118,6 +118,9 @@ class Airframe(BaseModel):
     sysid: int = Field(ge=1, le=255)
     orbit: Orbit
     sensors: tuple[SensorSpec, ...] = ()
+    camera_hz: float = Field(
+        default=0.0, ge=0.0, le=60.0, description="CAMERA_FOV_STATUS and gimbal reports a second"
+    )
 
     def profile(self) -> SimProfile:
         """The flight ``SimulatedAirframe`` flies (its own detections off)."""
@@ -129,6 +132,7 @@ class Airframe(BaseModel):
             alt_msl_m=o.alt_msl_m,
             speed_mps=o.speed_mps,
             home_alt_msl_m=min(o.alt_msl_m, SimProfile.home_alt_msl_m),
+            camera_hz=self.camera_hz,
         )
 
 

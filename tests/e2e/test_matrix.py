@@ -7,9 +7,9 @@ TCP with TAK protocol v1 negotiation, the GUTE II sink to an HTTPS battery (clie
 certificate, JSON Schema checked) fed by the fusion and counter_uas processors, the SLB sink
 (detections and tracks as JC3IEDM object items over HTTPS), the SWECCIS sink and order source to
 one SWECCIS server (TLS, client certificate, XSD checked), the NFFI sink (IP1 TCP and a file,
-NFFI 1.3 XSD checked), the Ra 180 sink to a UDP radio gateway with its Swedish voice, plus a
-UDP and a TCP CoT source, the SLB order source and the NFFI source (a JAS 39 relay's
-friendly track over IP1). The simulator
+NFFI 1.3 XSD checked), the Ra 180 sink to a UDP radio gateway with its Swedish voice, the KLV
+sink (ST 0601 over UDP, read by stanag4609), plus a UDP and a TCP CoT source, the SLB order
+source and the NFFI source (a JAS 39 relay's friendly track over IP1). The simulator
 (``fischer-gateway simulate --scenario loitering-munitions``: two airframes, two Lancets seen
 on EO and IR) feeds it for more than ten seconds while every peer here decodes
 what it receives with takproto and /readyz is sampled; then SIGTERM must stop it cleanly.
@@ -357,8 +357,10 @@ def write_config(run: MatrixRun, ports: dict[str, int], pki: dict[str, str]) -> 
             {"name": "slb", "type": "slb", "options": run.slb.sink_options()},
             {"name": "sweccis", "type": "sweccis", "options": run.sweccis.link_options()},
             *cot,
+            klv_sink(ports),
         ],
         "routes": [
+            klv_route(),
             {"sinks": ["archive", "mem", "null"]},
             {"sinks": ["console"], "kinds": ["telemetry"], "max_rate_hz": 1},
             {"sinks": [c["name"] for c in cot], "kinds": ["telemetry", "detection"]},
@@ -374,6 +376,16 @@ def write_config(run: MatrixRun, ports: dict[str, int], pki: dict[str, str]) -> 
     path = run.tmp / "config.yaml"
     path.write_text(json.dumps(config, indent=1))  # JSON is YAML
     return path
+
+
+def klv_sink(ports: dict[str, int]) -> dict[str, Any]:
+    """The KLV leg: ST 0601 packets over UDP to the ``klv`` receiver."""
+    udp = {"host": "127.0.0.1", "port": ports["klv"]}
+    return {"name": "klv", "type": "klv", "options": {"udp": udp, "mission_id": "E2E"}}
+
+
+def klv_route() -> dict[str, Any]:
+    return {"sinks": ["klv"], "kinds": ["video_frame_metadata"]}
 
 
 async def drain(stream: anyio.abc.ByteReceiveStream, into: list[bytes]) -> None:
@@ -416,7 +428,7 @@ async def scenario(run: MatrixRun, pki_files: dict[str, str], server_tls: ssl.SS
         "source_tcp": free_port(socket.SOCK_STREAM),
     }
     with contextlib.ExitStack() as sockets:
-        names = ("udp", "mesh", "ra180")
+        names = ("udp", "mesh", "ra180", "klv")
         receivers = {name: sockets.enter_context(udp_receiver()) for name in names}
         try:
             receivers["mcast"] = sockets.enter_context(udp_receiver(multicast=True))
@@ -754,3 +766,25 @@ class TestRa180:
             pytest.skip("espeak-ng is not installed (Debian package espeak-ng)")
         assert voice["rendered"] >= 1, voice
         assert list((matrix.tmp / "ra180-wav").glob("*-MAL.wav"))
+
+
+class TestKlv:
+    """STANAG 4609 metadata: the camera of F26E-001 as ST 0601 KLV over UDP."""
+
+    def test_packets_decode_alike_in_ours_and_stanag4609(self, matrix: MatrixRun) -> None:
+        from gateway.codecs.klv.st0601 import decode
+
+        stanag = pytest.importorskip("stanag4609.st0601")
+        packets = matrix.datagrams["klv"]
+        assert len(packets) >= 5 * RUN_S  # 5 Hz camera reports for the whole run, and more
+        for packet in packets:
+            ours = decode(packet)  # checksum verified
+            theirs = {f.definition.tag: f.value for f in stanag.decode_uas_local_set(packet).fields}
+            assert theirs[13] == pytest.approx(ours[13], abs=1e-7)
+            assert (ours[3], ours[4], ours[10], ours[65]) == ("E2E", "F26E-001", "Fischer 26E", 19)
+            # The simulated gimbal holds the orbit's centre in view (loitering-munitions.yaml).
+            assert ours[23] == pytest.approx(65.8600, abs=1e-6)
+            assert ours[24] == pytest.approx(21.6400, abs=1e-6)
+            assert ours[21] == pytest.approx((700**2 + 450**2) ** 0.5, rel=0.01)
+        status = sink_status(matrix, "klv")
+        assert (status["state"], status["dead_letters"]) == ("open", 0)

@@ -29,6 +29,8 @@ OPTIONS: dict[str, Any] = {
     "jsonl": lambda tmp: {"path": str(tmp / "contract.jsonl")},
     "cot": lambda tmp: {"destinations": [{"uri": "udp://127.0.0.1:9"}]},
     "nffi": lambda tmp: {"path": str(tmp / "contract.nffi.xml")},
+    "klv": lambda tmp: {"udp": {"host": "127.0.0.1", "port": 9}},
+    "ra180": lambda tmp: {"udp": {"host": "127.0.0.1", "port": 9}},
 }
 
 

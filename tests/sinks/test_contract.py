@@ -31,6 +31,7 @@ OPTIONS: dict[str, Any] = {
     "cot": lambda tmp: {"destinations": [{"uri": "udp://127.0.0.1:9"}]},
     "nffi": lambda tmp: {"path": str(tmp / "contract.nffi.xml")},
     "ra180": lambda tmp: {"udp": {"host": "127.0.0.1", "port": 9}},
+    "klv": lambda tmp: {"udp": {"host": "127.0.0.1", "port": 9}},
 }
 
 

@@ -19,6 +19,7 @@ from typing import Any
 import anyio
 import pytest
 from pydantic import ValidationError
+from tools import need
 
 from gateway.codecs.ra180 import compose, parse_cdm
 from gateway.contract import check_sink
@@ -35,11 +36,7 @@ ESPEAK = shutil.which("espeak-ng")
 
 def need_espeak() -> None:
     """Skip without espeak-ng, unless CI installed it (``.ci/run`` sets FG_REQUIRED_TOOLS)."""
-    if ESPEAK is not None:
-        return
-    if "espeak-ng" in os.environ.get("FG_REQUIRED_TOOLS", "").split():
-        pytest.fail("espeak-ng is required here (FG_REQUIRED_TOOLS) but not on PATH")
-    pytest.skip("espeak-ng is not installed (Debian package espeak-ng; .ci/run installs it)")
+    need("espeak-ng")
 
 
 def track(n: int = 1, *, lat: float = 65.8235, status: str = "created") -> Track:
