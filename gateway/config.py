@@ -262,7 +262,9 @@ class HopPlanConfig(BaseModel):
         "1 to 8 of them.",
     )
     bandwidth_mhz: float = Field(
-        gt=0, le=AD9361_MAX_BW_HZ / 1e6, description="RF bandwidth on every channel, MHz."
+        ge=1e-6,  # 1 Hz: the message carries whole hertz
+        le=AD9361_MAX_BW_HZ / 1e6,
+        description="RF bandwidth on every channel, MHz.",
     )
     jammer_reaction_us: float = Field(
         default=20.0,

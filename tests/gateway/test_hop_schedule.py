@@ -277,6 +277,7 @@ def test_a_flyable_plan_that_beats_the_jammer_loads() -> None:
         ("[2405, 6001]", "10", "12", "node.yaml:6 airframes[0].hop_plan.frequencies_mhz[1]:"),
         ("[2405, 65]", "10", "12", "node.yaml:6 airframes[0].hop_plan.frequencies_mhz[1]:"),
         ("[2405, 2430]", "57", "12", "node.yaml:7 airframes[0].hop_plan.bandwidth_mhz:"),
+        ("[2405, 2430]", "0.0000001", "12", "node.yaml:7 airframes[0].hop_plan.bandwidth_mhz:"),
         (
             "[100, 200, 300, 400, 500, 600, 700, 800, 900]",
             "10",
@@ -347,7 +348,11 @@ async def test_an_answer_nobody_asked_for_is_not_taken() -> None:
     sid = gateway.hops.uploads["F26E-001"].schedule_id
     session.dispatch("l", "FISCHER_HOP_SCHEDULE_ACK", FischerHopScheduleAck(sid, sid, 255, 191, 0))
     (upload,) = gateway.hops.status()
-    assert (upload["state"], upload["last_result"]) == ("waiting_link", None)
+    assert (upload["state"], upload["last_result"], upload["active_schedule_id"]) == (
+        "waiting_link",
+        None,
+        None,
+    )
 
 
 @pytest.mark.anyio
