@@ -25,7 +25,7 @@ from daemon_support import (
 )
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
-from gateway.fleet.hopdialect import FischerHopEvent, FischerHopScheduleAck
+from gateway.fleet.hopdialect import FischerHopEvent, FischerHopSchedule, FischerHopScheduleAck
 
 pytestmark = pytest.mark.timeout(90)
 
@@ -159,3 +159,53 @@ def test_a_stranger_without_keys_moves_nothing_of_a_tunnel_airframes_upload(
     assert (upload["last_result"], upload["active_schedule_id"]) == (None, None)
     assert (events, answers) == (0.0, 0.0)
     assert not archive.exists() or "hop" not in archive.read_text()
+
+
+def test_a_local_process_cannot_upload_its_own_hop_schedule_through_the_passthrough(
+    tmp_path: Path, udp_socket: Callable[[], socket.socket]
+) -> None:
+    """The passthrough takes plain MAVLink from any local process and seals it for the
+    airframe. A FISCHER_HOP_SCHEDULE there would replace the checked plan with one that need
+    not beat the jammer (and start a tug of war with the gateway's re-uploads): it is
+    refused, whole, split across datagrams or hidden behind garbage; other frames still go."""
+    ports = {name: free_udp_port() for name in ("tun", "sig", "open", "gcs")}
+    tun_extra = f"    hop_plan: {PLAN}\n    passthrough: 'udp://127.0.0.1:{ports['gcs']}'\n"
+    config, _archive = three_airframe_node(tmp_path, ports, tun_extra=tun_extra)
+    genuine, stranger = udp_socket(), udp_socket()
+    tun = Airframe(1)
+    gcs = mav.MAVLink(None, srcSystem=255, srcComponent=190)
+    slow = FischerHopSchedule(0, [2_405_000_000] + [0] * 7, 77, 10_000_000, 100_000, 0, 1, 0, 1)
+    rogue = bytes(slow.pack(gcs))
+    heartbeat = bytes(gcs.heartbeat_encode(6, 8, 0, 0, 4).pack(gcs))
+    with running(config) as daemon:
+        seal = sealer("TUN")
+        genuine.sendto(seal.seal(tun.heartbeat()), ("127.0.0.1", ports["tun"]))
+        wait_until(lambda: daemon.status()["hop_schedules"][0]["sends"] >= 1, 10, "an upload")
+        schedule = int(daemon.status()["hop_schedules"][0]["schedule_id"], 16)
+        genuine.sendto(seal.seal(ack(tun.mav, schedule, schedule)), ("127.0.0.1", ports["tun"]))
+        wait_until(
+            lambda: daemon.status()["hop_schedules"][0]["state"] == "accepted", 10, "accepted"
+        )
+        for datagram in (rogue, b"\x00garbage\xfd" + rogue, rogue[:20], rogue[20:], heartbeat):
+            stranger.sendto(datagram, ("127.0.0.1", ports["gcs"]))
+        wait_until(
+            lambda: daemon.status()["passthroughs"][0]["uplink_frames"] >= 2, 10, "the heartbeat"
+        )
+        (passthrough,) = daemon.status()["passthroughs"]
+        sends = daemon.status()["hop_schedules"][0]["sends"]
+        received = drain(genuine)
+    # Refused: the whole frame, the frame behind garbage, and the datagram completing the
+    # first 20 bytes (those went out, but nothing ever completes them).
+    assert (passthrough["uplink_refused"], passthrough["uplink_frames"]) == (3, 2)
+    # What reached the airframe: the gateway's uploads, the 20 bytes and the heartbeat.
+    assert len(received) == sends + 2
+
+
+def drain(sock: socket.socket) -> list[bytes]:
+    sock.settimeout(0.3)
+    got = []
+    while True:
+        try:
+            got.append(sock.recv(4096))
+        except TimeoutError:
+            return got
