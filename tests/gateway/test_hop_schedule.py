@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 from pymavlink.dialects.v20 import ardupilotmega as apm
 
 from gateway.app import Gateway
-from gateway.config import Config, HopPlanConfig
+from gateway.config import SIGNED_ONLY_MSGIDS, Config, HopPlanConfig
 from gateway.configfile import load_config_text
 from gateway.contract import sample_events
 from gateway.errors import ConfigError
@@ -25,6 +25,8 @@ from gateway.fleet.hopdialect import (
     HOP_REASON_NAMES,
     HOP_RESULT_ACCEPTED,
     HOP_RESULT_UNSUPPORTED_DWELL,
+    MAVLINK_MSG_ID_FISCHER_HOP_EVENT,
+    MAVLINK_MSG_ID_FISCHER_HOP_SCHEDULE_ACK,
     FischerHopEvent,
     FischerHopSchedule,
     FischerHopScheduleAck,
@@ -390,3 +392,25 @@ def test_the_console_line_of_a_hop() -> None:
         "12:00:00.000Z hop        F26E-001 jammed to slot 2 2435.000 MHz schedule 1234abcd"
         " hops 41000 rssi -62 dBm interference -31 dBm"
     )
+
+
+def test_a_signed_link_cannot_take_hop_answers_or_reports_unsigned() -> None:
+    """Listing them in accept_unsigned_msgids would let anyone forge an acceptance."""
+    text = """\
+airframes:
+  - id: F26E-001
+    sysid: 1
+    signing: {key_file: /etc/fischer/F26E-001.key, accept_unsigned_msgids: [109, 61004]}
+    links: [{uri: 'udp://127.0.0.1:14550', security: signed}]
+"""
+    with pytest.raises(ConfigError) as raised:
+        load_config_text(text, "node.yaml")
+    (issue,) = (str(issue) for issue in raised.value.issues)
+    assert issue.startswith(
+        "node.yaml:4 airframes[0].signing.accept_unsigned_msgids: 61004 (FISCHER_HOP_EVENT) "
+        "cannot be accepted unsigned"
+    )
+    assert SIGNED_ONLY_MSGIDS == {
+        MAVLINK_MSG_ID_FISCHER_HOP_SCHEDULE_ACK: "FISCHER_HOP_SCHEDULE_ACK",
+        MAVLINK_MSG_ID_FISCHER_HOP_EVENT: "FISCHER_HOP_EVENT",
+    }
