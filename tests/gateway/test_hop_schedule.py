@@ -414,3 +414,31 @@ airframes:
         MAVLINK_MSG_ID_FISCHER_HOP_SCHEDULE_ACK: "FISCHER_HOP_SCHEDULE_ACK",
         MAVLINK_MSG_ID_FISCHER_HOP_EVENT: "FISCHER_HOP_EVENT",
     }
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    schedule=st.tuples(
+        u64,
+        st.lists(u64, min_size=8, max_size=8),
+        st.integers(1, 2**32 - 1),
+        u32,
+        u32,
+        u32,
+        u8,
+        u8,
+        u8,
+    ),
+    at=st.floats(0, 4e9),
+)
+def test_a_radio_forced_to_accept_reports_hops_on_any_schedule(
+    schedule: tuple[Any, ...], at: float
+) -> None:
+    """``simulate --hop-result accepted`` takes whatever arrives (0 ns dwell, 0 slots ...)."""
+    radio = SimRadio(1, result=HOP_RESULT_ACCEPTED)
+    msg = FischerHopSchedule(*schedule)
+    msg.target_system, msg.target_component = 1, 0
+    (back,) = apm.MAVLink(None).parse_buffer(msg.pack(apm.MAVLink(None, 255, 191)))
+    assert radio.answer(back, at) is not None
+    (event,) = radio.events_at(at + 1.0)
+    assert 0 <= event.slot < 8
