@@ -9,8 +9,8 @@ Any local process can reach it, so what only the gateway may say is refused ther
 FISCHER_HOP_SCHEDULE would replace the plan the gateway checked (range, bandwidth, a dwell
 that beats the jammer) and uploads. A datagram is refused if the airframe's parser could
 find such a frame in it, whole, behind other bytes, or completing bytes forwarded before it
-(a stream link joins datagrams); it is counted (``uplink_refused``) and logged at most every
-10 s.
+(a stream link joins datagrams), whatever its CRC (a signed link recomputes it); it is
+counted (``uplink_refused``) and logged at most every 10 s.
 """
 
 from __future__ import annotations
@@ -21,14 +21,10 @@ import anyio
 import anyio.abc
 import structlog
 from anyio.streams.memory import MemoryObjectSendStream
-from pymavlink.generator.mavcrc import x25crc
 
 from gateway.config import Endpoint, LinkConfig
 from gateway.errors import LinkError
-from gateway.fleet.hopdialect import (
-    FISCHER_HOP_SCHEDULE_CRC_EXTRA,
-    MAVLINK_MSG_ID_FISCHER_HOP_SCHEDULE,
-)
+from gateway.fleet.hopdialect import MAVLINK_MSG_ID_FISCHER_HOP_SCHEDULE
 from gateway.fleet.links import UdpLink
 from gateway.ops.logsetup import RateLimit
 
@@ -39,8 +35,8 @@ log = structlog.get_logger(__name__)
 _UPLINK_QUEUE = 256
 #: Ground stations the passthrough answers at once (the most recent senders).
 MAX_GCS_PEERS = 4
-#: Messages only the gateway sends to an airframe, with their CRC_EXTRA.
-GATEWAY_ONLY: dict[int, int] = {MAVLINK_MSG_ID_FISCHER_HOP_SCHEDULE: FISCHER_HOP_SCHEDULE_CRC_EXTRA}
+#: Messages only the gateway sends to an airframe.
+GATEWAY_ONLY = frozenset({MAVLINK_MSG_ID_FISCHER_HOP_SCHEDULE})
 _STX_V2 = 0xFD
 #: Forwarded bytes kept to look for a frame that a datagram would complete: a frame less one.
 _TAIL_BYTES = 10 + 255 + 2 - 1
@@ -48,17 +44,14 @@ _TAIL_BYTES = 10 + 255 + 2 - 1
 
 def gateway_only_frame(data: bytes, start: int = 0) -> int | None:
     """The id of a message only the gateway sends, if ``data`` holds a MAVLink 2 frame of it
-    with a valid CRC that ends after ``start`` (at any offset: a parser resynchronises)."""
+    that ends after ``start``: at any offset (a parser resynchronises) and whatever its CRC
+    (a signed link recomputes the CRC of what it signs)."""
     at = data.find(_STX_V2)
     while at != -1 and at + 12 <= len(data):
         msgid = data[at + 7] | data[at + 8] << 8 | data[at + 9] << 16
-        extra = GATEWAY_ONLY.get(msgid)
         end = at + 10 + data[at + 1] + 2
-        if extra is not None and start < end <= len(data):
-            crc = x25crc(data[at + 1 : end - 2])
-            crc.accumulate(bytes([extra]))
-            if crc.crc == int.from_bytes(data[end - 2 : end], "little"):
-                return msgid
+        if msgid in GATEWAY_ONLY and start < end <= len(data):
+            return msgid
         at = data.find(_STX_V2, at + 1)
     return None
 
