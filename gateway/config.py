@@ -31,6 +31,7 @@ from gateway.domain.hopping import AD9361_MAX_BW_HZ, AD9361_RANGE_HZ, HopPlan, H
 from gateway.events import LATEST_WINS_KINDS, EventKind
 
 __all__ = [
+    "SIGNED_ONLY_MSGIDS",
     "AirframeConfig",
     "Config",
     "DemSourceConfig",
@@ -164,6 +165,14 @@ EndpointField = Annotated[
 ]
 
 
+#: Messages a signed link never accepts unsigned (gateway/fleet/hopdialect.py has their ids):
+#: an unsigned hop answer would make the gateway believe a schedule the airframe never took.
+SIGNED_ONLY_MSGIDS: dict[int, str] = {
+    61003: "FISCHER_HOP_SCHEDULE_ACK",
+    61004: "FISCHER_HOP_EVENT",
+}
+
+
 class SigningConfig(BaseModel):
     """MAVLink 2 signing for an airframe whose autopilot cannot run the tunnel."""
 
@@ -176,6 +185,18 @@ class SigningConfig(BaseModel):
     accept_unsigned_msgids: tuple[int, ...] = Field(
         default=(), description="Unsigned message ids accepted anyway, e.g. 109 RADIO_STATUS."
     )
+
+    @field_validator("accept_unsigned_msgids")
+    @classmethod
+    def _hop_messages_signed(cls, msgids: tuple[int, ...]) -> tuple[int, ...]:
+        for msgid in msgids:
+            name = SIGNED_ONLY_MSGIDS.get(msgid)
+            if name is not None:
+                raise ValueError(
+                    f"{msgid} ({name}) cannot be accepted unsigned: anyone on the link could "
+                    "forge it and steer the hop schedule"
+                )
+        return msgids
 
 
 class TunnelConfig(BaseModel):
@@ -262,7 +283,9 @@ class HopPlanConfig(BaseModel):
         "1 to 8 of them.",
     )
     bandwidth_mhz: float = Field(
-        gt=0, le=AD9361_MAX_BW_HZ / 1e6, description="RF bandwidth on every channel, MHz."
+        ge=1e-6,  # 1 Hz: the message carries whole hertz
+        le=AD9361_MAX_BW_HZ / 1e6,
+        description="RF bandwidth on every channel, MHz.",
     )
     jammer_reaction_us: float = Field(
         default=20.0,

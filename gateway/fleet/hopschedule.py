@@ -8,7 +8,9 @@ with doubling waits (``ack_timeout_s`` up to ``retry_max_s``) until a
 FISCHER_HOP_SCHEDULE_ACK for that schedule id arrives. ACCEPTED ends the upload; DENIED and
 FAILED are asked again after ``retry_max_s``; an UNSUPPORTED_* result is final for the plan
 (the state says ``refused``). An airframe that later reports hops on another schedule (it
-rebooted, or a link change brought back one that lost it) gets the plan again.
+rebooted, or a link change brought back one that lost it) gets the plan again: at once the
+first time, then with the same doubling waits while the losses keep coming, so nobody can
+loop the upload.
 
 Downlink: each FISCHER_HOP_EVENT becomes a ``HopEvent``. Every one is counted (metrics per
 airframe and reason, hops flown from the hop counts); at most ``PUBLISH_RATE_HZ`` per
@@ -20,6 +22,7 @@ from __future__ import annotations
 
 import time
 import zlib
+from collections import OrderedDict
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from datetime import datetime, timedelta
@@ -69,6 +72,9 @@ LINK_POLL_S = 0.25
 _TRANSIENT_RESULTS = frozenset({HOP_RESULT_DENIED, HOP_RESULT_FAILED})
 _U32 = 1 << 32
 _LOG_INTERVAL_S = 10.0
+#: Schedules whose hop counters are remembered per airframe, so that reports of an old and a
+#: new schedule arriving mixed count each hop once.
+_SCHEDULES_COUNTED = 4
 
 
 def schedule_id(config: HopPlanConfig) -> int:
@@ -112,10 +118,33 @@ class HopUpload:
     answered: anyio.Event = field(default_factory=anyio.Event)
     answer: int | None = None
     is_awaiting: bool = False
+    """True from a send until its first answer: only then is an answer taken."""
     link_lost: bool = False
     """Every link of the airframe went down since the schedule was accepted."""
-    """True from a send until its first answer: only then is an answer taken."""
     wake: anyio.Event = field(default_factory=anyio.Event)
+    losses: int = 0
+    """Times in a row the accepted schedule was lost (or re-verified): the backoff's step."""
+    last_loss_mono: float | None = None
+    resend_at_mono: float = 0.0
+    """No upload before this (monotonic seconds): the backoff after a loss."""
+
+    def lost(self) -> None:
+        """The accepted schedule must be sent again: at once the first time, then after
+        ``ack_timeout_s`` doubling up to ``retry_max_s`` while the losses keep coming (an
+        airframe, or a stranger on an unsecured link, reporting other schedules must not
+        loop the upload)."""
+        now = time.monotonic()
+        config = self.config
+        quiet_s = 2.0 * config.retry_max_s + config.ack_timeout_s
+        if self.last_loss_mono is None or now - self.last_loss_mono > quiet_s:
+            self.losses = 0
+        delay_s = 0.0
+        if self.losses:
+            delay_s = min(config.ack_timeout_s * 2.0 ** (self.losses - 1), config.retry_max_s)
+        self.losses = min(self.losses + 1, 32)
+        self.last_loss_mono = now
+        self.resend_at_mono = now + delay_s
+        self.state = "retrying" if delay_s else "sent"
 
     def answer_received(self) -> int | None:
         """The result the airframe answered the last send with, None if none came yet."""
@@ -149,12 +178,6 @@ class _Bucket:
         return True
 
 
-@dataclass(slots=True)
-class _Counted:
-    schedule_id: int
-    hop_count: int
-
-
 class HopSchedules:
     """Every airframe's hop-schedule upload and hop-event intake; see the module docstring."""
 
@@ -170,7 +193,7 @@ class HopSchedules:
         self._clock = clock
         self.uploads: dict[str, HopUpload] = {}
         self._buckets: dict[tuple[str, int], _Bucket] = {}
-        self._counted: dict[str, _Counted] = {}
+        self._counted: dict[str, OrderedDict[int, int]] = {}
         self._log = RateLimit(_LOG_INTERVAL_S)
         for session in sessions:
             session.on("FISCHER_HOP_EVENT", self._on_event)
@@ -219,6 +242,10 @@ class HopSchedules:
                     await upload.wake.wait()
                 upload.wake = anyio.Event()
                 continue
+            pause_s = upload.resend_at_mono - time.monotonic()
+            if pause_s > 0:
+                await anyio.sleep(min(pause_s, LINK_POLL_S))
+                continue
             frame = self._checked_frame(upload)
             if frame is None:
                 continue
@@ -255,8 +282,11 @@ class HopSchedules:
             upload.link_lost = True
         elif upload.link_lost:
             upload.link_lost = False
-            upload.state = "sent"
-            log.info("hop_schedule_reverified", airframe=upload.session.id, reason="reconnected")
+            upload.lost()
+            if self._log.allow(("reverified", upload.session.id)):
+                log.info(
+                    "hop_schedule_reverified", airframe=upload.session.id, reason="reconnected"
+                )
 
     def _checked_frame(self, upload: HopUpload) -> bytes | None:
         """The upload's frame, or None (state ``invalid``) if the plan fails its checks."""
@@ -287,15 +317,15 @@ class HopSchedules:
         result = int(msg.result)
         name = HOP_RESULT_NAMES.get(result, "unknown")  # one label for every future value
         self._inst.hop_schedule_answers.labels(session.id, name).inc()
-        upload.active_schedule_id = int(msg.active_schedule_id)
         if not upload.is_awaiting:
             return  # nothing sent, or a second answer (a re-send crossed the first answer)
         upload.is_awaiting = False
+        upload.active_schedule_id = int(msg.active_schedule_id)
         upload.last_result = name
         upload.answer = result
         upload.answered.set()
         if result == HOP_RESULT_ACCEPTED:
-            if upload.state != "accepted":
+            if upload.state != "accepted" and self._log.allow(("accepted", session.id)):
                 log.info("hop_schedule_accepted", airframe=session.id, sends=upload.sends)
             upload.state = "accepted"
             upload.accepted_mono = time.monotonic()
@@ -358,15 +388,23 @@ class HopSchedules:
         )
 
     def _count_hops(self, airframe: str, sid: int, hop_count: int) -> None:
-        last = self._counted.get(airframe)
-        if last is None or last.schedule_id != sid:
+        # Per airframe, the last count of its few latest schedules: reports of an old and a
+        # new schedule arriving mixed add only what each counter moved on, never it all again.
+        counts = self._counted.get(airframe)
+        if counts is None:
+            counts = self._counted[airframe] = OrderedDict()
+        last = counts.get(sid)
+        if last is None:
             # A schedule seen for the first time: its count is the hops flown on it so far.
-            self._counted[airframe] = _Counted(sid, hop_count)
+            counts[sid] = hop_count
+            if len(counts) > _SCHEDULES_COUNTED:
+                counts.popitem(last=False)
             self._inst.hops.labels(airframe).inc(hop_count)
             return
-        ahead = (hop_count - last.hop_count) % _U32
+        counts.move_to_end(sid)
+        ahead = (hop_count - last) % _U32
         if ahead < _U32 // 2:  # otherwise an older report arriving late: nothing new
-            last.hop_count = hop_count
+            counts[sid] = hop_count
             self._inst.hops.labels(airframe).inc(ahead)
 
     def _check_active(self, upload: HopUpload, sid: int) -> None:
@@ -377,7 +415,7 @@ class HopSchedules:
         grace_s = upload.config.ack_timeout_s
         if upload.accepted_mono is not None and time.monotonic() - upload.accepted_mono < grace_s:
             return
-        upload.state = "sent"
+        upload.lost()
         upload.wake.set()
         if self._log.allow(("lost", upload.session.id)):
             log.warning(

@@ -4,6 +4,13 @@ Frames the gateway accepted from the airframe (authenticated, de-duplicated) are
 the local endpoint; what a ground station sends there goes to the airframe on its active
 link, sealed by the gateway if that link is tunnelled. The endpoint is plain MAVLink and so
 belongs on loopback.
+
+Any local process can reach it, so what only the gateway may say is refused there: a
+FISCHER_HOP_SCHEDULE would replace the plan the gateway checked (range, bandwidth, a dwell
+that beats the jammer) and uploads. A datagram is refused if the airframe's parser could
+find such a frame in it, whole, behind other bytes, or completing bytes forwarded before it
+(a stream link joins datagrams), whatever its CRC (a signed link recomputes it); it is
+counted (``uplink_refused``) and logged at most every 10 s.
 """
 
 from __future__ import annotations
@@ -17,6 +24,7 @@ from anyio.streams.memory import MemoryObjectSendStream
 
 from gateway.config import Endpoint, LinkConfig
 from gateway.errors import LinkError
+from gateway.fleet.hopdialect import MAVLINK_MSG_ID_FISCHER_HOP_SCHEDULE
 from gateway.fleet.links import UdpLink
 from gateway.ops.logsetup import RateLimit
 
@@ -27,6 +35,25 @@ log = structlog.get_logger(__name__)
 _UPLINK_QUEUE = 256
 #: Ground stations the passthrough answers at once (the most recent senders).
 MAX_GCS_PEERS = 4
+#: Messages only the gateway sends to an airframe.
+GATEWAY_ONLY = frozenset({MAVLINK_MSG_ID_FISCHER_HOP_SCHEDULE})
+_STX_V2 = 0xFD
+#: Forwarded bytes kept to look for a frame that a datagram would complete: a frame less one.
+_TAIL_BYTES = 10 + 255 + 2 - 1
+
+
+def gateway_only_frame(data: bytes, start: int = 0) -> int | None:
+    """The id of a message only the gateway sends, if ``data`` holds a MAVLink 2 frame of it
+    that ends after ``start``: at any offset (a parser resynchronises) and whatever its CRC
+    (a signed link recomputes the CRC of what it signs)."""
+    at = data.find(_STX_V2)
+    while at != -1 and at + 12 <= len(data):
+        msgid = data[at + 7] | data[at + 8] << 8 | data[at + 9] << 16
+        end = at + 10 + data[at + 1] + 2
+        if msgid in GATEWAY_ONLY and start < end <= len(data):
+            return msgid
+        at = data.find(_STX_V2, at + 1)
+    return None
 
 
 class Passthrough:
@@ -48,6 +75,8 @@ class Passthrough:
         self.downlink_frames = 0
         self.uplink_frames = 0
         self.uplink_dropped = 0
+        self.uplink_refused = 0
+        self._tail = b""
         self._log_limit = RateLimit(interval_s=10.0)
 
     def forward(self, frame: bytes) -> None:
@@ -75,6 +104,17 @@ class Passthrough:
             await tg.start(self.link.run)
             task_status.started()
             async for data in receive:
+                msgid = gateway_only_frame(self._tail + data, len(self._tail))
+                if msgid is not None:
+                    self.uplink_refused += 1
+                    if self._log_limit.allow("refused"):
+                        log.warning(
+                            "passthrough_uplink_refused",
+                            airframe=self.airframe,
+                            msgid=msgid,
+                            reason="only the gateway sends this message",
+                        )
+                    continue
                 try:
                     await self._send_to_airframe(self.airframe, data)
                 except LinkError as exc:
@@ -85,6 +125,7 @@ class Passthrough:
                         )
                 else:
                     self.uplink_frames += 1
+                    self._tail = (self._tail + data)[-_TAIL_BYTES:]
 
     def status(self) -> dict[str, object]:
         """Counters for /status."""
@@ -94,4 +135,5 @@ class Passthrough:
             "downlink_frames": self.downlink_frames,
             "uplink_frames": self.uplink_frames,
             "uplink_dropped": self.uplink_dropped,
+            "uplink_refused": self.uplink_refused,
         }

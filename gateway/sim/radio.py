@@ -88,9 +88,10 @@ class SimRadio:
         if plan is None:
             return []
         self.reports += 1
-        hop_period_s = (plan.dwell + plan.settle) * 1e-9
+        # A forced ACCEPTED (--hop-result) takes any plan, even a 0 ns dwell or 0 slots.
+        hop_period_s = max(plan.dwell + plan.settle, 1) * 1e-9
         hops = max(1, int(max(unix_s - self.started_unix_s, 0.0) / hop_period_s)) % (1 << 32)
-        slot = hops % plan.slot_count
+        slot = hops % min(max(plan.slot_count, 1), FASTLOCK_SLOTS)
         jammed = self.reports % _JAM_EVERY == 0
         return [
             FischerHopEvent(

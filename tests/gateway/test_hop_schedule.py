@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 from pymavlink.dialects.v20 import ardupilotmega as apm
 
 from gateway.app import Gateway
-from gateway.config import Config, HopPlanConfig
+from gateway.config import SIGNED_ONLY_MSGIDS, Config, HopPlanConfig
 from gateway.configfile import load_config_text
 from gateway.contract import sample_events
 from gateway.errors import ConfigError
@@ -25,6 +25,8 @@ from gateway.fleet.hopdialect import (
     HOP_REASON_NAMES,
     HOP_RESULT_ACCEPTED,
     HOP_RESULT_UNSUPPORTED_DWELL,
+    MAVLINK_MSG_ID_FISCHER_HOP_EVENT,
+    MAVLINK_MSG_ID_FISCHER_HOP_SCHEDULE_ACK,
     FischerHopEvent,
     FischerHopSchedule,
     FischerHopScheduleAck,
@@ -277,6 +279,7 @@ def test_a_flyable_plan_that_beats_the_jammer_loads() -> None:
         ("[2405, 6001]", "10", "12", "node.yaml:6 airframes[0].hop_plan.frequencies_mhz[1]:"),
         ("[2405, 65]", "10", "12", "node.yaml:6 airframes[0].hop_plan.frequencies_mhz[1]:"),
         ("[2405, 2430]", "57", "12", "node.yaml:7 airframes[0].hop_plan.bandwidth_mhz:"),
+        ("[2405, 2430]", "0.0000001", "12", "node.yaml:7 airframes[0].hop_plan.bandwidth_mhz:"),
         (
             "[100, 200, 300, 400, 500, 600, 700, 800, 900]",
             "10",
@@ -347,7 +350,11 @@ async def test_an_answer_nobody_asked_for_is_not_taken() -> None:
     sid = gateway.hops.uploads["F26E-001"].schedule_id
     session.dispatch("l", "FISCHER_HOP_SCHEDULE_ACK", FischerHopScheduleAck(sid, sid, 255, 191, 0))
     (upload,) = gateway.hops.status()
-    assert (upload["state"], upload["last_result"]) == ("waiting_link", None)
+    assert (upload["state"], upload["last_result"], upload["active_schedule_id"]) == (
+        "waiting_link",
+        None,
+        None,
+    )
 
 
 @pytest.mark.anyio
@@ -385,3 +392,53 @@ def test_the_console_line_of_a_hop() -> None:
         "12:00:00.000Z hop        F26E-001 jammed to slot 2 2435.000 MHz schedule 1234abcd"
         " hops 41000 rssi -62 dBm interference -31 dBm"
     )
+
+
+def test_a_signed_link_cannot_take_hop_answers_or_reports_unsigned() -> None:
+    """Listing them in accept_unsigned_msgids would let anyone forge an acceptance."""
+    text = """\
+airframes:
+  - id: F26E-001
+    sysid: 1
+    signing: {key_file: /etc/fischer/F26E-001.key, accept_unsigned_msgids: [109, 61004]}
+    links: [{uri: 'udp://127.0.0.1:14550', security: signed}]
+"""
+    with pytest.raises(ConfigError) as raised:
+        load_config_text(text, "node.yaml")
+    (issue,) = (str(issue) for issue in raised.value.issues)
+    assert issue.startswith(
+        "node.yaml:4 airframes[0].signing.accept_unsigned_msgids: 61004 (FISCHER_HOP_EVENT) "
+        "cannot be accepted unsigned"
+    )
+    assert SIGNED_ONLY_MSGIDS == {
+        MAVLINK_MSG_ID_FISCHER_HOP_SCHEDULE_ACK: "FISCHER_HOP_SCHEDULE_ACK",
+        MAVLINK_MSG_ID_FISCHER_HOP_EVENT: "FISCHER_HOP_EVENT",
+    }
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    schedule=st.tuples(
+        u64,
+        st.lists(u64, min_size=8, max_size=8),
+        st.integers(1, 2**32 - 1),
+        u32,
+        u32,
+        u32,
+        u8,
+        u8,
+        u8,
+    ),
+    at=st.floats(0, 4e9),
+)
+def test_a_radio_forced_to_accept_reports_hops_on_any_schedule(
+    schedule: tuple[Any, ...], at: float
+) -> None:
+    """``simulate --hop-result accepted`` takes whatever arrives (0 ns dwell, 0 slots ...)."""
+    radio = SimRadio(1, result=HOP_RESULT_ACCEPTED)
+    msg = FischerHopSchedule(*schedule)
+    msg.target_system, msg.target_component = 1, 0
+    (back,) = apm.MAVLink(None).parse_buffer(msg.pack(apm.MAVLink(None, 255, 191)))
+    assert radio.answer(back, at) is not None
+    (event,) = radio.events_at(at + 1.0)
+    assert 0 <= event.slot < 8
