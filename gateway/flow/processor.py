@@ -62,6 +62,20 @@ class Processor(Protocol):
         ...
 
 
+@runtime_checkable
+class MissesEvents(Protocol):
+    """A processor that wants to know which events its full inbox dropped.
+
+    ``missed`` is called (synchronously, on the publisher's turn) for each event the runner
+    could not queue, so a processor whose state must not silently go stale (the blue-force
+    picture) can mark it incomplete. It must be quick and never raise.
+    """
+
+    def missed(self, event: Event) -> None:
+        """``event`` was dropped before reaching the processor."""
+        ...
+
+
 class ProcessorClass(Protocol):
     """What an entry point of ``fischer_gateway.processors`` must name."""
 
