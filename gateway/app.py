@@ -9,7 +9,7 @@ deadline, then cancel and close them within the rest.
 from __future__ import annotations
 
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from functools import partial
 from importlib.metadata import PackageNotFoundError, version
 from typing import Any
@@ -26,15 +26,17 @@ from gateway.clock import Clock, utc_now
 from gateway.config import Config
 from gateway.domain.terrain import DemSource, TerrainModel
 from gateway.errors import FrameError, LinkError, LinkUnavailable
-from gateway.events import Event
+from gateway.events import BlueForce, Event
 from gateway.fleet.ingest import Ingest, LinkIntake
 from gateway.fleet.links import Link, make_link
 from gateway.fleet.passthrough import Passthrough
 from gateway.fleet.security.material import Security
 from gateway.flow.bus import Bus
+from gateway.flow.processor import PinsUnits
 from gateway.flow.processors import ProcessorRunner
 from gateway.ops.health import HealthServer
 from gateway.ops.instruments import Instruments
+from gateway.ops.logsetup import RateLimit
 from gateway.ops.sdnotify import SystemdNotifier
 from gateway.ops.supervise import Supervised, supervise
 from gateway.spool.store import Spool
@@ -182,13 +184,20 @@ class Gateway:
                         drop=link.drop,
                     )
                 )
+        pinned = frozenset(
+            uid
+            for runner in self.processors.values()
+            if isinstance(runner.processor, PinsUnits)
+            for uid in runner.processor.pinned_uids
+        )
         self.sources: list[Source] = []
+        self._source_publish: list[SourcePublish] = []
         for source_entry in config.sources:
             component = load_component(SOURCE_GROUP, source_entry.type)
             options = component.model.model_validate(source_entry.options)
-            self.sources.append(
-                component.factory(source_entry.name, options, self.bus.publish, clock=clock)
-            )
+            publish = SourcePublish(source_entry.name, pinned, self.bus.publish)
+            self._source_publish.append(publish)
+            self.sources.append(component.factory(source_entry.name, options, publish, clock=clock))
         self._source_records = [Supervised(s.name) for s in self.sources]
         self.passthroughs: dict[str, Passthrough] = {}
         for airframe in config.airframes:
@@ -391,8 +400,16 @@ class Gateway:
             ],
             "passthroughs": [p.status() for p in self.passthroughs.values()],
             "sources": [
-                {**s.status(), "state": r.state, "reason": r.reason, "restarts": r.restarts}
-                for s, r in zip(self.sources, self._source_records, strict=True)
+                {
+                    **s.status(),
+                    "pinned_refused": p.refused,
+                    "state": r.state,
+                    "reason": r.reason,
+                    "restarts": r.restarts,
+                }
+                for s, r, p in zip(
+                    self.sources, self._source_records, self._source_publish, strict=True
+                )
             ],
             "unknown_sysids": sorted(self.ingest.unknown_sysids),
             "sinks": [runner.status() for runner in self.runners.values()],
@@ -408,3 +425,33 @@ class Gateway:
             "listeners": [self.health.stats.status()] if self.health is not None else [],
             "terrain": [] if self.terrain is None else self.terrain.status(),
         }
+
+
+class SourcePublish:
+    """A source's way onto the bus, refusing reports under the uid of a unit fixed by orders.
+
+    A ``BlueForce`` whose ``uid`` a processor pins (``counter_uas`` ``blue_forces``) would
+    otherwise reach every sink and draw the fixed unit wherever the report says (the registry
+    ignores it, ATAK would not): it is refused, counted (``pinned_refused`` on /status) and
+    logged at most once per 10 s.
+    """
+
+    def __init__(self, source: str, pinned: frozenset[str], publish: Callable[[Event], bool]):
+        self.source = source
+        self.pinned = pinned
+        self.refused = 0
+        self._publish = publish
+        self._log_limit = RateLimit(interval_s=10.0)
+
+    def __call__(self, event: Event) -> bool:
+        if isinstance(event, BlueForce) and event.uid in self.pinned:
+            self.refused += 1
+            if self._log_limit.allow("pinned"):
+                log.warning(
+                    "blue_force_pinned_uid_refused",
+                    source=self.source,
+                    uid=event.uid,
+                    refused=self.refused,
+                )
+            return False
+        return self._publish(event)

@@ -225,6 +225,11 @@ class CounterUasProcessor:
                         )
                     publish(handoff)
 
+    @property
+    def pinned_uids(self) -> frozenset[str]:
+        """The units fixed in ``blue_forces``: no source's report may move them."""
+        return frozenset(unit.uid for unit in self.fixed)
+
     def missed(self, event: Event) -> None:
         """A friendly report its full inbox dropped: the blue-force picture is incomplete."""
         if isinstance(event, BlueForce):

@@ -76,6 +76,20 @@ class MissesEvents(Protocol):
         ...
 
 
+@runtime_checkable
+class PinsUnits(Protocol):
+    """A processor holding units fixed by orders (``blue_forces``) that no report may move.
+
+    The gateway refuses a source's ``BlueForce`` under one of these uids before any sink or
+    processor sees it, so a network report cannot draw a fixed unit elsewhere.
+    """
+
+    @property
+    def pinned_uids(self) -> frozenset[str]:
+        """The uids of the units it fixes."""
+        ...
+
+
 class ProcessorClass(Protocol):
     """What an entry point of ``fischer_gateway.processors`` must name."""
 
