@@ -19,7 +19,7 @@ import anyio.abc
 import structlog
 
 from gateway.c2.plugins import PROCESSOR_GROUP, SOURCE_GROUP, build_sink, load_component
-from gateway.c2.sink import Sink
+from gateway.c2.sink import ReleasesOwnAirframes, Sink
 from gateway.c2.sinkrunner import SinkRunner
 from gateway.c2.source import Source
 from gateway.clock import Clock, utc_now
@@ -190,12 +190,19 @@ class Gateway:
             if isinstance(runner.processor, PinsUnits)
             for uid in runner.processor.pinned_uids
         )
+        airframe_ids = [airframe.id for airframe in config.airframes]
+        own = frozenset(
+            uid
+            for runner in self.runners.values()
+            if isinstance(runner.sink, ReleasesOwnAirframes)
+            for uid in runner.sink.own_uids(airframe_ids)
+        )
         self.sources: list[Source] = []
         self._source_publish: list[SourcePublish] = []
         for source_entry in config.sources:
             component = load_component(SOURCE_GROUP, source_entry.type)
             options = component.model.model_validate(source_entry.options)
-            publish = SourcePublish(source_entry.name, pinned, self.bus.publish)
+            publish = SourcePublish(source_entry.name, pinned, own, self.bus.publish)
             self._source_publish.append(publish)
             self.sources.append(component.factory(source_entry.name, options, publish, clock=clock))
         self._source_records = [Supervised(s.name) for s in self.sources]
@@ -402,7 +409,8 @@ class Gateway:
             "sources": [
                 {
                     **s.status(),
-                    "pinned_refused": p.refused,
+                    "pinned_refused": p.refused["pinned"],
+                    "own_refused": p.refused["own"],
                     "state": r.state,
                     "reason": r.reason,
                     "restarts": r.restarts,
@@ -427,31 +435,47 @@ class Gateway:
         }
 
 
+_REFUSED_EVENT = {"pinned": "blue_force_pinned_uid_refused", "own": "blue_force_own_uid_refused"}
+
+
 class SourcePublish:
-    """A source's way onto the bus, refusing reports under the uid of a unit fixed by orders.
+    """A source's way onto the bus, refusing friendly reports under uids that are not theirs.
 
     A ``BlueForce`` whose ``uid`` a processor pins (``counter_uas`` ``blue_forces``) would
     otherwise reach every sink and draw the fixed unit wherever the report says (the registry
-    ignores it, ATAK would not): it is refused, counted (``pinned_refused`` on /status) and
-    logged at most once per 10 s.
+    ignores it, ATAK would not); one under the uid a sink gives our own airframe (an ``nffi``
+    sink's trackSource read back: a C2 system echoing our tracks, or a forgery) would make our
+    airframe a second, "friendly" unit. Both are refused, counted (``pinned_refused``,
+    ``own_refused`` on /status) and logged at most once per 10 s each.
     """
 
-    def __init__(self, source: str, pinned: frozenset[str], publish: Callable[[Event], bool]):
+    def __init__(
+        self,
+        source: str,
+        pinned: frozenset[str],
+        own: frozenset[str],
+        publish: Callable[[Event], bool],
+    ) -> None:
         self.source = source
         self.pinned = pinned
-        self.refused = 0
+        self.own = own
+        self.refused = {"pinned": 0, "own": 0}
         self._publish = publish
         self._log_limit = RateLimit(interval_s=10.0)
 
     def __call__(self, event: Event) -> bool:
-        if isinstance(event, BlueForce) and event.uid in self.pinned:
-            self.refused += 1
-            if self._log_limit.allow("pinned"):
-                log.warning(
-                    "blue_force_pinned_uid_refused",
-                    source=self.source,
-                    uid=event.uid,
-                    refused=self.refused,
-                )
-            return False
+        if isinstance(event, BlueForce):
+            reason = (
+                "pinned" if event.uid in self.pinned else "own" if event.uid in self.own else None
+            )
+            if reason is not None:
+                self.refused[reason] += 1
+                if self._log_limit.allow(reason):
+                    log.warning(
+                        _REFUSED_EVENT[reason],
+                        source=self.source,
+                        uid=event.uid,
+                        refused=self.refused[reason],
+                    )
+                return False
         return self._publish(event)

@@ -1,7 +1,9 @@
 """An NFFI peer against the blue-force picture, through ``fischer-gateway run --config FILE``.
 
 A report under the uid of a unit fixed by orders (``counter_uas`` ``blue_forces``) must not
-reach any sink: the CoT sink would draw the fixed unit wherever the report says.
+reach any sink: the CoT sink would draw the fixed unit wherever the report says. Nor may our
+own airframe's track come back in (a C2 system echoing what our ``nffi`` sink sent it, or a
+forgery) as a second, "friendly" unit.
 
 A flood of friendly reports larger than the ``counter_uas`` processor's inbox: the reports it
 never got may have held a real unit's newest position, so the picture must then say it is
@@ -18,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from daemon_support import Daemon, free_tcp_port, running, wait_until
+from daemon_support import Daemon, free_tcp_port, free_udp_port, running, wait_until
 
 from gateway.codecs.nffi import NffiOptions, encode_message, tracks_of
 from gateway.events import BlueForce, Position
@@ -26,12 +28,14 @@ from gateway.events import BlueForce, Position
 pytestmark = pytest.mark.timeout(120)
 
 
-def friendly_reports(count: int, at: datetime, system: str = "FLOOD", lat: float = 65.0) -> bytes:
+def friendly_reports(
+    count: int, at: datetime, system: str = "FLOOD", lat: float = 65.0, name: str = "U{n}"
+) -> bytes:
     """One NFFI document with ``count`` distinct friendly ground units (``U0`` ...)."""
     units = [
         BlueForce(
             event_id="-",
-            uid=f"U{n}",
+            uid=name.format(n=n),
             time=at,
             position=Position(lat_deg=lat + n * 1e-4, lon_deg=21.0),
             source="-",
@@ -42,7 +46,12 @@ def friendly_reports(count: int, at: datetime, system: str = "FLOOD", lat: float
 
 
 def write_config(
-    tmp: Path, source_port: int, *, queue_max: int = 10_000, cot_port: int | None = None
+    tmp: Path,
+    source_port: int,
+    *,
+    queue_max: int = 10_000,
+    cot_port: int | None = None,
+    airframe_link: int | None = None,
 ) -> Path:
     config: dict[str, Any] = {
         "gateway": {"node_id": "nffi-blue", "shutdown_deadline_s": 3},
@@ -91,6 +100,22 @@ def write_config(
             }
         )
         config["routes"].append({"sinks": ["atak"], "kinds": ["blue_force"]})
+    if airframe_link is not None:
+        config["airframes"] = [
+            {
+                "id": "F26E-001",
+                "sysid": 1,
+                "links": [{"uri": f"udp://127.0.0.1:{airframe_link}", "security": "unsecured"}],
+            }
+        ]
+        config["sinks"].append(
+            {
+                "name": "c2",
+                "type": "nffi",
+                "options": {"path": str(tmp / "nffi.xml"), "country": "SWE"},
+            }
+        )
+        config["routes"].append({"sinks": ["c2"], "kinds": ["telemetry"]})
     path = tmp / "config.yaml"
     path.write_text(json.dumps(config))
     return path
@@ -161,3 +186,34 @@ def test_a_report_under_a_fixed_units_uid_reaches_no_sink(tmp_path: Path) -> Non
         assert source["counts"]["accepted"] == 2
         assert source["pinned_refused"] == 1
         assert daemon.events("blue_force_pinned_uid_refused")[0]["uid"] == "SWE.HQ.U0"
+
+
+def test_our_own_airframe_echoed_back_over_nffi_is_not_a_friendly_unit(tmp_path: Path) -> None:
+    port = free_tcp_port()
+    cot = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    cot.bind(("127.0.0.1", 0))
+    cot.settimeout(0.2)
+    datagrams: list[bytes] = []
+    config = write_config(
+        tmp_path, port, cot_port=cot.getsockname()[1], airframe_link=free_udp_port()
+    )
+    with cot, running(config) as daemon:
+        now = datetime.now(UTC) - timedelta(seconds=1)
+        # What our nffi sink sends for F26E-001 (trackSource SWE / FISCHER-GW / F26E-001),
+        # as a C2 system relaying every track it knows would send it back; then a real friend.
+        echo = friendly_reports(1, now, system="FISCHER-GW", name="F26E-001")
+        send(port, echo + friendly_reports(1, now, system="JAS39-RELAY", name="39-7"))
+
+        def friend_drawn() -> bool:
+            with contextlib.suppress(TimeoutError):
+                datagrams.append(cot.recv(65_536))
+            return any(b'uid="SWE.JAS39-RELAY.39-7"' in d for d in datagrams)
+
+        wait_until(friend_drawn, 20.0, "the relayed friend on the CoT peer")
+        assert not [d for d in datagrams if b"FISCHER-GW" in d], datagrams
+        (source,) = daemon.status()["sources"]
+        assert source["counts"]["accepted"] == 2
+        assert source["own_refused"] == 1
+        assert source["pinned_refused"] == 0
+        (refused,) = daemon.events("blue_force_own_uid_refused")
+        assert refused["uid"] == "SWE.FISCHER-GW.F26E-001"
