@@ -9,7 +9,7 @@ deadline, then cancel and close them within the rest.
 from __future__ import annotations
 
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from functools import partial
 from importlib.metadata import PackageNotFoundError, version
 from typing import Any
@@ -19,23 +19,25 @@ import anyio.abc
 import structlog
 
 from gateway.c2.plugins import PROCESSOR_GROUP, SOURCE_GROUP, build_sink, load_component
-from gateway.c2.sink import Sink
+from gateway.c2.sink import ReleasesOwnAirframes, Sink
 from gateway.c2.sinkrunner import SinkRunner
 from gateway.c2.source import Source
 from gateway.clock import Clock, utc_now
 from gateway.config import Config
 from gateway.domain.terrain import DemSource, TerrainModel
 from gateway.errors import FrameError, LinkError, LinkUnavailable
-from gateway.events import Event
+from gateway.events import BlueForce, Event
 from gateway.fleet.hopschedule import HopSchedules
 from gateway.fleet.ingest import Ingest, LinkIntake
 from gateway.fleet.links import Link, make_link
 from gateway.fleet.passthrough import Passthrough
 from gateway.fleet.security.material import Security
 from gateway.flow.bus import Bus
+from gateway.flow.processor import PinsUnits
 from gateway.flow.processors import ProcessorRunner
 from gateway.ops.health import HealthServer
 from gateway.ops.instruments import Instruments
+from gateway.ops.logsetup import RateLimit
 from gateway.ops.sdnotify import SystemdNotifier
 from gateway.ops.supervise import Supervised, supervise
 from gateway.spool.store import Spool
@@ -185,13 +187,27 @@ class Gateway:
                         drop=link.drop,
                     )
                 )
+        pinned = frozenset(
+            uid
+            for runner in self.processors.values()
+            if isinstance(runner.processor, PinsUnits)
+            for uid in runner.processor.pinned_uids
+        )
+        airframe_ids = [airframe.id for airframe in config.airframes]
+        own = frozenset(
+            uid
+            for runner in self.runners.values()
+            if isinstance(runner.sink, ReleasesOwnAirframes)
+            for uid in runner.sink.own_uids(airframe_ids)
+        )
         self.sources: list[Source] = []
+        self._source_publish: list[SourcePublish] = []
         for source_entry in config.sources:
             component = load_component(SOURCE_GROUP, source_entry.type)
             options = component.model.model_validate(source_entry.options)
-            self.sources.append(
-                component.factory(source_entry.name, options, self.bus.publish, clock=clock)
-            )
+            publish = SourcePublish(source_entry.name, pinned, own, self.bus.publish)
+            self._source_publish.append(publish)
+            self.sources.append(component.factory(source_entry.name, options, publish, clock=clock))
         self._source_records = [Supervised(s.name) for s in self.sources]
         self.passthroughs: dict[str, Passthrough] = {}
         for airframe in config.airframes:
@@ -404,8 +420,17 @@ class Gateway:
             "hop_schedules": self.hops.status(),
             "passthroughs": [p.status() for p in self.passthroughs.values()],
             "sources": [
-                {**s.status(), "state": r.state, "reason": r.reason, "restarts": r.restarts}
-                for s, r in zip(self.sources, self._source_records, strict=True)
+                {
+                    **s.status(),
+                    "pinned_refused": p.refused["pinned"],
+                    "own_refused": p.refused["own"],
+                    "state": r.state,
+                    "reason": r.reason,
+                    "restarts": r.restarts,
+                }
+                for s, r, p in zip(
+                    self.sources, self._source_records, self._source_publish, strict=True
+                )
             ],
             "unknown_sysids": sorted(self.ingest.unknown_sysids),
             "sinks": [runner.status() for runner in self.runners.values()],
@@ -421,3 +446,49 @@ class Gateway:
             "listeners": [self.health.stats.status()] if self.health is not None else [],
             "terrain": [] if self.terrain is None else self.terrain.status(),
         }
+
+
+_REFUSED_EVENT = {"pinned": "blue_force_pinned_uid_refused", "own": "blue_force_own_uid_refused"}
+
+
+class SourcePublish:
+    """A source's way onto the bus, refusing friendly reports under uids that are not theirs.
+
+    A ``BlueForce`` whose ``uid`` a processor pins (``counter_uas`` ``blue_forces``) would
+    otherwise reach every sink and draw the fixed unit wherever the report says (the registry
+    ignores it, ATAK would not); one under the uid a sink gives our own airframe (an ``nffi``
+    sink's trackSource read back: a C2 system echoing our tracks, or a forgery) would make our
+    airframe a second, "friendly" unit. Both are refused, counted (``pinned_refused``,
+    ``own_refused`` on /status) and logged at most once per 10 s each.
+    """
+
+    def __init__(
+        self,
+        source: str,
+        pinned: frozenset[str],
+        own: frozenset[str],
+        publish: Callable[[Event], bool],
+    ) -> None:
+        self.source = source
+        self.pinned = pinned
+        self.own = own
+        self.refused = {"pinned": 0, "own": 0}
+        self._publish = publish
+        self._log_limit = RateLimit(interval_s=10.0)
+
+    def __call__(self, event: Event) -> bool:
+        if isinstance(event, BlueForce):
+            reason = (
+                "pinned" if event.uid in self.pinned else "own" if event.uid in self.own else None
+            )
+            if reason is not None:
+                self.refused[reason] += 1
+                if self._log_limit.allow(reason):
+                    log.warning(
+                        _REFUSED_EVENT[reason],
+                        source=self.source,
+                        uid=event.uid,
+                        refused=self.refused[reason],
+                    )
+                return False
+        return self._publish(event)

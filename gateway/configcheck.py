@@ -222,8 +222,17 @@ def _component(
         return
     if not build:
         return
+    component = load_component(group, type_name)
+    try:
+        # Validated again with the node at hand: its validators may then check their files
+        # and name the key that holds a bad one (as for sinks).
+        config = component.model.model_validate(options, context=_ON_NODE)
+    except ValidationError as exc:
+        for where, message in validation_issues(exc, loc, component.model):
+            yield where, message, True
+        return
     # As the daemon will: a constructor that fails is a config error on this line.
-    factory = load_component(group, type_name).factory
+    factory = component.factory
     try:
         if group == SOURCE_GROUP:
             factory(name, config, lambda _event: None, clock=utc_now)

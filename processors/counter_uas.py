@@ -225,12 +225,24 @@ class CounterUasProcessor:
                         )
                     publish(handoff)
 
+    @property
+    def pinned_uids(self) -> frozenset[str]:
+        """The units fixed in ``blue_forces``: no source's report may move them."""
+        return frozenset(unit.uid for unit in self.fixed)
+
+    def missed(self, event: Event) -> None:
+        """A friendly report its full inbox dropped: the blue-force picture is incomplete."""
+        if isinstance(event, BlueForce):
+            self.blue.lost()
+
     def status(self) -> dict[str, Any]:
         """Counters for /status."""
         counts = self.desk.counts
         return {
             "batteries": [b.id for b in self.batteries],
             "blue_units": len(self.blue),
+            "blue_picture_complete": self.blue.complete,
+            "blue_dropped": self.blue.dropped,
             "handed_off": counts.handed_off,
             "revised": counts.revised,
             "not_clear": counts.not_clear,

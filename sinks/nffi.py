@@ -32,7 +32,13 @@ import structlog
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
 
 from gateway.c2.sink import SinkConfig
-from gateway.codecs.nffi import NffiOptions, encode_message, encode_track, nffi_time
+from gateway.codecs.nffi import (
+    NffiOptions,
+    encode_message,
+    encode_track,
+    nffi_time,
+    track_uid,
+)
 from gateway.domain.geoid import bundled_geoid
 from gateway.errors import TransientSinkError
 from gateway.events import BlueForce, Event, EventKind, Telemetry
@@ -175,6 +181,10 @@ class NffiSink:
     def kinds(self) -> frozenset[EventKind]:
         """Telemetry and blue force unless the config narrows them."""
         return self.config.kinds
+
+    def own_uids(self, airframes: Sequence[str]) -> frozenset[str]:
+        """The uids our tracks of ``airframes`` get when an NFFI source reads them back."""
+        return frozenset(track_uid(self.options, airframe) for airframe in airframes)
 
     def _fail(self, where: str, what: str) -> TransientSinkError:
         return TransientSinkError(f"sink {self.name}: {where}: {what}", sink=self.name)

@@ -30,13 +30,21 @@ from collections import Counter, OrderedDict
 from collections.abc import Awaitable, Callable
 from datetime import datetime, timedelta
 from pathlib import Path
-from typing import ClassVar, Literal
+from typing import Annotated, ClassVar, Literal
 from urllib.parse import urlsplit
 
 import anyio
 import anyio.abc
 import structlog
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
 
 from gateway.clock import utc_now
 from gateway.codecs.nffi import MAX_MESSAGE_BYTES, NffiError, NffiTrack, parse_message
@@ -62,6 +70,30 @@ _FROZEN = ConfigDict(frozen=True, extra="forbid")
 _Network = ipaddress.IPv4Network | ipaddress.IPv6Network
 
 
+def _network(value: object) -> object:
+    """An allow-list entry as a network, with an error that says how to write it."""
+    if isinstance(value, ipaddress.IPv4Network | ipaddress.IPv6Network):
+        return value
+    if not isinstance(value, str):
+        raise ValueError("expected an IP address or network as text, e.g. 10.20.1.0/24")
+    try:
+        return ipaddress.ip_network(value.strip())
+    except ValueError:
+        pass
+    try:
+        loose = ipaddress.ip_network(value.strip(), strict=False)
+    except ValueError:
+        raise ValueError("not an IP address or network (e.g. 10.20.1.5 or 10.20.1.0/24)") from None
+    host = value.strip().split("/", 1)[0]
+    raise ValueError(
+        f"host bits set: write {loose} for the network, or "
+        f"{host}/{loose.max_prefixlen} for the one address"
+    )
+
+
+_AllowedNetwork = Annotated[_Network, BeforeValidator(_network)]
+
+
 class NffiSourceTls(BaseModel):
     """The listener's certificate and the CA its clients' certificates must chain to."""
 
@@ -71,6 +103,14 @@ class NffiSourceTls(BaseModel):
     key_file: Path | None = Field(default=None, description="PEM key, if not in cert_file.")
     password_file: Path | None = Field(default=None, description="File holding the key password.")
     client_ca_file: Path = Field(description="Only clients with a certificate from this CA.")
+
+    @model_validator(mode="after")
+    def _loadable(self, info: ValidationInfo) -> NffiSourceTls:
+        # On the node (check-config without --no-environment): the files must load, and the
+        # error is then on this section's line, not only on the source's.
+        if isinstance(info.context, dict) and info.context.get("environment"):
+            _server_context(self)
+        return self
 
 
 class NffiSourceConfig(BaseModel):
@@ -86,7 +126,7 @@ class NffiSourceConfig(BaseModel):
     )
     uri: str = Field(description="tcp://HOST:PORT or tls://HOST:PORT to listen on.")
     tls: NffiSourceTls | None = Field(default=None, description="Required for tls://.")
-    allow: tuple[_Network, ...] = Field(
+    allow: tuple[_AllowedNetwork, ...] = Field(
         min_length=1,
         description="Networks peers may connect from (e.g. 10.1.2.0/24); 0.0.0.0/0 is anyone.",
     )

@@ -35,7 +35,7 @@ from pydantic import BaseModel, ConfigDict
 if TYPE_CHECKING:
     from gateway.events import Event, EventKind
 
-__all__ = ["LifetimeSink", "Sink", "SinkClass", "SinkConfig"]
+__all__ = ["LifetimeSink", "ReleasesOwnAirframes", "Sink", "SinkClass", "SinkConfig"]
 
 
 class SinkConfig(BaseModel):
@@ -89,6 +89,19 @@ class LifetimeSink(Sink, Protocol):
         self, *, task_status: anyio.abc.TaskStatus[None] = anyio.TASK_STATUS_IGNORED
     ) -> None:
         """Do the sink's background work until cancelled; raise to have the sink reopened."""
+        ...
+
+
+@runtime_checkable
+class ReleasesOwnAirframes(Protocol):
+    """A sink that sends our own airframes under identities a peer may echo back to a source.
+
+    The gateway refuses a source's ``BlueForce`` under one of these uids: it is our own
+    airframe coming back (or forged), not a friendly unit.
+    """
+
+    def own_uids(self, airframes: Sequence[str]) -> frozenset[str]:
+        """The ``BlueForce`` uids a source would give this sink's tracks of ``airframes``."""
         ...
 
 

@@ -47,6 +47,7 @@ __all__ = [
     "fit_identifier",
     "nffi_time",
     "parse_message",
+    "track_uid",
     "tracks_of",
 ]
 
@@ -130,6 +131,17 @@ def fit_identifier(text: str, max_length: int) -> str:
     ``-``, and empty becomes ``-``."""
     plain = "".join(c for c in unicodedata.normalize("NFKD", text) if not unicodedata.combining(c))
     return _NOT_ALLOWED.sub("-", plain)[:max_length] or "-"
+
+
+def track_uid(opts: NffiOptions, transponder: str) -> str:
+    """The uid (``NffiTrack.uid``) a reader gives our track of ``transponder``."""
+    parts = (
+        opts.country,
+        fit_identifier(opts.system, 30),
+        fit_identifier(opts.subsystem, 30) if opts.subsystem else None,
+        fit_identifier(transponder, 60),
+    )
+    return ".".join(p for p in parts if p)
 
 
 def nffi_time(time: datetime) -> str:

@@ -82,6 +82,15 @@ class BlueForceRegistry:
             self.dropped += 1
         return True
 
+    def lost(self) -> None:
+        """A report that never reached us (dropped on the way, e.g. a full inbox).
+
+        It may have been a real unit's newest position, so the picture is incomplete for
+        ``max_age_s``, as after a unit dropped for room.
+        """
+        self._dropped_at = self._clock()
+        self.dropped += 1
+
     def current(self) -> list[BlueForce]:
         """Pinned units and every report younger than ``max_age_s`` (older ones are dropped)."""
         cutoff = self._clock() - self.max_age

@@ -62,6 +62,34 @@ class Processor(Protocol):
         ...
 
 
+@runtime_checkable
+class MissesEvents(Protocol):
+    """A processor that wants to know which events its full inbox dropped.
+
+    ``missed`` is called (synchronously, on the publisher's turn) for each event the runner
+    could not queue, so a processor whose state must not silently go stale (the blue-force
+    picture) can mark it incomplete. It must be quick and never raise.
+    """
+
+    def missed(self, event: Event) -> None:
+        """``event`` was dropped before reaching the processor."""
+        ...
+
+
+@runtime_checkable
+class PinsUnits(Protocol):
+    """A processor holding units fixed by orders (``blue_forces``) that no report may move.
+
+    The gateway refuses a source's ``BlueForce`` under one of these uids before any sink or
+    processor sees it, so a network report cannot draw a fixed unit elsewhere.
+    """
+
+    @property
+    def pinned_uids(self) -> frozenset[str]:
+        """The uids of the units it fixes."""
+        ...
+
+
 class ProcessorClass(Protocol):
     """What an entry point of ``fischer_gateway.processors`` must name."""
 

@@ -2,7 +2,8 @@
 
 ``ProcessorRunner`` is a bus ``Subscriber``: ``offer_slot`` puts the event in a bounded
 memory stream without waiting (when it is full the event is dropped, counted and logged at
-most every few seconds, so a slow processor never slows ingest). ``run`` starts the
+most every few seconds, so a slow processor never slows ingest; a processor with a ``missed``
+method is told which events it lost). ``run`` starts the
 processor with a clone of that stream and a ``publish`` that puts its events back on the bus
 (never back to itself); if the processor raises, it is logged and started again with jittered
 backoff, and what arrived meanwhile is still in the stream.
@@ -15,7 +16,7 @@ import anyio.abc
 import structlog
 
 from gateway.events import Event, EventKind
-from gateway.flow.processor import Processor, Publish
+from gateway.flow.processor import MissesEvents, Processor, Publish
 from gateway.ops.instruments import Instruments
 from gateway.ops.logsetup import RateLimit
 from gateway.ops.supervise import Supervised, supervise
@@ -65,6 +66,8 @@ class ProcessorRunner:
             self._send.send_nowait(event)
         except (anyio.WouldBlock, anyio.ClosedResourceError, anyio.BrokenResourceError):
             self._dropped.inc()
+            if isinstance(self.processor, MissesEvents):
+                self.processor.missed(event)
             if self._log_limit.allow("full"):
                 self.log.error(
                     "processor_inbox_full",
