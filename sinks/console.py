@@ -32,6 +32,7 @@ from gateway.events import (
     FiveLineOrder,
     Handoff,
     LinkState,
+    OrderStatus,
     Position,
     Telemetry,
     Track,
@@ -135,6 +136,12 @@ def describe(event: Event) -> str:
         return (
             f"{head} {event.source} {event.order_id} {event.priority.value} {event.task.value}"
             f" {place} for {event.airframe or 'any airframe'}"
+        )
+    if isinstance(event, OrderStatus):
+        why = f" ({event.reason})" if event.reason else ""
+        return (
+            f"{head} {event.source} {event.order_id} {event.status.value}"
+            f" on {event.airframe or 'no airframe'}{why}"
         )
     assert_never(event)
 

@@ -158,6 +158,13 @@ class AirframeSession:
         msg = fischer_detection_ack(time_usec, detection_id, self.config.sysid, 1, result)
         return bytes(msg.pack(mav))
 
+    def pack(self, name: str, *fields: Any) -> bytes:
+        """One frame of message ``name`` (``mission_count`` ...) from the gateway's identity."""
+        mav = dialect.MAVLink(None, srcSystem=GATEWAY_SYSID, srcComponent=GATEWAY_COMPID)
+        mav.seq = self._seq
+        self._seq = (self._seq + 1) % 256
+        return bytes(getattr(mav, f"{name}_encode")(*fields).pack(mav))
+
     def _encode_command_long(
         self, command: int, params: tuple[float, ...], confirmation: int
     ) -> bytes:
