@@ -70,8 +70,8 @@ class Corner(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
-    lat_deg: float = Field(ge=-90, le=90)
-    lon_deg: float = Field(ge=-180, le=180)
+    lat_deg: float = Field(ge=-90, le=90, description="Latitude, degrees WGS 84.")
+    lon_deg: float = Field(ge=-180, le=180, description="Longitude, degrees WGS 84.")
 
 
 Fence = tuple[Corner, ...]

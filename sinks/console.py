@@ -43,8 +43,9 @@ __all__ = ["ConsoleSink", "ConsoleSinkConfig", "describe"]
 
 log = structlog.get_logger(__name__)
 
-#: The kind column is padded to the longest kind so the columns after it line up.
-_KIND_WIDTH = max(len(kind.value) for kind in EventKind)
+#: The kind column is padded to the longest kind so the columns after it line up; the rare
+#: ``order_status`` lines run two characters over rather than widen every telemetry line.
+_KIND_WIDTH = max(len(kind.value) for kind in EventKind if kind is not EventKind.ORDER_STATUS)
 
 
 class ConsoleSinkConfig(SinkConfig):
