@@ -7,7 +7,8 @@ through (from where it is, over the task, back home) and the time it will spend 
 as a ``Refusal`` naming the check and its numbers:
 
 - ``geofence``: every point of the route, and every leg, inside the airframe's fence;
-- ``terrain``: at every task point and along every task leg that a DEM covers, the commanded
+- ``terrain``: at every task point and along the inbound and task legs, where a DEM covers
+  them, the commanded
   altitude is at least the ground plus the clearance plus 3σ of height above ground
   (``gateway.domain.terrain.safe_floor_agl_m``, σ from the barometer and the DEM);
 - ``endurance``: the route at cruise speed, the time on task and the reserve fit in the
@@ -153,7 +154,9 @@ def check(
             )
     if terrain is not None and not plan.is_return:
         worst: tuple[float, float, float, float, LatLon] | None = None
-        for point in _samples(plan.task_points):
+        # The inbound leg is flown towards the commanded altitude too; the way home is the
+        # autopilot's own return (its RTL altitude), not ours to check.
+        for point in _samples((plan.route[0], *plan.task_points)):
             found = terrain.lookup(point[0], point[1])
             if found is None:
                 continue
