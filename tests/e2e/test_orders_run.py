@@ -24,6 +24,7 @@ import pytest
 from daemon_support import archive_events, free_udp_port, running, wait_until
 from mavsdk_autopilot import MavsdkAutopilot
 from slb_peer import SlbPeer
+from sweccis_peer import NS, SweccisPeer, order_document
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -57,10 +58,29 @@ def write_dem(directory: Path) -> Path:
     return directory
 
 
-def write_config(tmp_path: Path, peer: SlbPeer, link: int, **orders: Any) -> tuple[Path, Path]:
+def slb_source(peer: SlbPeer) -> str:
+    tls = peer.tls_options()
+    return f"""
+  - name: brigade-slb
+    type: slb
+    base_url: '{peer.base_url}'
+    ca_file: '{tls["ca_file"]}'
+    cert_file: '{tls["cert_file"]}'
+    key_file: '{tls["key_file"]}'
+    poll_interval_s: 0.2"""
+
+
+def sweccis_source(peer: SweccisPeer) -> str:
+    tls = peer.link_options()
+    return f"""
+  - {{name: brigade-orders, type: sweccis, client_id: node-orders, reconnect_initial_s: 0.2,
+     uri: '{tls["uri"]}', ca_file: '{tls["ca_file"]}', cert_file: '{tls["cert_file"]}',
+     key_file: '{tls["key_file"]}'}}"""
+
+
+def write_config(tmp_path: Path, source: str, link: int, **orders: Any) -> tuple[Path, Path]:
     archive = tmp_path / "archive.jsonl"
     dem = write_dem(tmp_path / "dem")
-    tls = peer.tls_options()
     fence = ", ".join(f"{{lat_deg: {lat}, lon_deg: {lon}}}" for lat, lon in FENCE)
     extra = "".join(f", {key}: {value}" for key, value in orders.items())
     config = tmp_path / "node.yaml"
@@ -73,14 +93,7 @@ terrain:
 airframes:
   - {{id: F26E-001, sysid: 1, links: [{{uri: 'udp://127.0.0.1:{link}', security: unsecured,
      name: fleet}}]}}
-sources:
-  - name: brigade-slb
-    type: slb
-    base_url: '{peer.base_url}'
-    ca_file: '{tls["ca_file"]}'
-    cert_file: '{tls["cert_file"]}'
-    key_file: '{tls["key_file"]}'
-    poll_interval_s: 0.2
+sources:{source}
 processors:
   - name: orders
     type: orders
@@ -119,7 +132,7 @@ def tasked(
     tmp_path = tmp_path_factory.mktemp("orders")
     link = free_udp_port()
     with SlbPeer(tmp_path / "pki").in_thread() as peer:
-        config, archive = write_config(tmp_path, peer, link)
+        config, archive = write_config(tmp_path, slb_source(peer), link)
         with running(config) as daemon, MavsdkAutopilot(link).running() as airframe:
             wait_until(lambda: linked(daemon), 30.0, "the MAVSDK airframe linked")
             wait_until(lambda: ready(archive), 20.0, "telemetry with endurance")
@@ -187,7 +200,7 @@ def unacknowledged(tmp_path_factory: pytest.TempPathFactory) -> tuple[SlbPeer, M
     link = free_udp_port()
     with SlbPeer(tmp_path / "pki").in_thread() as peer:
         config, archive = write_config(
-            tmp_path, peer, link, command_timeout_s=0.5, command_retries=2
+            tmp_path, slb_source(peer), link, command_timeout_s=0.5, command_retries=2
         )
         autopilot = MavsdkAutopilot(link, drop_command_acks=True)
         with running(config) as daemon, autopilot.running() as airframe:
@@ -208,3 +221,42 @@ def test_lost_command_ack_is_retried_then_failed(
     assert airframe.uplink.count("COMMAND_LONG") == 3  # the first and two retries
     assert airframe.dropped_acks >= 3  # MAVSDK answered each; the link lost them
     assert len(airframe.missions) == 1  # the mission itself was uploaded and acknowledged
+
+
+@pytest.fixture(scope="module")
+def over_sweccis(tmp_path_factory: pytest.TempPathFactory) -> SweccisPeer:
+    tmp_path = tmp_path_factory.mktemp("orders-sweccis")
+    link = free_udp_port()
+    with SweccisPeer(tmp_path / "pki").in_thread() as peer:
+        config, archive = write_config(tmp_path, sweccis_source(peer), link)
+        with running(config) as daemon, MavsdkAutopilot(link).running():
+            wait_until(lambda: linked(daemon), 30.0, "the MAVSDK airframe linked")
+            wait_until(lambda: ready(archive), 20.0, "telemetry with endurance")
+            outside = order_document("doc-out", "SW-OUT", airframe="F26E-001", point=(64.5, 21.0))
+            inside = order_document("doc-in", "SW-IN", airframe="F26E-001", point=(65.85, 21.1))
+            peer.call(peer.push_order, outside)
+            peer.call(peer.push_order, inside)
+            wait_until(
+                lambda: (
+                    "completed" in peer.order_statuses("SW-IN")
+                    and "rejected" in peer.order_statuses("SW-OUT")
+                ),
+                30.0,
+                "SWECCIS told of both orders",
+            )
+        return peer
+
+
+def test_sweccis_gets_each_status_as_an_order_status_document(over_sweccis: SweccisPeer) -> None:
+    peer = over_sweccis
+    assert peer.invalid == []  # every OrderStatus document passed the shipped XSD
+    assert [(ref, status) for ref, status, _ in peer.order_acks] == [
+        ("doc-out", "accepted"),
+        ("doc-in", "accepted"),
+    ]
+    assert peer.order_statuses("SW-OUT") == ["rejected"]
+    assert peer.order_statuses("SW-IN") == ["accepted", "executing", "completed"]
+    (rejected,) = [d for d in peer.of("OrderStatus") if d.findtext(f"{NS}OrderId") == "SW-OUT"]
+    assert rejected.findtext(f"{NS}Check") == "geofence"
+    assert rejected.findtext(f"{NS}Reason", "").startswith("the route leaves the geofence at 64.5")
+    assert rejected.get("id") == "sweccis-order-SW-OUT-rejected"
