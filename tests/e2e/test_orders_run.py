@@ -16,6 +16,11 @@ the start command is retried and the order reported ``failed`` after the configu
 
 from __future__ import annotations
 
+import json
+import socket
+import stat
+import subprocess
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -260,3 +265,59 @@ def test_sweccis_gets_each_status_as_an_order_status_document(over_sweccis: Swec
     assert rejected.findtext(f"{NS}Check") == "geofence"
     assert rejected.findtext(f"{NS}Reason", "").startswith("the route leaves the geofence at 64.5")
     assert rejected.get("id") == "sweccis-order-SW-OUT-rejected"
+
+
+def order_cli(sock: Path, *args: str) -> tuple[int, list[dict[str, Any]], str]:
+    command = [sys.executable, "-m", "gateway", "order", "--socket", str(sock), *args]
+    done = subprocess.run(command, capture_output=True, timeout=60, check=False)
+    lines = [json.loads(line) for line in done.stdout.decode().splitlines() if line.strip()]
+    return done.returncode, lines, done.stderr.decode(errors="replace")
+
+
+@pytest.fixture(scope="module")
+def by_operator(
+    tmp_path_factory: pytest.TempPathFactory,
+) -> tuple[Path, dict[str, tuple[int, list[dict[str, Any]], str]], bytes, int]:
+    tmp_path = tmp_path_factory.mktemp("orders-local")
+    link = free_udp_port()
+    sock = tmp_path / "orders.sock"
+    source = f"\n  - {{name: operator, type: local, socket: '{sock}'}}"
+    config, archive = write_config(tmp_path, source, link)
+    runs = {}
+    with running(config) as daemon, MavsdkAutopilot(link).running():
+        wait_until(lambda: linked(daemon), 30.0, "the MAVSDK airframe linked")
+        wait_until(lambda: ready(archive), 20.0, "telemetry with endurance")
+        mode = stat.S_IMODE(sock.stat().st_mode)
+        common = ("--task", "observe_point", "--airframe", "F26E-001", "--follow")
+        runs["in"] = order_cli(sock, *common, "--order-id", "OP-1", "--point", "65.85", "21.10")
+        runs["out"] = order_cli(sock, *common, "--order-id", "OP-2", "--point", "64.5", "21.0")
+        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as raw:
+            raw.settimeout(10)
+            raw.connect(str(sock))
+            raw.sendall(b"{not json\n")
+            garbage = raw.makefile("rb").readline()
+    return sock, runs, garbage, mode
+
+
+def test_an_operator_order_from_the_command_line_runs_to_completed(
+    by_operator: tuple[Path, dict[str, tuple[int, list[dict[str, Any]], str]], bytes, int],
+) -> None:
+    _, runs, _, mode = by_operator
+    code, lines, stderr = runs["in"]
+    assert code == 0, stderr
+    assert [line["status"] for line in lines] == ["received", "accepted", "executing", "completed"]
+    assert lines[0]["event_id"] == "local-order-OP-1"
+    assert {line["airframe"] for line in lines[1:]} == {"F26E-001"}
+    assert mode == 0o600  # only the daemon's user (and root) may task the fleet
+
+
+def test_an_operator_order_outside_the_fence_is_rejected_with_its_reason(
+    by_operator: tuple[Path, dict[str, tuple[int, list[dict[str, Any]], str]], bytes, int],
+) -> None:
+    _, runs, garbage, _ = by_operator
+    code, lines, _ = runs["out"]
+    assert code == 1
+    assert [line["status"] for line in lines] == ["received", "rejected"]
+    assert lines[-1]["check"] == "geofence"
+    assert lines[-1]["reason"].startswith("the route leaves the geofence at 64.5")
+    assert json.loads(garbage) == {"status": "rejected", "reason": "order: not JSON"}
