@@ -155,6 +155,7 @@ class OrdersProcessor:
         self._publish: Publish = lambda _event: True
         self.counts: dict[str, int] = {}
         self._log_limit = RateLimit(interval_s=5.0)
+        self._status_log = RateLimit(interval_s=1.0)
         self.log = log.bind(processor=name)
 
     def attach(
@@ -223,6 +224,8 @@ class OrdersProcessor:
         )
         if not self._publish(event) and self._log_limit.allow("refused"):
             self.log.error("order_status_not_held", order_id=order.order_id, status=status.value)
+        if not self._status_log.allow(status.value):
+            return  # a flood of orders: one line a second per status; all are counted
         self.log.info(
             "order_status",
             order_id=order.order_id,
