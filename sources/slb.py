@@ -135,6 +135,7 @@ class SlbSource:
         }
         self._statuses: deque[OrderStatus] = deque()
         self._status_ready = anyio.Event()
+        self._receipt_lock = anyio.Lock()
         self.log = log.bind(source=name, url=self.orders_url)
 
     def on_order_status(self, status: OrderStatus) -> None:
@@ -307,7 +308,10 @@ class SlbSource:
     ) -> str:
         """POST one receipt: "done" (taken, or nothing left to answer), "retry" or "refused"."""
         url = self.config.url(f"/orders/{quote(order_id, safe='')}/receipt")
-        got = await self._request(client, "POST", url, _MAX_REASON_BYTES, json=receipt)
+        # One receipt at a time, first come first served: an order's "received" goes before
+        # the statuses the orders processor already published while it was being sent.
+        async with self._receipt_lock:
+            got = await self._request(client, "POST", url, _MAX_REASON_BYTES, json=receipt)
         if isinstance(got, str):
             self._count("receipt_failed", order_id=order_id, detail=got)
             return "retry"

@@ -24,7 +24,7 @@ import anyio.abc
 import structlog
 
 from gateway.domain.mission import MissionItem, Outcome
-from gateway.errors import LinkError
+from gateway.errors import FrameError, LinkError
 from gateway.fleet.mavlink import MavMessage, dialect
 from gateway.fleet.session import GATEWAY_COMPID, GATEWAY_SYSID, AirframeSession
 
@@ -103,10 +103,16 @@ class FleetCommander:
         timeout_s: float,
         retries: int,
     ) -> Outcome:
-        """COMMAND_LONG ``command`` with ``params``; ok only when the ACK says ACCEPTED."""
-        result = await self._sessions[airframe].command_long(
-            command, *params, timeout_s=timeout_s, retries=retries
-        )
+        """COMMAND_LONG ``command`` with ``params``; ok only when the ACK says ACCEPTED.
+
+        A link that cannot carry it (down, no peer, unsignable) is an outcome, not an error.
+        """
+        try:
+            result = await self._sessions[airframe].command_long(
+                command, *params, timeout_s=timeout_s, retries=retries
+            )
+        except (LinkError, FrameError) as exc:
+            return Outcome(False, f"command {command} not sent: {exc}", 0)
         if result.is_accepted:
             return Outcome(True, result.result_name, result.attempts)
         if result.result is None:
@@ -123,25 +129,34 @@ class FleetCommander:
             raise ValueError(f"expected 1..{_MAX_ITEMS} mission items, found {len(items)}")
         session = self._sessions[airframe]
         lock = self._locks.setdefault(airframe, anyio.Lock())
-        async with lock:
-            upload = _Upload(items)
-            self._uploads[airframe] = upload
-            attempts = 0
-            try:
-                while attempts <= retries and upload.acked is None:
-                    attempts += 1
-                    await session.send(
-                        session.pack("mission_count", session.config.sysid, 1, len(items), 0)
-                    )
-                    # Wait while the airframe keeps asking; a silent step is a lost frame.
-                    while upload.acked is None:
-                        upload.moved = anyio.Event()
-                        with anyio.move_on_after(timeout_s) as scope:
-                            await upload.moved.wait()
-                        if scope.cancelled_caught:
-                            break
-            finally:
-                del self._uploads[airframe]
+        try:
+            async with lock:
+                return await self._upload(session, items, timeout_s, retries)
+        except (LinkError, FrameError) as exc:
+            return Outcome(False, f"not sent: {exc}", 0)
+
+    async def _upload(
+        self, session: AirframeSession, items: Sequence[MissionItem], timeout_s: float, retries: int
+    ) -> Outcome:
+        airframe = session.id
+        upload = _Upload(items)
+        self._uploads[airframe] = upload
+        attempts = 0
+        try:
+            while attempts <= retries and upload.acked is None:
+                attempts += 1
+                await session.send(
+                    session.pack("mission_count", session.config.sysid, 1, len(items), 0)
+                )
+                # Wait while the airframe keeps asking; a silent step is a lost frame.
+                while upload.acked is None:
+                    upload.moved = anyio.Event()
+                    with anyio.move_on_after(timeout_s) as scope:
+                        await upload.moved.wait()
+                    if scope.cancelled_caught:
+                        break
+        finally:
+            del self._uploads[airframe]
         if upload.acked is None:
             log.warning("mission_upload_timed_out", airframe=airframe, attempts=attempts)
             return Outcome(False, f"no MISSION_ACK after {attempts} attempts", attempts)
