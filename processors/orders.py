@@ -19,7 +19,10 @@ take) or MAV_CMD_MISSION_START and MAV_CMD_NAV_RETURN_TO_LAUNCH (``mode_commands
 Progress comes from MISSION_CURRENT and MISSION_ITEM_REACHED: ``completed`` once the last
 item is reached. A return to base completes when the airframe reports itself disarmed.
 One order per airframe at a time: a newer accepted order supersedes the running one, which
-is reported ``failed`` saying so. Reconnaissance only: nothing here arms or releases.
+is reported ``failed`` saying so. A ``track_target`` order naming the ``track_id`` of a live
+fused track flies to that track's newest position (at the order's altitude, if it gives one)
+instead of the order's location; it does not follow the track afterwards. Reconnaissance
+only: nothing here arms or releases.
 """
 
 from __future__ import annotations
@@ -46,9 +49,13 @@ from gateway.events import (
     Event,
     EventKind,
     FiveLineOrder,
+    OrderArea,
     OrderState,
     OrderStatus,
+    OrderTask,
+    Position,
     Telemetry,
+    Track,
 )
 from gateway.flow.processor import ProcessorConfig, Publish
 from gateway.flow.tasking import AirframeCommander
@@ -63,6 +70,7 @@ log = structlog.get_logger(__name__)
 _PX4_AUTO_MISSION = (1.0, 4.0, 4.0)
 _PX4_AUTO_RTL = (1.0, 4.0, 5.0)
 _REMEMBERED_ORDERS = 10_000
+_REMEMBERED_TRACKS = 10_000
 
 
 class Corner(BaseModel):
@@ -140,7 +148,7 @@ class OrdersProcessor:
     """See the module docstring."""
 
     config_model: ClassVar[type[OrdersConfig]] = OrdersConfig
-    kinds: frozenset[EventKind] = frozenset({EventKind.ORDER, EventKind.TELEMETRY})
+    kinds: frozenset[EventKind] = frozenset({EventKind.ORDER, EventKind.TELEMETRY, EventKind.TRACK})
 
     def __init__(self, name: str, config: OrdersConfig, *, clock: Clock = utc_now) -> None:
         self.name = name
@@ -151,6 +159,8 @@ class OrdersProcessor:
         self._baro_sigma_m = 0.5
         self._telemetry: dict[str, Telemetry] = {}
         self._seen: OrderedDict[str, None] = OrderedDict()
+        #: The newest position of each live fused track, for track_target orders naming one.
+        self._tracks: OrderedDict[str, Position] = OrderedDict()
         self._running: dict[str, _Running] = {}
         self._publish: Publish = lambda _event: True
         self.counts: dict[str, int] = {}
@@ -188,6 +198,8 @@ class OrdersProcessor:
             async for event in events:
                 if isinstance(event, Telemetry):
                     self._on_telemetry(event)
+                elif isinstance(event, Track):
+                    self._on_track(event)
                 elif isinstance(event, FiveLineOrder) and event.event_id not in self._seen:
                     self._seen[event.event_id] = None
                     while len(self._seen) > _REMEMBERED_ORDERS:
@@ -308,7 +320,7 @@ class OrdersProcessor:
             baro_sigma_m=self._baro_sigma_m,
             fence=None if fence is None else tuple((c.lat_deg, c.lon_deg) for c in fence),
         )
-        planned = plan(order, telemetry, commander.home(airframe), limits)
+        planned = plan(self._aimed(order), telemetry, commander.home(airframe), limits)
         if isinstance(planned, Refusal):
             return planned
         refusal = check(planned, telemetry, self._terrain, limits)
@@ -395,6 +407,24 @@ class OrdersProcessor:
             telemetry = self._telemetry.get(airframe)
             return telemetry is not None and telemetry.is_armed is False
         return running.reached >= last or running.current > last
+
+    def _on_track(self, track: Track) -> None:
+        self._tracks.pop(track.track_id, None)
+        if track.status != "lost":
+            self._tracks[track.track_id] = track.position
+            while len(self._tracks) > _REMEMBERED_TRACKS:
+                self._tracks.popitem(last=False)
+
+    def _aimed(self, order: FiveLineOrder) -> FiveLineOrder:
+        """A track_target order naming a live track flies to the track's newest position."""
+        if order.task is not OrderTask.TRACK_TARGET or order.track_id is None:
+            return order
+        where = self._tracks.get(order.track_id)
+        if where is None:
+            return order
+        given = order.location.point.alt_msl_m if order.location.point is not None else None
+        point = Position(lat_deg=where.lat_deg, lon_deg=where.lon_deg, alt_msl_m=given)
+        return order.model_copy(update={"location": OrderArea(point=point)})
 
     def _on_telemetry(self, telemetry: Telemetry) -> None:
         self._telemetry[telemetry.airframe] = telemetry

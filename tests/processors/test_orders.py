@@ -27,6 +27,7 @@ from gateway.events import (
     OrderTask,
     Position,
     Telemetry,
+    Track,
     event_adapter,
 )
 from gateway.flow.tasking import AirframeCommander, MissionListener, TaskingProcessor
@@ -453,3 +454,30 @@ def test_a_fence_of_two_corners_is_a_config_error() -> None:
         OrdersConfig.model_validate({"geofence": FENCE[:2]})
     with pytest.raises(ValueError, match=r"airframe_geofences\.F26E-001"):
         OrdersConfig.model_validate({"airframe_geofences": {"F26E-001": FENCE[:2]}})
+
+
+@pytest.mark.anyio
+async def test_track_target_naming_a_live_track_flies_to_the_track() -> None:
+    commander = Commander()
+    seen = Track.model_validate(
+        {
+            "event_id": "T-7-1",
+            "track_id": "T-7",
+            "time": NOW,
+            "object_class": "tank",
+            "confidence": 0.9,
+            "position": {"lat_deg": 65.87, "lon_deg": 21.15},
+            "cep50_m": 10.0,
+            "cep90_m": 20.0,
+            "first_seen": NOW,
+            "last_seen": NOW,
+        }
+    )
+    tasked = order(task=OrderTask.TRACK_TARGET, track_id="T-7")
+    await run_orders(
+        commander,
+        [telemetry(), seen, tasked],
+        until=lambda s: any(x.status is OrderState.EXECUTING for x in s),
+    )
+    ((_, items),) = commander.uploads
+    assert {(i.lat_deg, i.lon_deg) for i in items} == {(65.87, 21.15)}
