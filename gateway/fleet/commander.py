@@ -22,6 +22,7 @@ from typing import Literal
 import anyio
 import anyio.abc
 import structlog
+from anyio.streams.memory import MemoryObjectSendStream
 
 from gateway.domain.mission import MissionItem, Outcome
 from gateway.errors import FrameError, LinkError
@@ -67,9 +68,7 @@ class FleetCommander:
         self._homes: dict[str, tuple[float, float]] = {}
         self._listeners: list[MissionListener] = []
         self._locks: dict[str, anyio.Lock] = {}
-        self._queue, self._queued = anyio.create_memory_object_stream[
-            tuple[AirframeSession, bytes]
-        ](_QUEUE_MAX)
+        self._queue: MemoryObjectSendStream[tuple[AirframeSession, bytes]] | None = None
         for session in sessions.values():
             for name in ("MISSION_REQUEST_INT", "MISSION_REQUEST"):
                 session.on(name, self._on_request)
@@ -191,20 +190,25 @@ class FleetCommander:
         upload.sent.add(seq)
         upload.moved.set()
         # On a request flood the queue is full: the airframe asks again for what it needs.
-        with suppress(anyio.WouldBlock):
-            self._queue.send_nowait((session, frame))
+        if self._queue is not None:
+            with suppress(anyio.WouldBlock, anyio.ClosedResourceError):
+                self._queue.send_nowait((session, frame))
 
     async def run(
         self, *, task_status: anyio.abc.TaskStatus[None] = anyio.TASK_STATUS_IGNORED
     ) -> None:
         """Send the mission items the handlers queued, until cancelled."""
-        task_status.started()
-        async for session, frame in self._queued:
-            try:
-                await session.send(frame)
-            except LinkError as exc:
-                # The airframe asks again for an item it did not get, or the upload times out.
-                log.warning("mission_item_unsent", airframe=session.id, error=str(exc))
+        send, queued = anyio.create_memory_object_stream[tuple[AirframeSession, bytes]](_QUEUE_MAX)
+        self._queue = send
+        with send, queued:
+            task_status.started()
+            async for session, frame in queued:
+                try:
+                    await session.send(frame)
+                except (LinkError, FrameError) as exc:
+                    # The airframe asks again for an item it did not get, or the upload times
+                    # out.
+                    log.warning("mission_item_unsent", airframe=session.id, error=str(exc))
 
     def _on_ack(self, session: AirframeSession, _label: str, msg: MavMessage) -> None:
         upload = self._uploads.get(session.id)

@@ -2,12 +2,27 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import pytest
 
 from gateway.app import Gateway
 from gateway.config import Config
 from gateway.domain.mission import MAV_CMD_NAV_WAYPOINT, MissionItem
 from gateway.flow.tasking import AirframeCommander
+
+built: list[Gateway] = []
+
+
+@pytest.fixture(autouse=True)
+def closed() -> Iterator[None]:
+    """Gateways built here are never run: close what running would have closed."""
+    yield
+    while built:
+        gw = built.pop()
+        for runner in gw.processors.values():
+            runner.close()
+        gw.spool.close()
 
 
 def gateway(processors: list[dict[str, object]]) -> Gateway:
@@ -24,7 +39,8 @@ def gateway(processors: list[dict[str, object]]) -> Gateway:
             "processors": processors,
         }
     )
-    return Gateway(config)
+    built.append(Gateway(config))
+    return built[-1]
 
 
 def test_only_a_node_with_a_tasking_processor_gets_a_commander() -> None:
