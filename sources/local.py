@@ -57,7 +57,7 @@ class LocalOrderSourceConfig(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
 
     socket: Path = Field(
-        description="The Unix socket to listen on, e.g. /run/fischer-gateway/orders.sock."
+        description="The Unix socket to listen on, e.g. /var/lib/fischer-gateway/orders.sock."
     )
     socket_mode: int = Field(
         default=0o600, ge=0, le=0o777, description="Its file mode: 0600 (owner), 0660 (group)."
