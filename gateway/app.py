@@ -21,12 +21,13 @@ import structlog
 from gateway.c2.plugins import PROCESSOR_GROUP, SOURCE_GROUP, build_sink, load_component
 from gateway.c2.sink import ReleasesOwnAirframes, Sink
 from gateway.c2.sinkrunner import SinkRunner
-from gateway.c2.source import Source
+from gateway.c2.source import OrderStatusFeed, OrderStatusListener, Source
 from gateway.clock import Clock, utc_now
 from gateway.config import Config
 from gateway.domain.terrain import DemSource, TerrainModel
 from gateway.errors import FrameError, LinkError, LinkUnavailable
 from gateway.events import BlueForce, Event
+from gateway.fleet.commander import FleetCommander
 from gateway.fleet.hopschedule import HopSchedules
 from gateway.fleet.ingest import Ingest, LinkIntake
 from gateway.fleet.links import Link, make_link
@@ -35,6 +36,7 @@ from gateway.fleet.security.material import Security
 from gateway.flow.bus import Bus
 from gateway.flow.processor import PinsUnits
 from gateway.flow.processors import ProcessorRunner
+from gateway.flow.tasking import TaskingProcessor
 from gateway.ops.health import HealthServer
 from gateway.ops.instruments import Instruments
 from gateway.ops.logsetup import RateLimit
@@ -136,12 +138,13 @@ class Gateway:
                 self._publish,
                 queue_max=processor_entry.queue_max,
             )
+        self.order_status_feed = OrderStatusFeed()
         self.bus = Bus(
             config.routes,
             self.runners,
             self.instruments,
             source=source,
-            processors=self.processors.values(),
+            processors=[*self.processors.values(), self.order_status_feed],
             spool=self.spool,
         )
         self.instruments.sink_queue.set_function(self._queue_depths)
@@ -165,6 +168,7 @@ class Gateway:
         for session in self.sessions.values():
             session.transmit = self.send_to_airframe
         self.hops = HopSchedules(self.sessions.values(), self.bus.publish, self.instruments, clock)
+        self.commander = self._attach_commander()
         self.links: dict[str, Link] = {}
         self._links_by_label: dict[str, Link] = {}
         self._link_security: dict[str, str] = {}
@@ -209,6 +213,9 @@ class Gateway:
             self._source_publish.append(publish)
             self.sources.append(component.factory(source_entry.name, options, publish, clock=clock))
         self._source_records = [Supervised(s.name) for s in self.sources]
+        for built in self.sources:
+            if isinstance(built, OrderStatusListener):
+                self.order_status_feed.add(built)
         self.passthroughs: dict[str, Passthrough] = {}
         for airframe in config.airframes:
             if airframe.passthrough is not None:
@@ -231,6 +238,26 @@ class Gateway:
         self._started_mono = time.monotonic()
         self._links_up = False
         self.log = log.bind(node=config.gateway.node_id)
+
+    def _attach_commander(self) -> FleetCommander | None:
+        """The fleet's commander, given to every processor that tasks airframes; None if none.
+
+        This is the one place the middle and the airframe side meet for orders: the
+        processor sees only the ``AirframeCommander`` port (``gateway.flow.tasking``).
+        """
+        tasking = [
+            runner.processor
+            for runner in self.processors.values()
+            if isinstance(runner.processor, TaskingProcessor)
+        ]
+        if not tasking:
+            return None
+        commander = FleetCommander(
+            self.sessions, lambda airframe: self.ingest.active_link(airframe) is not None
+        )
+        for processor in tasking:
+            processor.attach(commander, self.terrain, self.config.terrain.baro_sigma_m)
+        return commander
 
     def _publish(self, event: Event) -> bool:
         """What processors publish goes on the bus like ingest's events."""
@@ -312,6 +339,8 @@ class Gateway:
         async with anyio.create_task_group() as outer:
             for runner in self.runners.values():
                 await outer.start(runner.run)
+            if self.commander is not None:
+                await outer.start(self.commander.run)
             for processor in self.processors.values():
                 await outer.start(processor.run)
             if self.health is not None:

@@ -41,6 +41,7 @@ from gateway.fleet.security.keys import load_day_keys, read_key_file, write_day_
 from gateway.fleet.security.tunnel import DayKeys, Sealer
 from gateway.ops.logsetup import configure_logging, install_loop_exception_handler
 from gateway.ops.version import package_version
+from gateway.ordercli import add_order_parser, order_command
 from gateway.transports.listener import raise_open_files_limit
 
 if TYPE_CHECKING:
@@ -237,6 +238,7 @@ def _parser() -> argparse.ArgumentParser:
     derive.add_argument("--from", dest="first", type=date.fromisoformat, required=True)
     derive.add_argument("--days", type=int, default=30)
     derive.add_argument("--out", type=Path, required=True, help="directory for the day keys")
+    add_order_parser(sub)
     shipped = sub.add_parser("files", help="list, print or write the shipped config, unit, docs")
     shipped.add_argument("name", nargs="?", help="print this file")
     shipped.add_argument("--out", type=Path, default=None, help="write every file to DIR")
@@ -657,6 +659,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return run_selftest(sys.stdout)
     if args.command == "spool":
         return _spool(args)
+    if args.command == "order":
+        return order_command(args, sys.stdout, sys.stderr)
     if args.command == "keys":
         try:
             return _keys(args)

@@ -471,6 +471,7 @@ def _default_stale() -> dict[EventKind, StaleRule]:
         # tracker cues the battery again if the track is still alive.
         EventKind.HANDOFF: StaleRule(after_s=60.0, action="expire"),
         EventKind.ORDER: StaleRule(after_s=3600.0, action="deliver_late"),
+        EventKind.ORDER_STATUS: StaleRule(after_s=3600.0, action="deliver_late"),
     }
 
 

@@ -37,6 +37,8 @@ from gateway.events import (
     HopReason,
     LinkState,
     OrderArea,
+    OrderState,
+    OrderStatus,
     OrderTask,
     Position,
     Sensor,
@@ -156,6 +158,17 @@ def sample_events(kinds: frozenset[EventKind]) -> list[Event]:
         hop_count=41_000,
         rssi_dbm=-62.0,
         interference_dbm=-31.0,
+    )
+    every[EventKind.ORDER_STATUS] = OrderStatus(
+        event_id="slb-order-c-1-rejected",
+        order_event_id="slb-order-c-1",
+        order_id="c-1",
+        source="slb",
+        airframe="F26E-001",
+        time=t,
+        status=OrderState.REJECTED,
+        check="geofence",
+        reason="geofence: the point 59.33000, 18.06000 is outside the fence",
     )
     return [every[kind] for kind in EventKind if kind in kinds]
 

@@ -37,6 +37,8 @@ __all__ = [
     "LinkState",
     "OrderArea",
     "OrderPriority",
+    "OrderState",
+    "OrderStatus",
     "OrderTask",
     "Position",
     "Sensor",
@@ -74,6 +76,7 @@ class EventKind(StrEnum):
     ORDER = "order"
     HOP = "hop"
     VIDEO_FRAME_METADATA = "video_frame_metadata"
+    ORDER_STATUS = "order_status"
 
 
 #: Kinds where only the newest event per key matters: a slow sink gets fresh data, not a backlog.
@@ -486,6 +489,44 @@ class VideoFrameMetadata(BaseModel):
     image_source: str = Field(default="EO", max_length=32)
 
 
+class OrderState(StrEnum):
+    """Where an order stands: taken in, then accepted or rejected, then executed."""
+
+    RECEIVED = "received"
+    ACCEPTED = "accepted"
+    REJECTED = "rejected"
+    EXECUTING = "executing"
+    COMPLETED = "completed"
+    FAILED = "failed"
+
+
+class OrderStatus(BaseModel):
+    """The orders processor's answer to one ``FiveLineOrder``, one event per state reached.
+
+    ``order_event_id`` is the order's ``event_id``; ``order_id`` and ``source`` are copied
+    from it so the source that took the order in can answer its issuer. ``event_id`` is
+    ``<order_event_id>-<status>``: each state is reported once per order. ``check`` names what
+    decided a rejection or failure (``airframe``, ``link``, ``endurance``, ``geofence``,
+    ``terrain``, ``window``, ``command``, ``mission``) and ``reason`` gives its numbers.
+    """
+
+    model_config = _FROZEN
+
+    kind: Literal[EventKind.ORDER_STATUS] = EventKind.ORDER_STATUS
+    event_id: str
+    order_event_id: str
+    order_id: str = Field(min_length=1, max_length=128)
+    source: str = Field(min_length=1, max_length=64)
+    airframe: str | None = Field(default=None, max_length=64)
+    time: AwareDatetime
+    status: OrderState
+    check: str | None = Field(default=None, max_length=32)
+    reason: str | None = Field(default=None, max_length=512)
+    mission_items: int | None = Field(default=None, ge=0)
+    current_item: int | None = Field(default=None, ge=0)
+    late_by_s: float | None = Field(default=None, ge=0.0)
+
+
 Event = Annotated[
     Telemetry
     | LinkState
@@ -494,6 +535,7 @@ Event = Annotated[
     | BlueForce
     | Handoff
     | FiveLineOrder
+    | OrderStatus
     | HopEvent
     | VideoFrameMetadata,
     Field(discriminator="kind"),

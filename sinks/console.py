@@ -33,6 +33,7 @@ from gateway.events import (
     Handoff,
     HopEvent,
     LinkState,
+    OrderStatus,
     Position,
     Telemetry,
     Track,
@@ -44,9 +45,13 @@ __all__ = ["ConsoleSink", "ConsoleSinkConfig", "describe"]
 
 log = structlog.get_logger(__name__)
 
-#: The kind column is padded to the longest kind so the columns after it line up.
-# Columns line up on the usual kinds; "video_frame_metadata" is too long to pad them all to.
-_KIND_WIDTH = max(len(kind.value) for kind in EventKind if kind != EventKind.VIDEO_FRAME_METADATA)
+#: The kind column is padded to the longest kind so the columns after it line up; the rare
+#: long kinds (``video_frame_metadata``, ``order_status``) run over rather than widen every line.
+_KIND_WIDTH = max(
+    len(kind.value)
+    for kind in EventKind
+    if kind not in (EventKind.VIDEO_FRAME_METADATA, EventKind.ORDER_STATUS)
+)
 
 
 class ConsoleSinkConfig(SinkConfig):
@@ -154,6 +159,12 @@ def describe(event: Event) -> str:
             else ("off earth" if event.is_off_earth else "frame centre unknown")
         )
         return f"{head} {event.airframe} camera at {_where(event.sensor_position)}, {looks}"
+    if isinstance(event, OrderStatus):
+        why = f" ({event.reason})" if event.reason else ""
+        return (
+            f"{head} {event.source} {event.order_id} {event.status.value}"
+            f" on {event.airframe or 'no airframe'}{why}"
+        )
     assert_never(event)
 
 

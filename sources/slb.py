@@ -14,17 +14,24 @@ Each order is answered with ``POST {base_url}/orders/<order_id>/receipt``:
   is malformed (bad time, unknown task, an MGRS reference that does not decode ...), so SLB's
   operator sees why. It is counted and logged at most once per ``_LOG_INTERVAL_S`` by outcome.
 
+Then each ``OrderStatus`` of its orders from the orders processor (``accepted``, ``rejected``
+with the check and its numbers, ``executing``, ``completed``, ``failed``) is POSTed to the
+same receipt URL as it comes (``on_order_status``; at most ``max_pending_statuses`` wait,
+the oldest are dropped and counted). A status SLB does not take (unreachable, 5xx) is sent
+again after ``poll_interval_s``; a 4xx answer drops it, counted.
+
 Answers are remembered (the newest ``max_remembered``): an order offered again after it was
 answered (the receipt was lost, say) is answered again, not published again. An element of
 the list without a usable ``order_id`` cannot be answered; it is counted as ``unanswerable``.
 Nothing SLB sends can stop the source: every failure is counted in ``counts`` and shown on
 /status. Whether an order is *accepted* is the orders processor's answer, not this one's.
+Statuses are held in memory: after a restart, SLB learns only the states reached since.
 """
 
 from __future__ import annotations
 
 import ssl
-from collections import Counter, OrderedDict
+from collections import Counter, OrderedDict, deque
 from collections.abc import Callable
 from datetime import datetime
 from importlib.metadata import PackageNotFoundError, version
@@ -40,7 +47,7 @@ from pydantic import Field
 from gateway.clock import utc_now
 from gateway.codecs.slb_order import order_id_of, parse_order_list, read_order, receipt_payload
 from gateway.errors import OrderRejected
-from gateway.events import Event
+from gateway.events import Event, OrderStatus
 from gateway.ops.logsetup import RateLimit
 from gateway.transports.endpoint import HttpsEndpoint
 from gateway.transports.https import (
@@ -80,6 +87,9 @@ class SlbSourceConfig(HttpsEndpoint):
     )
     max_remembered: int = Field(
         default=10_000, ge=1, le=1_000_000, description="Answered orders remembered."
+    )
+    max_pending_statuses: int = Field(
+        default=1000, ge=1, le=100_000, description="Order statuses waiting to be POSTed."
     )
 
 
@@ -123,7 +133,20 @@ class SlbSource:
             "Accept": "application/json",
             "User-Agent": f"fischer-gateway/{_package_version()}",
         }
+        self._statuses: deque[OrderStatus] = deque()
+        self._status_ready = anyio.Event()
+        self._receipt_lock = anyio.Lock()
         self.log = log.bind(source=name, url=self.orders_url)
+
+    def on_order_status(self, status: OrderStatus) -> None:
+        """Queue a status of one of this source's orders for SLB; never blocks."""
+        if status.source != self.name:
+            return
+        if len(self._statuses) >= self.config.max_pending_statuses:
+            self._statuses.popleft()
+            self._count("status_dropped", order_id=status.order_id)
+        self._statuses.append(status)
+        self._status_ready.set()
 
     def status(self) -> dict[str, object]:
         """What /status shows for this source."""
@@ -153,13 +176,35 @@ class SlbSource:
             max_connections=1,
         )
         try:
-            task_status.started()
-            while True:
-                wait_s = await self.poll(client)
-                await anyio.sleep(wait_s)
+            async with anyio.create_task_group() as tg:
+                tg.start_soon(self._report_statuses, client)
+                task_status.started()
+                while True:
+                    wait_s = await self.poll(client)
+                    await anyio.sleep(wait_s)
         finally:
             with anyio.move_on_after(timeout_s, shield=True):
                 await client.aclose()
+
+    async def _report_statuses(self, client: httpx.AsyncClient) -> None:
+        while True:
+            await self._status_ready.wait()
+            self._status_ready = anyio.Event()
+            while self._statuses:
+                status = self._statuses[0]
+                receipt = receipt_payload(
+                    status.order_id,
+                    status.status.value,
+                    time=status.time,
+                    reason=_reason(status),
+                    event_id=status.event_id,
+                )
+                outcome = await self._acknowledge(client, status.order_id, receipt)
+                if outcome == "retry":
+                    await anyio.sleep(self.config.poll_interval_s)
+                    continue
+                if self._statuses and self._statuses[0] is status:
+                    self._statuses.popleft()
 
     def _count(self, outcome: str, **fields: object) -> None:
         self.counts[outcome] += 1
@@ -260,20 +305,32 @@ class SlbSource:
 
     async def _acknowledge(
         self, client: httpx.AsyncClient, order_id: str, receipt: dict[str, Any]
-    ) -> None:
+    ) -> str:
+        """POST one receipt: "done" (taken, or nothing left to answer), "retry" or "refused"."""
         url = self.config.url(f"/orders/{quote(order_id, safe='')}/receipt")
-        got = await self._request(client, "POST", url, _MAX_REASON_BYTES, json=receipt)
+        # One receipt at a time, first come first served: an order's "received" goes before
+        # the statuses the orders processor already published while it was being sent.
+        async with self._receipt_lock:
+            got = await self._request(client, "POST", url, _MAX_REASON_BYTES, json=receipt)
         if isinstance(got, str):
             self._count("receipt_failed", order_id=order_id, detail=got)
-            return
+            return "retry"
         status, headers, body = got
         if status == 404:
             # SLB no longer knows the order (withdrawn): there is nothing left to answer.
             self.counts["receipt_unknown_order"] += 1
-            return
+            return "done"
         text = body.decode("utf-8", "replace").strip()
         answer = classify_answer(url, status, headers, text, max_retry_after_s=0.0)
         if answer.outcome in ("delivered", "duplicate"):
             self.counts[f"receipt_{receipt['status']}"] += 1
-            return
+            return "done"
         self._count("receipt_failed", order_id=order_id, detail=answer.detail)
+        return "retry" if answer.outcome == "retry" else "refused"
+
+
+def _reason(status: OrderStatus) -> str | None:
+    """The receipt's reason: the check's name, a colon, its numbers (the schema's form)."""
+    if status.reason is None:
+        return None
+    return status.reason if status.check is None else f"{status.check}: {status.reason}"

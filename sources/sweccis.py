@@ -10,6 +10,14 @@ accepted on this run is acknowledged ``duplicate`` and not published again. An o
 fails its checks is acknowledged ``rejected`` with the reason naming the element. Taking an
 order in does not execute it: that is the orders processor's, later.
 
+With ``report_statuses`` (the default) the source also registers to publish Orders and
+sends the orders processor's answer to each of its orders as an ``OrderStatus`` document
+(``accepted``, ``rejected`` with the check and its numbers, ``executing``, ``completed``,
+``failed``; ``on_order_status``). A status waits, in memory, until the server acknowledges
+it (any ack: ``rejected`` too is final); on a new connection every status not acknowledged
+yet is sent again (the server answers ``duplicate`` for what it had). At most
+``max_pending_statuses`` wait; the oldest go first, counted ``status_dropped``.
+
 Nothing the server sends ends the source: bad documents are counted (``counts``) and logged
 at most once per ``LOG_INTERVAL_S`` per outcome, without their content; a frame over the
 bound or a lost connection ends the connection, and the source connects again after a
@@ -34,16 +42,18 @@ from pydantic import Field
 
 from gateway.clock import utc_now
 from gateway.codecs.sweccis import (
+    Ack,
     AckStatus,
     DocumentError,
     Fas,
     OrderDocument,
     encode_ack,
+    encode_order_status,
     parse_document,
 )
 from gateway.codecs.sweccis_link import SweccisLink, SweccisLinkOptions, tls_problem
 from gateway.errors import FrameError, LinkError, LinkUnavailable
-from gateway.events import Event
+from gateway.events import Event, OrderStatus
 from gateway.ops.logsetup import RateLimit
 from gateway.transports.tls import tls_context
 
@@ -79,6 +89,13 @@ class SweccisSourceConfig(SweccisLinkOptions):
     )
     reconnect_max_s: float = Field(
         default=60.0, gt=0, le=3600, description="Longest wait between connection attempts."
+    )
+    report_statuses: bool = Field(
+        default=True,
+        description="Register to publish Orders and send each order's OrderStatus documents.",
+    )
+    max_pending_statuses: int = Field(
+        default=1000, ge=1, le=100_000, description="Order statuses waiting for the server's ack."
     )
 
 
@@ -116,7 +133,21 @@ class SweccisSource:
         self.last_error = ""
         self._log_limit = RateLimit(interval_s=LOG_INTERVAL_S)
         self._received_log = RateLimit(interval_s=1.0)
+        #: Statuses of our orders not acknowledged yet, by document id, oldest first.
+        self._statuses: OrderedDict[str, OrderStatus] = OrderedDict()
+        self._status_ready = anyio.Event()
+        self._send_lock = anyio.Lock()
         self.log = log.bind(source=name, uri=config.uri)
+
+    def on_order_status(self, status: OrderStatus) -> None:
+        """Queue a status of one of this source's orders for the server; never blocks."""
+        if status.source != self.name or not self.config.report_statuses:
+            return
+        if len(self._statuses) >= self.config.max_pending_statuses:
+            self._statuses.popitem(last=False)
+            self._count("status_dropped", order_id=status.order_id)
+        self._statuses[status.event_id] = status
+        self._status_ready.set()
 
     def status(self) -> dict[str, object]:
         """What /status shows for this source."""
@@ -176,15 +207,29 @@ class SweccisSource:
                 raise LinkUnavailable(
                     self.config.uri, f"TLS material unusable: {exc}", what=""
                 ) from exc
-        link = await SweccisLink.connect(self.config, self._context, subscribe=[Fas.ORDERS])
+        publish = [Fas.ORDERS] if self.config.report_statuses else []
+        link = await SweccisLink.connect(
+            self.config, self._context, publish=publish, subscribe=[Fas.ORDERS]
+        )
         try:
             self.state = "connected"
             self.connections["registered"] += 1
             self.log.info("sweccis_orders_registered")
-            while True:
-                # No deadline: orders come when they come. A server that vanished is found
-                # by TCP keep-alive (gateway.transports.frames), and ends this with LinkClosed.
-                await self.handle(link, await link.receive())
+            try:
+                async with anyio.create_task_group() as tg:
+                    if self.config.report_statuses:
+                        tg.start_soon(self._send_statuses, link)
+                    while True:
+                        # No deadline: orders come when they come. A server that vanished is
+                        # found by TCP keep-alive (gateway.transports.frames), and ends this
+                        # with LinkClosed.
+                        await self.handle(link, await link.receive())
+            except ExceptionGroup as group:
+                # One connection's failure (either task's) is what run() retries, unwrapped.
+                inner = group.exceptions[0]
+                if isinstance(inner, LinkError | FrameError | TimeoutError):
+                    raise inner from None
+                raise
         finally:
             with anyio.CancelScope(shield=True):
                 await link.aclose()
@@ -199,6 +244,13 @@ class SweccisSource:
                 return
             self._count("rejected", doc_id=exc.doc_id, reason=str(exc))
             await self._ack(link, exc.doc_id, "rejected", str(exc))
+            return
+        if isinstance(document, Ack):
+            sent = self._statuses.pop(document.ref, None)
+            if sent is None:
+                self._count("unexpected", document="Ack")
+            else:
+                self.counts[f"status_{document.status}"] += 1
             return
         if not isinstance(document, OrderDocument):
             self._count("unexpected", document=type(document).__name__)
@@ -231,8 +283,32 @@ class SweccisSource:
     async def _ack(
         self, link: SweccisLink, doc_id: str, status: AckStatus, reason: str | None = None
     ) -> None:
+        await self._send(link, encode_ack(doc_id, status, reason))
+
+    async def _send(self, link: SweccisLink, payload: bytes) -> None:
+        # Acks and statuses come from two tasks: one frame at a time on the stream.
         with anyio.fail_after(self.config.timeout_s):
-            await link.send(encode_ack(doc_id, status, reason))
+            async with self._send_lock:
+                await link.send(payload)
+
+    async def _send_statuses(self, link: SweccisLink) -> None:
+        """Send every status not acknowledged yet, then each new one, on this connection."""
+        sent: set[str] = set()
+        while True:
+            self._status_ready = anyio.Event()
+            for doc_id, status in list(self._statuses.items()):
+                if doc_id in sent:
+                    continue
+                try:
+                    payload = encode_order_status(status)
+                except ValueError as exc:
+                    self._statuses.pop(doc_id, None)
+                    self._count("status_unencodable", order_id=status.order_id, reason=str(exc))
+                    continue
+                await self._send(link, payload)
+                sent.add(doc_id)
+            sent &= set(self._statuses)
+            await self._status_ready.wait()
 
     def _count(self, outcome: str, **fields: object) -> None:
         self.counts[outcome] += 1

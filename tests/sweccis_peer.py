@@ -10,7 +10,8 @@ schema's message.
 
 A client must ``Register`` first; the peer answers ``Registered`` with what it asked for
 (less ``withhold``), or a rejected ``Ack`` when ``refuse_registration`` is set. Data
-documents (Intel, Logistics, Operations) of a registered FAS are recorded in ``accepted`` by
+documents (Intel, Logistics, Operations, and the gateway's OrderStatus of the Orders FAS) of
+a registered FAS are recorded in ``accepted`` by
 id and acknowledged ``accepted``; an id seen before gets ``duplicate``; ids in ``reject`` get
 ``rejected`` with the given reason. Knobs: ``is_down`` (connections are closed at once),
 ``drop_acks`` (that many documents are recorded but never acknowledged), ``noise`` (raw
@@ -49,6 +50,8 @@ from gateway.codecs.sweccis_xml import NAMESPACE, load_schema
 
 NS = f"{{{NAMESPACE}}}"
 DATA_FAS = ("Intel", "Logistics", "Operations")
+#: Data documents by root element, and the FAS a client must have registered to publish them.
+DATA_ROOTS = {**{fas: fas for fas in DATA_FAS}, "OrderStatus": "Orders"}
 _PARSER = etree.XMLParser(resolve_entities=False, no_network=True, load_dtd=False)
 
 
@@ -205,6 +208,14 @@ class SweccisPeer:
             **extra,
         }
 
+    def order_statuses(self, order_id: str) -> list[str]:
+        """The statuses of ``order_id`` the server accepted, in arrival order."""
+        return [
+            doc.findtext(f"{NS}Status") or ""
+            for doc in self.of("OrderStatus")
+            if doc.findtext(f"{NS}OrderId") == order_id
+        ]
+
     def of(self, root: str) -> list[etree._Element]:
         """The accepted documents whose root element is ``root`` (Intel, Logistics ...)."""
         return [doc for doc in self.accepted.values() if etree.QName(doc).localname == root]
@@ -348,7 +359,7 @@ class SweccisPeer:
             self.outbox.pop(ref, None)
             self.documents.append(Received(name, ref, None))
             return True
-        if name not in DATA_FAS:
+        if name not in DATA_ROOTS:
             self.documents.append(Received(name, doc_id, None))
             return True
         assert doc_id is not None  # the schema requires it
@@ -367,8 +378,8 @@ class SweccisPeer:
         return True
 
     def _verdict(self, connection: Connection, name: str, doc_id: str) -> tuple[str, str | None]:
-        if name not in connection.publish:
-            return "rejected", f"not registered to publish {name}"
+        if DATA_ROOTS[name] not in connection.publish:
+            return "rejected", f"not registered to publish {DATA_ROOTS[name]}"
         if doc_id in self.reject:
             return "rejected", self.reject[doc_id]
         if doc_id in self.accepted:

@@ -45,6 +45,7 @@ LAYERS: dict[str, tuple[int, str]] = {
     "gateway.reload": (4, "assembly"),
     "gateway.demo": (4, "assembly"),
     "gateway.cli": (5, "entry"),
+    "gateway.ordercli": (5, "entry"),
     "gateway.__main__": (5, "entry"),
     # The package's public face (``from gateway import Sink``): for plugin authors. It only
     # re-exports lazily, so its own imports (under TYPE_CHECKING) are not checked.

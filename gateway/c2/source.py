@@ -20,9 +20,9 @@ import anyio
 import anyio.abc
 from pydantic import BaseModel
 
-from gateway.events import Event
+from gateway.events import Event, EventKind, OrderStatus
 
-__all__ = ["Source", "SourceClass"]
+__all__ = ["OrderStatusFeed", "OrderStatusListener", "Source", "SourceClass"]
 
 
 @runtime_checkable
@@ -55,3 +55,44 @@ class SourceClass(Protocol):
         *,
         clock: Callable[[], datetime],
     ) -> Source: ...
+
+
+@runtime_checkable
+class OrderStatusListener(Protocol):
+    """A source that answers its orders' issuer with each ``OrderStatus`` (SLB, SWECCIS).
+
+    ``on_order_status`` is called for every status on the bus, synchronously, from the bus:
+    it must not block or raise. A source keeps those of its own orders (``status.source`` is
+    its name) in a bounded queue and reports them from its own task.
+    """
+
+    name: str
+
+    def on_order_status(self, status: OrderStatus) -> None:
+        """Take one status (any source's); never blocks, never raises."""
+        ...
+
+
+class OrderStatusFeed:
+    """Subscribes ``OrderStatusListener`` sources to ``order_status`` events on the bus.
+
+    A bus subscriber like a processor runner (``gateway.flow.subscriber.Subscriber``, matched
+    by shape). The assembly makes one before the bus and adds each listening source to it.
+    """
+
+    name = "order-status-feed"
+    kinds: frozenset[EventKind] = frozenset({EventKind.ORDER_STATUS})
+    description = "the sources' order-status feed"
+
+    def __init__(self) -> None:
+        self.listeners: list[OrderStatusListener] = []
+
+    def add(self, listener: OrderStatusListener) -> None:
+        """Give ``listener`` every ``OrderStatus`` from now on."""
+        self.listeners.append(listener)
+
+    def offer_slot(self, event: Event, ingest_mono: float, slot: str | None) -> None:
+        """Pass an ``OrderStatus`` to every listening source."""
+        if isinstance(event, OrderStatus):
+            for listener in self.listeners:
+                listener.on_order_status(event)

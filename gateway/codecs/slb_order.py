@@ -234,7 +234,7 @@ def _five_lines(order: SlbOrder, area: OrderArea, source: str) -> FiveLineOrder:
 
 def receipt_payload(
     order_id: str,
-    status: Literal["received", "rejected"],
+    status: Literal["received", "rejected", "accepted", "executing", "completed", "failed"],
     *,
     time: datetime,
     reason: str | None = None,

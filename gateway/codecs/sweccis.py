@@ -11,6 +11,8 @@ where (docs/sweccis.md has the table and examples):
   ``<event id>/operations``, only when the airframe has a position (never 0,0 for unknown);
 - the server sends **Orders** documents (a five-line order), read into ``FiveLineOrder``
   by ``gateway.codecs.sweccis_order``;
+- an ``OrderStatus`` (the orders processor's answer to an order) is an **OrderStatus**
+  document of the Orders FAS, gateway to server, its id the status event's id;
 - the transport's control documents: ``Register`` (ours), ``Registered`` and ``Ack`` (both
   ways: the server acknowledges our documents, we acknowledge its orders).
 
@@ -46,7 +48,15 @@ from gateway.codecs.sweccis_xml import (
     time_text,
     to_bytes,
 )
-from gateway.events import Detection, Event, FiveLineOrder, Position, Telemetry, Track
+from gateway.events import (
+    Detection,
+    Event,
+    FiveLineOrder,
+    OrderStatus,
+    Position,
+    Telemetry,
+    Track,
+)
 
 __all__ = [
     "MAX_DOCUMENT_BYTES",
@@ -61,6 +71,7 @@ __all__ = [
     "Registered",
     "encode_ack",
     "encode_event",
+    "encode_order_status",
     "encode_register",
     "load_schema",
     "parse_document",
@@ -379,6 +390,26 @@ def encode_ack(ref: str, status: AckStatus, reason: str | None = None) -> bytes:
     )
     if reason is not None:
         add(root, "Reason", clean_text(reason, 512))
+    return to_bytes(root)
+
+
+def encode_order_status(status: OrderStatus) -> bytes:
+    """The ``OrderStatus`` document of one status; ``ValueError`` naming the field for a value
+    the schema cannot hold (the reason is cleaned and cut, never refused)."""
+    root = ET.Element(
+        "OrderStatus", {"version": SCHEMA_VERSION, "id": check_id(status.event_id, "@id")}
+    )
+    add(root, "OrderId", check_text(status.order_id, "OrderId", 128, min_length=1))
+    add(root, "Status", status.status.value)
+    add(root, "Time", time_text(status.time))
+    if status.airframe:
+        add(root, "Airframe", check_text(status.airframe, "Airframe", 128, min_length=1))
+    if status.check:
+        add(root, "Check", check_text(status.check, "Check", 128, min_length=1))
+    if status.reason is not None:
+        add(root, "Reason", clean_text(status.reason, 512))
+    if status.mission_items is not None:
+        add(root, "MissionItems", str(status.mission_items))
     return to_bytes(root)
 
 

@@ -166,6 +166,13 @@ class AirframeSession:
         self._seq = (self._seq + 1) % 256
         return bytes(msg.pack(mav))
 
+    def pack(self, name: str, *fields: Any) -> bytes:
+        """One frame of message ``name`` (``mission_count`` ...) from the gateway's identity."""
+        mav = dialect.MAVLink(None, srcSystem=GATEWAY_SYSID, srcComponent=GATEWAY_COMPID)
+        mav.seq = self._seq
+        self._seq = (self._seq + 1) % 256
+        return bytes(getattr(mav, f"{name}_encode")(*fields).pack(mav))
+
     def _encode_command_long(
         self, command: int, params: tuple[float, ...], confirmation: int
     ) -> bytes:

@@ -296,6 +296,14 @@ def ra180_sink(run: MatrixRun, ports: dict[str, int]) -> dict[str, Any]:
     }
 
 
+def orders_processor() -> dict[str, Any]:
+    """The orders leg: a geofence round Gotland, far from the scenario, so every order is
+    answered ``rejected`` whatever the simulated airframes report (they fly no missions)."""
+    fence = [(57.0, 18.0), (57.0, 19.0), (58.0, 19.0), (58.0, 18.0)]
+    corners = [{"lat_deg": lat, "lon_deg": lon} for lat, lon in fence]
+    return {"name": "orders", "type": "orders", "options": {"geofence": corners}}
+
+
 def write_config(run: MatrixRun, ports: dict[str, int], pki: dict[str, str]) -> Path:
     def udp(name: str, uri: str, **extra: Any) -> dict[str, Any]:
         return {"name": name, "type": "cot", "options": {"destinations": [{"uri": uri, **extra}]}}
@@ -346,6 +354,7 @@ def write_config(run: MatrixRun, ports: dict[str, int], pki: dict[str, str]) -> 
                     ],
                 },
             },
+            orders_processor(),
         ],
         "sinks": [
             ra180_sink(run, ports),
@@ -677,7 +686,16 @@ class TestSlb:
         lines = [json.loads(line) for line in (matrix.tmp / "a.jsonl").read_text().splitlines()]
         orders = [e for e in lines if e["kind"] == "order" and e["source"] == "slb_in"]
         assert [o["event_id"] for o in orders] == ["slb-order-M-1"]
-        assert [r["status"] for r in slb.receipts_for("M-1")] == ["received"]
+        assert slb.receipts_for("M-1")[0]["status"] == "received"
+
+    def test_the_orders_processor_answered_the_order_at_slb(self, matrix: MatrixRun) -> None:
+        slb = matrix.slb
+        assert slb is not None
+        receipts = slb.receipts_for("M-1")
+        assert [r["status"] for r in receipts] == ["received", "rejected"]
+        # Outside the fence, or (polled before the simulator flew) no airframe reporting yet.
+        assert receipts[1]["reason"].startswith(("geofence: ", "airframe: "))
+        assert receipts[1]["event_id"] == "slb-order-M-1-rejected"
 
 
 class TestSweccis:
@@ -700,7 +718,13 @@ class TestSweccis:
         orders = [e for e in lines if e["kind"] == "order" and e["source"] == "orders_in"]
         assert [o["event_id"] for o in orders] == ["sweccis-order-M-1"]
         counts = {s["source"]: s["counts"] for s in matrix.status["sources"]}
-        assert counts["orders_in"] == {"accepted": 1}
+        assert counts["orders_in"]["accepted"] == 1
+        assert {k for k in counts["orders_in"] if not k.startswith("status_")} == {"accepted"}
+
+    def test_the_orders_processor_answered_the_order_at_sweccis(self, matrix: MatrixRun) -> None:
+        peer = matrix.sweccis
+        assert peer is not None
+        assert peer.order_statuses("M-1") == ["rejected"]
 
 
 class TestNffi:

@@ -118,7 +118,8 @@ def test_the_server_got_valid_intel_logistics_and_operations(
     assert peer.invalid == []
     assert peer.handshake_failures == []
     registered = {tuple(publish) for _, publish, _ in peer.registrations if publish}
-    assert registered == {("Intel", "Logistics", "Operations")}
+    # The sink publishes the three data FAS; the order source publishes order statuses.
+    assert registered == {("Intel", "Logistics", "Operations"), ("Orders",)}
     intel = peer.of("Intel")
     kinds = {etree.QName(doc[0]).localname for doc in intel}
     assert kinds == {"Detection", "Track"}

@@ -67,7 +67,7 @@ class TestOrders:
                     payload = order_document("doc-1", "ORD-1", task="recon_area", polygon=area)
                     await peer.push_order(payload)
                     await eventually(acked(peer, 1))
-        assert peer.registrations == [("node-7", [], ["Orders"])]
+        assert peer.registrations == [("node-7", ["Orders"], ["Orders"])]
         (order,) = intake.events
         assert isinstance(order, FiveLineOrder)
         assert (order.event_id, order.source, order.task) == (

@@ -1,0 +1,229 @@
+"""The fleet's airframe commander: commands, mission uploads and mission progress on MAVLink.
+
+``FleetCommander`` implements ``gateway.flow.tasking.AirframeCommander`` over the airframe
+sessions. Commands go through ``AirframeSession.command_long`` (COMMAND_ACK correlated,
+retried). A mission goes up with MAVLink's mission protocol: MISSION_COUNT, then each
+MISSION_ITEM_INT the airframe asks for (MISSION_REQUEST_INT, or MISSION_REQUEST from older
+autopilots), until its MISSION_ACK. A step that gets no answer within ``timeout_s`` sends
+MISSION_COUNT again (the airframe starts over), at most ``retries`` times. Items are answered
+from the message handler (synchronous, on ingest's path) through a bounded queue that ``run``
+sends from. MISSION_CURRENT and MISSION_ITEM_REACHED are passed to the listeners as
+progress; HOME_POSITION is kept. Only messages addressed to the gateway (or broadcast)
+count, never a ground station's.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from contextlib import suppress
+from dataclasses import dataclass, field
+from typing import Literal
+
+import anyio
+import anyio.abc
+import structlog
+from anyio.streams.memory import MemoryObjectSendStream
+
+from gateway.domain.mission import MissionItem, Outcome
+from gateway.errors import FrameError, LinkError
+from gateway.fleet.mavlink import MavMessage, dialect
+from gateway.fleet.session import GATEWAY_COMPID, GATEWAY_SYSID, AirframeSession
+
+__all__ = ["FleetCommander"]
+
+log = structlog.get_logger(__name__)
+
+MissionListener = Callable[[str, Literal["current", "reached"], int], None]
+
+_MISSION_RESULT_NAMES: dict[int, str] = {
+    int(key): str(entry.name) for key, entry in dialect.enums["MAV_MISSION_RESULT"].items()
+}
+_MAX_ITEMS = 500
+_QUEUE_MAX = 256
+
+
+@dataclass(slots=True)
+class _Upload:
+    items: Sequence[MissionItem]
+    moved: anyio.Event = field(default_factory=anyio.Event)
+    acked: int | None = None
+    sent: set[int] = field(default_factory=set)
+
+
+def _for_us(msg: MavMessage) -> bool:
+    system = int(getattr(msg, "target_system", 0) or 0)
+    component = int(getattr(msg, "target_component", 0) or 0)
+    return system in (0, GATEWAY_SYSID) and component in (0, GATEWAY_COMPID)
+
+
+class FleetCommander:
+    """Tasks the airframes of ``sessions``; ``linked(airframe)`` says whether one can hear us."""
+
+    def __init__(
+        self, sessions: Mapping[str, AirframeSession], linked: Callable[[str], bool]
+    ) -> None:
+        self._sessions = sessions
+        self._linked = linked
+        self._uploads: dict[str, _Upload] = {}
+        self._homes: dict[str, tuple[float, float]] = {}
+        self._listeners: list[MissionListener] = []
+        self._locks: dict[str, anyio.Lock] = {}
+        self._queue: MemoryObjectSendStream[tuple[AirframeSession, bytes]] | None = None
+        for session in sessions.values():
+            for name in ("MISSION_REQUEST_INT", "MISSION_REQUEST"):
+                session.on(name, self._on_request)
+            session.on("MISSION_ACK", self._on_ack)
+            session.on("MISSION_CURRENT", self._on_progress)
+            session.on("MISSION_ITEM_REACHED", self._on_progress)
+            session.on("HOME_POSITION", self._on_home)
+
+    def is_known(self, airframe: str) -> bool:
+        """True if ``airframe`` is configured."""
+        return airframe in self._sessions
+
+    def is_linked(self, airframe: str) -> bool:
+        """True if ``airframe`` has an active link."""
+        return airframe in self._sessions and self._linked(airframe)
+
+    def home(self, airframe: str) -> tuple[float, float] | None:
+        """The home (lat, lon) the airframe last reported, if any."""
+        return self._homes.get(airframe)
+
+    def on_mission(self, listener: MissionListener) -> None:
+        """Tell ``listener`` of every airframe's mission progress."""
+        self._listeners.append(listener)
+
+    async def command(
+        self,
+        airframe: str,
+        command: int,
+        params: Sequence[float],
+        *,
+        timeout_s: float,
+        retries: int,
+    ) -> Outcome:
+        """COMMAND_LONG ``command`` with ``params``; ok only when the ACK says ACCEPTED.
+
+        A link that cannot carry it (down, no peer, unsignable) is an outcome, not an error.
+        """
+        try:
+            result = await self._sessions[airframe].command_long(
+                command, *params, timeout_s=timeout_s, retries=retries
+            )
+        except (LinkError, FrameError) as exc:
+            return Outcome(False, f"command {command} not sent: {exc}", 0)
+        if result.is_accepted:
+            return Outcome(True, result.result_name, result.attempts)
+        if result.result is None:
+            detail = f"no COMMAND_ACK for command {command} after {result.attempts} attempts"
+        else:
+            detail = f"command {command} answered {result.result_name}"
+        return Outcome(False, detail, result.attempts)
+
+    async def upload_mission(
+        self, airframe: str, items: Sequence[MissionItem], *, timeout_s: float, retries: int
+    ) -> Outcome:
+        """Upload ``items`` (see the module docstring); ok only for MAV_MISSION_ACCEPTED."""
+        if not 0 < len(items) <= _MAX_ITEMS:
+            raise ValueError(f"expected 1..{_MAX_ITEMS} mission items, found {len(items)}")
+        session = self._sessions[airframe]
+        lock = self._locks.setdefault(airframe, anyio.Lock())
+        try:
+            async with lock:
+                return await self._upload(session, items, timeout_s, retries)
+        except (LinkError, FrameError) as exc:
+            return Outcome(False, f"not sent: {exc}", 0)
+
+    async def _upload(
+        self, session: AirframeSession, items: Sequence[MissionItem], timeout_s: float, retries: int
+    ) -> Outcome:
+        airframe = session.id
+        upload = _Upload(items)
+        self._uploads[airframe] = upload
+        attempts = 0
+        try:
+            while attempts <= retries and upload.acked is None:
+                attempts += 1
+                await session.send(
+                    session.pack("mission_count", session.config.sysid, 1, len(items), 0)
+                )
+                # Wait while the airframe keeps asking; a silent step is a lost frame.
+                while upload.acked is None:
+                    upload.moved = anyio.Event()
+                    with anyio.move_on_after(timeout_s) as scope:
+                        await upload.moved.wait()
+                    if scope.cancelled_caught:
+                        break
+        finally:
+            del self._uploads[airframe]
+        if upload.acked is None:
+            log.warning("mission_upload_timed_out", airframe=airframe, attempts=attempts)
+            return Outcome(False, f"no MISSION_ACK after {attempts} attempts", attempts)
+        name = _MISSION_RESULT_NAMES.get(upload.acked, str(upload.acked))
+        return Outcome(upload.acked == 0, name, attempts)
+
+    # -- handlers (synchronous, on ingest's path: never block, never raise) ----------------
+
+    def _on_request(self, session: AirframeSession, _label: str, msg: MavMessage) -> None:
+        upload = self._uploads.get(session.id)
+        if upload is None or not _for_us(msg) or int(getattr(msg, "mission_type", 0)) != 0:
+            return
+        seq = int(msg.seq)
+        if not 0 <= seq < len(upload.items):
+            return
+        item = upload.items[seq]
+        frame = session.pack(
+            "mission_item_int",
+            session.config.sysid,
+            1,
+            seq,
+            item.frame,
+            item.command,
+            0,
+            1,
+            *item.params,
+            round(item.lat_deg * 1e7),
+            round(item.lon_deg * 1e7),
+            item.alt_msl_m,
+            0,
+        )
+        upload.sent.add(seq)
+        upload.moved.set()
+        # On a request flood the queue is full: the airframe asks again for what it needs.
+        if self._queue is not None:
+            with suppress(anyio.WouldBlock, anyio.ClosedResourceError):
+                self._queue.send_nowait((session, frame))
+
+    async def run(
+        self, *, task_status: anyio.abc.TaskStatus[None] = anyio.TASK_STATUS_IGNORED
+    ) -> None:
+        """Send the mission items the handlers queued, until cancelled."""
+        send, queued = anyio.create_memory_object_stream[tuple[AirframeSession, bytes]](_QUEUE_MAX)
+        self._queue = send
+        with send, queued:
+            task_status.started()
+            async for session, frame in queued:
+                try:
+                    await session.send(frame)
+                except (LinkError, FrameError) as exc:
+                    # The airframe asks again for an item it did not get, or the upload times
+                    # out.
+                    log.warning("mission_item_unsent", airframe=session.id, error=str(exc))
+
+    def _on_ack(self, session: AirframeSession, _label: str, msg: MavMessage) -> None:
+        upload = self._uploads.get(session.id)
+        if upload is None or not _for_us(msg) or int(getattr(msg, "mission_type", 0)) != 0:
+            return
+        upload.acked = int(msg.type)
+        upload.moved.set()
+
+    def _on_progress(self, session: AirframeSession, _label: str, msg: MavMessage) -> None:
+        what: Literal["current", "reached"] = (
+            "current" if msg.get_type() == "MISSION_CURRENT" else "reached"
+        )
+        for listener in self._listeners:
+            listener(session.id, what, int(msg.seq))
+
+    def _on_home(self, session: AirframeSession, _label: str, msg: MavMessage) -> None:
+        if msg.latitude or msg.longitude:
+            self._homes[session.id] = (msg.latitude / 1e7, msg.longitude / 1e7)

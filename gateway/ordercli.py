@@ -1,0 +1,118 @@
+"""``fischer-gateway order``: an operator's five-line order to the running daemon.
+
+Writes one order as a line of JSON (SLB's order format, ``slb-order.schema.json``) to the
+``local`` order source's Unix socket and prints the JSON lines the daemon answers with:
+``received``, then the orders processor's ``accepted`` or ``rejected`` (with the check and
+its numbers) and, with ``--follow``, ``executing`` and ``completed`` or ``failed``. Exit
+status: 0 when the order was accepted (with ``--follow``: completed), 1 when it was rejected
+or failed, 2 when the daemon could not be reached or did not answer within ``--timeout``.
+Reconnaissance tasking only: the tasks are observe, track, survey and return.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import secrets
+import socket
+from datetime import UTC, datetime
+from typing import Any, TextIO
+
+__all__ = ["add_order_parser", "order_command"]
+
+EXIT_OK, EXIT_REFUSED, EXIT_UNREACHABLE = 0, 1, 2
+_FINAL = {"rejected", "completed", "failed", "not_held"}
+_MAX_LINE = 65536
+
+
+def _corner(text: str) -> dict[str, float]:
+    try:
+        lat, lon = (float(part) for part in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected LAT,LON, got {text!r}") from None
+    return {"lat_deg": lat, "lon_deg": lon}
+
+
+def add_order_parser(sub: Any) -> None:
+    """Add the ``order`` command to the CLI's subparsers."""
+    order = sub.add_parser(
+        "order", help="send a reconnaissance order to the running daemon (local source)"
+    )
+    order.add_argument("--socket", required=True, help="the local source's Unix socket")
+    order.add_argument(
+        "--task",
+        required=True,
+        choices=["observe_point", "track_target", "recon_area", "return_to_base"],
+    )
+    where = order.add_mutually_exclusive_group(required=True)
+    where.add_argument("--point", nargs=2, type=float, metavar=("LAT", "LON"))
+    where.add_argument("--mgrs", help="an MGRS reference, 1/10/100 m")
+    where.add_argument("--polygon", nargs="+", type=_corner, metavar="LAT,LON")
+    order.add_argument("--alt-msl-m", type=float, help="commanded altitude (with --point)")
+    order.add_argument("--airframe", help="the airframe tasked; default: any suitable")
+    order.add_argument("--order-id", help="default: op-<random>")
+    order.add_argument("--issuer", default="local operator")
+    order.add_argument(
+        "--priority", default="priority", choices=["flash", "immediate", "priority", "routine"]
+    )
+    order.add_argument("--target", help="line 4: what to observe or track")
+    order.add_argument(
+        "--follow", action="store_true", help="wait until the order completed or failed"
+    )
+    order.add_argument("--timeout", type=float, default=30.0, help="seconds to wait per answer")
+
+
+def _document(args: argparse.Namespace) -> dict[str, Any]:
+    location: dict[str, Any]
+    if args.point is not None:
+        point = {"lat_deg": args.point[0], "lon_deg": args.point[1]}
+        if args.alt_msl_m is not None:
+            point["alt_msl_m"] = args.alt_msl_m
+        location = {"point": point}
+    elif args.mgrs is not None:
+        location = {"mgrs": args.mgrs}
+    else:
+        location = {"polygon": args.polygon}
+    stamp = datetime.now(UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
+    document: dict[str, Any] = {
+        "order_id": args.order_id or f"op-{secrets.token_hex(4)}",
+        "issuer": args.issuer,
+        "issued": stamp,
+        "task": args.task,
+        "location": location,
+        "priority": args.priority,
+    }
+    if args.airframe:
+        document["airframe"] = args.airframe
+    if args.target:
+        document["target"] = args.target
+    return document
+
+
+def order_command(args: argparse.Namespace, out: TextIO, err: TextIO) -> int:
+    """Run ``fischer-gateway order``; the exit status (see the module docstring)."""
+    document = _document(args)
+    try:
+        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
+            sock.settimeout(args.timeout)
+            sock.connect(str(args.socket))
+            sock.sendall(json.dumps(document).encode() + b"\n")
+            reader = sock.makefile("rb")
+            while True:
+                raw = reader.readline(_MAX_LINE)
+                if not raw:
+                    print(f"{args.socket}: the daemon closed the connection", file=err)
+                    return EXIT_UNREACHABLE
+                line = json.loads(raw)
+                print(json.dumps(line), file=out, flush=True)
+                status = line.get("status")
+                if status in _FINAL:
+                    return EXIT_OK if status == "completed" else EXIT_REFUSED
+                if status == "accepted" and not args.follow:
+                    return EXIT_OK
+    except TimeoutError:
+        print(f"{args.socket}: no answer within {args.timeout} s", file=err)
+        return EXIT_UNREACHABLE
+    except (OSError, ValueError) as exc:
+        print(f"{args.socket}: {exc}", file=err)
+        return EXIT_UNREACHABLE

@@ -1,0 +1,220 @@
+"""What an order asks of an airframe, and whether the airframe can do it: pure, no I/O.
+
+``plan`` turns a ``FiveLineOrder`` and the airframe's latest ``Telemetry`` into a ``Plan``:
+the mission items to upload (none for return to base), the points the airframe will fly
+through (from where it is, over the task, back home) and the time it will spend on task.
+``check`` runs the acceptance checks on a plan, in order, and returns the first that fails
+as a ``Refusal`` naming the check and its numbers:
+
+- ``geofence``: every point of the route, and every leg, inside the airframe's fence;
+- ``terrain``: at every task point and along the inbound and task legs, where a DEM covers
+  them, the commanded
+  altitude is at least the ground plus the clearance plus 3σ of height above ground
+  (``gateway.domain.terrain.safe_floor_agl_m``, σ from the barometer and the DEM);
+- ``endurance``: the route at cruise speed, the time on task and the reserve fit in the
+  predicted endurance the telemetry carries (``gateway.domain.energy``).
+
+Airframe, link and time-window checks need the commander and the clock, so the processor
+makes them before planning.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from itertools import pairwise
+
+from gateway.domain.geodesy import destination
+from gateway.domain.mission import (
+    MAV_CMD_NAV_LOITER_TIME,
+    MAV_CMD_NAV_WAYPOINT,
+    MissionItem,
+    route_inside,
+    route_length_m,
+)
+from gateway.domain.terrain import SAFETY_SIGMAS, TerrainModel, agl_sigma, safe_floor_agl_m
+from gateway.events import FiveLineOrder, OrderTask, Telemetry
+
+__all__ = ["Limits", "Plan", "Refusal", "check", "plan"]
+
+LatLon = tuple[float, float]
+
+#: Spacing of the terrain check's samples along the route, and their most in all.
+_SAMPLE_SPACING_M = 250.0
+_MAX_SAMPLES = 5000
+_M_PER_DEG = 111_320.0
+
+
+@dataclass(frozen=True, slots=True)
+class Refusal:
+    """Why an order is not accepted: the ``check`` that failed and a ``reason`` with numbers."""
+
+    check: str
+    reason: str
+
+
+@dataclass(frozen=True, slots=True)
+class Limits:
+    """The processor's options the checks need."""
+
+    cruise_speed_mps: float
+    reserve_min: float
+    time_on_task_s: float
+    loiter_radius_m: float
+    clearance_m: float
+    baro_sigma_m: float
+    fence: tuple[LatLon, ...] | None
+
+
+@dataclass(frozen=True, slots=True)
+class Plan:
+    """What the airframe will do for an order (see the module docstring)."""
+
+    items: tuple[MissionItem, ...]
+    task_points: tuple[LatLon, ...]
+    route: tuple[LatLon, ...]
+    alt_msl_m: float
+    on_task_s: float
+    route_m: float
+    """The route's geodesic length (m), worked out once."""
+
+    @property
+    def is_return(self) -> bool:
+        """True for return to base: a command, no mission."""
+        return not self.items
+
+
+def _fmt(point: LatLon) -> str:
+    return f"{point[0]:.5f}, {point[1]:.5f}"
+
+
+def plan(
+    order: FiveLineOrder, telemetry: Telemetry, home: LatLon | None, limits: Limits
+) -> Plan | Refusal:
+    """The plan for ``order`` on the airframe of ``telemetry`` (which must have a position)."""
+    here = telemetry.position
+    if here is None:
+        return Refusal("link", f"{telemetry.airframe} has reported no position")
+    start: LatLon = (here.lat_deg, here.lon_deg)
+    back = home or start
+    if order.task is OrderTask.RETURN_TO_BASE:
+        home_leg: tuple[LatLon, ...] = (start, back)
+        return Plan((), (), home_leg, here.alt_msl_m or 0.0, 0.0, route_length_m(home_leg))
+    area = order.location
+    given = area.point.alt_msl_m if area.point is not None else area.polygon[0].alt_msl_m
+    alt = given if given is not None else here.alt_msl_m
+    if alt is None:
+        return Refusal("terrain", "no altitude to command: the order gives none, nor the airframe")
+    if area.point is not None:
+        point = (area.point.lat_deg, area.point.lon_deg)
+        radius = limits.loiter_radius_m
+        items: tuple[MissionItem, ...] = (
+            MissionItem(MAV_CMD_NAV_WAYPOINT, point[0], point[1], alt),
+            MissionItem(
+                MAV_CMD_NAV_LOITER_TIME,
+                point[0],
+                point[1],
+                alt,
+                (limits.time_on_task_s, 0.0, radius, 0.0),
+            ),
+        )
+        # The loiter circle: its far side is still flown, so check it for fence and terrain.
+        circle = tuple(destination(point[0], point[1], b, radius) for b in (0, 90, 180, 270))
+        task: tuple[LatLon, ...] = (point, *circle, point)
+        orbit_m = 2 * math.pi * radius
+        on_task_s = max(limits.time_on_task_s, orbit_m / limits.cruise_speed_mps)
+        route = (start, point, back)
+        return Plan(items, task, route, alt, on_task_s, route_length_m(route))
+    corners = tuple((p.lat_deg, p.lon_deg) for p in area.polygon)
+    loop = (*corners, corners[0])
+    area_items = tuple(MissionItem(MAV_CMD_NAV_WAYPOINT, lat, lon, alt) for lat, lon in loop)
+    perimeter_m = route_length_m(loop)
+    legs_m = route_length_m((start, loop[0])) + route_length_m((loop[-1], back))
+    return Plan(
+        area_items,
+        loop,
+        (start, *loop, back),
+        alt,
+        perimeter_m / limits.cruise_speed_mps,
+        perimeter_m + legs_m,
+    )
+
+
+def _samples(points: Sequence[LatLon]) -> list[LatLon]:
+    """The points and, between them, a sample every ``_SAMPLE_SPACING_M`` for the terrain
+    check (sparser on a very long route: ``_MAX_SAMPLES`` in all at most).
+
+    Interpolated linearly in latitude and longitude, not along the geodesic: over a leg of
+    tens of kilometres the two differ by metres, far less than a DEM cell, and the linear
+    form costs a hundredth as much (a 64-corner area is checked in milliseconds, on the
+    event loop).
+    """
+    legs = []
+    for a, b in pairwise(points):
+        dlat = b[0] - a[0]
+        dlon = (b[1] - a[1] + 180.0) % 360.0 - 180.0
+        east_m = dlon * _M_PER_DEG * math.cos(math.radians((a[0] + b[0]) / 2))
+        legs.append((a, b, dlat, dlon, math.hypot(dlat * _M_PER_DEG, east_m)))
+    total_m = sum(leg[4] for leg in legs)
+    spacing_m = max(_SAMPLE_SPACING_M, total_m / _MAX_SAMPLES)
+    out: list[LatLon] = list(points[:1])
+    for a, b, dlat, dlon, length_m in legs:
+        steps = math.ceil(length_m / spacing_m)
+        for i in range(1, steps):
+            f = i / steps
+            out.append((a[0] + f * dlat, (a[1] + f * dlon + 180.0) % 360.0 - 180.0))
+        out.append(b)
+    return out
+
+
+def check(
+    plan: Plan, telemetry: Telemetry, terrain: TerrainModel | None, limits: Limits
+) -> Refusal | None:
+    """The first acceptance check ``plan`` fails (see the module docstring), or None."""
+    fence = limits.fence
+    if fence is not None:
+        points = (
+            plan.route if plan.is_return else (*plan.route[:1], *plan.task_points, plan.route[-1])
+        )
+        outside = route_inside(fence, points)
+        if outside is not None:
+            return Refusal(
+                "geofence", f"the route leaves the geofence at {_fmt(outside)} (lat, lon)"
+            )
+    if terrain is not None and not plan.is_return:
+        worst: tuple[float, float, float, float, LatLon] | None = None
+        # The inbound leg is flown towards the commanded altitude too; the way home is the
+        # autopilot's own return (its RTL altitude), not ours to check.
+        for point in _samples((plan.route[0], *plan.task_points)):
+            found = terrain.lookup(point[0], point[1])
+            if found is None:
+                continue
+            ground, source = found
+            sigma = agl_sigma(limits.baro_sigma_m, source.sigma_m)
+            floor = ground + safe_floor_agl_m(sigma, limits.clearance_m)
+            if plan.alt_msl_m < floor and (worst is None or floor > worst[0]):
+                worst = (floor, ground, sigma, plan.alt_msl_m, point)
+        if worst is not None:
+            floor, ground, sigma, alt, point = worst
+            return Refusal(
+                "terrain",
+                f"commanded {alt:.1f} m MSL is below the floor {floor:.1f} m MSL at {_fmt(point)}"
+                f" (ground {ground:.1f} m + clearance {limits.clearance_m:.1f} m"
+                f" + {SAFETY_SIGMAS:g}σ, σ {sigma:.1f} m)",
+            )
+    have_min = telemetry.endurance_remaining_min
+    if have_min is None:
+        return Refusal("endurance", f"{telemetry.airframe} reports no battery state")
+    route_m = plan.route_m
+    fly_min = route_m / limits.cruise_speed_mps / 60.0
+    task_min = plan.on_task_s / 60.0
+    need_min = fly_min + task_min + limits.reserve_min
+    if need_min > have_min:
+        return Refusal(
+            "endurance",
+            f"needs {need_min:.1f} min ({route_m / 1000:.1f} km at"
+            f" {limits.cruise_speed_mps:g} m/s {fly_min:.1f} min + on task {task_min:.1f} min"
+            f" + reserve {limits.reserve_min:g} min), has {have_min:.1f} min",
+        )
+    return None

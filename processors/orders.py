@@ -1,0 +1,447 @@
+"""The orders processor: five-line orders checked, sent to the airframe, and answered.
+
+``OrdersProcessor`` consumes ``order`` and ``telemetry`` events and publishes an
+``OrderStatus`` for each state an order reaches: ``accepted`` or ``rejected`` (with the check
+that failed and its numbers), then ``executing``, then ``completed`` or ``failed``. The source
+that took the order in reports each to its issuer (``gateway.c2.source.OrderStatusListener``).
+
+Before anything is sent, the order must pass, in this order: the airframe is configured
+(``airframe``), linked and reporting a position (``link``), the time window is not over
+(``window``), and the checks of ``processors._orderplan`` (``geofence``, ``terrain``,
+``endurance``). A rejected order sends nothing to the airframe.
+
+An accepted order is carried out through the airframe commander the assembly attaches
+(``gateway.flow.tasking``): observe point and track target upload a waypoint and a timed
+loiter at the point; area reconnaissance uploads the area's perimeter as waypoints; then the
+mission is started. Return to base is a command. Commands are DO_SET_MODE with PX4's AUTO
+MISSION and AUTO RTL modes (``mode_commands: px4``, what PX4 and MAVSDK's autopilot server
+take) or MAV_CMD_MISSION_START and MAV_CMD_NAV_RETURN_TO_LAUNCH (``mode_commands: mavlink``).
+Progress comes from MISSION_CURRENT and MISSION_ITEM_REACHED: ``completed`` once the last
+item is reached. A return to base completes when the airframe reports itself disarmed.
+One order per airframe at a time: a newer accepted order supersedes the running one, which
+is reported ``failed`` saying so. A ``track_target`` order naming the ``track_id`` of a live
+fused track flies to that track's newest position (at the order's altitude, if it gives one)
+instead of the order's location; it does not follow the track afterwards. Reconnaissance
+only: nothing here arms or releases.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from datetime import datetime
+from typing import ClassVar, Literal
+
+import anyio
+import anyio.abc
+import structlog
+from anyio.streams.memory import MemoryObjectReceiveStream
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from gateway.clock import Clock, utc_now
+from gateway.domain.mission import (
+    MAV_CMD_DO_SET_MODE,
+    MAV_CMD_MISSION_START,
+    MAV_CMD_NAV_RETURN_TO_LAUNCH,
+)
+from gateway.domain.terrain import TerrainModel
+from gateway.events import (
+    Event,
+    EventKind,
+    FiveLineOrder,
+    OrderArea,
+    OrderState,
+    OrderStatus,
+    OrderTask,
+    Position,
+    Telemetry,
+    Track,
+)
+from gateway.flow.processor import ProcessorConfig, Publish
+from gateway.flow.tasking import AirframeCommander
+from gateway.ops.logsetup import RateLimit
+from processors._orderplan import Limits, Plan, Refusal, check, plan
+
+__all__ = ["OrdersConfig", "OrdersProcessor"]
+
+log = structlog.get_logger(__name__)
+
+#: DO_SET_MODE parameters for PX4: custom mode enabled, main mode AUTO, sub mode.
+_PX4_AUTO_MISSION = (1.0, 4.0, 4.0)
+_PX4_AUTO_RTL = (1.0, 4.0, 5.0)
+_REMEMBERED_ORDERS = 10_000
+_REMEMBERED_TRACKS = 10_000
+
+
+class Corner(BaseModel):
+    """One corner of a geofence, WGS 84 degrees."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
+
+    lat_deg: float = Field(ge=-90, le=90, description="Latitude, degrees WGS 84.")
+    lon_deg: float = Field(ge=-180, le=180, description="Longitude, degrees WGS 84.")
+
+
+Fence = tuple[Corner, ...]
+
+
+class OrdersConfig(ProcessorConfig):
+    """Options of the ``orders`` processor (``processors: - {type: orders, options: ...}``)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
+
+    geofence: Fence | None = Field(
+        default=None,
+        min_length=3,
+        max_length=256,
+        description="The fence every route must stay in (corners in order); none: no fence.",
+    )
+    airframe_geofences: dict[str, Fence] = Field(
+        default_factory=dict, description="Per airframe id, a fence instead of the global one."
+    )
+    cruise_speed_mps: float = Field(default=25.0, gt=0, le=200, description="For endurance.")
+    reserve_min: float = Field(
+        default=10.0, ge=0, le=600, description="Endurance left over at the end of the route."
+    )
+    time_on_task_s: float = Field(
+        default=600.0, gt=0, le=86400, description="Loiter time at a point (observe, track)."
+    )
+    loiter_radius_m: float = Field(default=300.0, gt=0, le=10_000, description="Loiter radius.")
+    clearance_m: float = Field(
+        default=0.0, ge=0, le=5000, description="Height above ground wanted beyond the 3σ floor."
+    )
+    mode_commands: Literal["px4", "mavlink"] = Field(
+        default="px4",
+        description="px4: DO_SET_MODE AUTO MISSION / AUTO RTL; mavlink: MISSION_START and "
+        "NAV_RETURN_TO_LAUNCH.",
+    )
+    command_timeout_s: float = Field(default=1.5, gt=0, le=60, description="Per COMMAND_ACK.")
+    command_retries: int = Field(default=2, ge=0, le=10, description="Resends of a command.")
+    mission_timeout_s: float = Field(
+        default=2.0, gt=0, le=60, description="Per step of a mission upload."
+    )
+    mission_retries: int = Field(default=2, ge=0, le=10, description="Restarts of an upload.")
+    max_active: int = Field(
+        default=64, ge=1, le=10_000, description="Orders being carried out at once, at most."
+    )
+
+    @model_validator(mode="after")
+    def _fences(self) -> OrdersConfig:
+        for airframe, fence in self.airframe_geofences.items():
+            if len(fence) < 3:
+                raise ValueError(f"airframe_geofences.{airframe}: a fence needs 3+ corners")
+        return self
+
+
+@dataclass(slots=True)
+class _Running:
+    order: FiveLineOrder
+    items: int
+    scope: anyio.CancelScope = field(default_factory=anyio.CancelScope)
+    reached: int = -1
+    current: int = -1
+    changed: anyio.Event = field(default_factory=anyio.Event)
+    superseded_by: str | None = None
+
+
+class OrdersProcessor:
+    """See the module docstring."""
+
+    config_model: ClassVar[type[OrdersConfig]] = OrdersConfig
+    kinds: frozenset[EventKind] = frozenset({EventKind.ORDER, EventKind.TELEMETRY, EventKind.TRACK})
+
+    def __init__(self, name: str, config: OrdersConfig, *, clock: Clock = utc_now) -> None:
+        self.name = name
+        self.config = config
+        self._clock = clock
+        self._commander: AirframeCommander | None = None
+        self._terrain: TerrainModel | None = None
+        self._baro_sigma_m = 0.5
+        self._telemetry: dict[str, Telemetry] = {}
+        self._seen: OrderedDict[str, None] = OrderedDict()
+        #: The newest position of each live fused track, for track_target orders naming one.
+        self._tracks: OrderedDict[str, Position] = OrderedDict()
+        self._running: dict[str, _Running] = {}
+        self._publish: Publish = lambda _event: True
+        self.counts: dict[str, int] = {}
+        self._log_limit = RateLimit(interval_s=5.0)
+        self._status_log = RateLimit(interval_s=1.0)
+        self.log = log.bind(processor=name)
+
+    def attach(
+        self, commander: AirframeCommander, terrain: TerrainModel | None, baro_sigma_m: float
+    ) -> None:
+        """Take the airframe commander and terrain model (``gateway.app`` does this)."""
+        self._commander = commander
+        self._terrain = terrain
+        self._baro_sigma_m = baro_sigma_m
+        commander.on_mission(self._on_mission)
+
+    def status(self) -> dict[str, object]:
+        """Counts by status and the orders running, for /status."""
+        return {
+            "counts": dict(self.counts),
+            "running": {a: r.order.order_id for a, r in self._running.items()},
+        }
+
+    async def run(
+        self,
+        events: MemoryObjectReceiveStream[Event],
+        publish: Publish,
+        *,
+        task_status: anyio.abc.TaskStatus[None] = anyio.TASK_STATUS_IGNORED,
+    ) -> None:
+        """Answer orders until the stream ends; each accepted order runs in its own task."""
+        self._publish = publish
+        async with anyio.create_task_group() as tg:
+            task_status.started()
+            async for event in events:
+                if isinstance(event, Telemetry):
+                    self._on_telemetry(event)
+                elif isinstance(event, Track):
+                    self._on_track(event)
+                elif isinstance(event, FiveLineOrder) and event.event_id not in self._seen:
+                    self._seen[event.event_id] = None
+                    while len(self._seen) > _REMEMBERED_ORDERS:
+                        self._seen.popitem(last=False)
+                    self._take(event, tg)
+            tg.cancel_scope.cancel()
+
+    # -- status -----------------------------------------------------------------------------
+
+    def _report(
+        self,
+        order: FiveLineOrder,
+        status: OrderState,
+        airframe: str | None,
+        *,
+        check: str | None = None,
+        reason: str | None = None,
+        items: int | None = None,
+        current: int | None = None,
+    ) -> None:
+        self.counts[status.value] = self.counts.get(status.value, 0) + 1
+        event = OrderStatus(
+            event_id=f"{order.event_id}-{status.value}",
+            order_event_id=order.event_id,
+            order_id=order.order_id,
+            source=order.source,
+            airframe=airframe,
+            time=self._clock(),
+            status=status,
+            check=check,
+            reason=None if reason is None else reason[:512],
+            mission_items=items,
+            current_item=current,
+        )
+        if not self._publish(event) and self._log_limit.allow("refused"):
+            self.log.error("order_status_not_held", order_id=order.order_id, status=status.value)
+        if not self._status_log.allow(status.value):
+            return  # a flood of orders: one line a second per status; all are counted
+        self.log.info(
+            "order_status",
+            order_id=order.order_id,
+            source=order.source,
+            airframe=airframe,
+            status=status.value,
+            check=check,
+            reason=reason,
+        )
+
+    # -- intake -----------------------------------------------------------------------------
+
+    def _take(self, order: FiveLineOrder, tg: anyio.abc.TaskGroup) -> None:
+        airframe, chosen = self._decide(order)
+        if isinstance(chosen, Refusal):
+            self._report(
+                order, OrderState.REJECTED, airframe, check=chosen.check, reason=chosen.reason
+            )
+            return
+        if airframe is None:  # a plan always names its airframe
+            return
+        if len(self._running) >= self.config.max_active and airframe not in self._running:
+            self._report(
+                order,
+                OrderState.REJECTED,
+                airframe,
+                check="capacity",
+                reason=f"{self.config.max_active} orders are already being carried out",
+            )
+            return
+        previous = self._running.get(airframe)
+        if previous is not None:
+            previous.superseded_by = order.order_id
+            previous.scope.cancel()
+        running = _Running(order, len(chosen.items))
+        self._running[airframe] = running
+        self._report(order, OrderState.ACCEPTED, airframe, items=len(chosen.items))
+        tg.start_soon(self._carry_out, airframe, chosen, running)
+
+    def _decide(self, order: FiveLineOrder) -> tuple[str | None, Plan | Refusal]:
+        commander = self._commander
+        if commander is None:
+            return order.airframe, Refusal("airframe", "no airframe commander in this node")
+        now = self._clock()
+        if order.not_after is not None and order.not_after <= now:
+            return order.airframe, Refusal(
+                "window", f"the window ended at {order.not_after.isoformat()} (now {_iso(now)})"
+            )
+        if order.airframe is not None:
+            candidates = [order.airframe]
+        else:
+            candidates = sorted(self._telemetry) or [""]
+        refusals: list[tuple[str | None, Refusal]] = []
+        for airframe in candidates:
+            got = self._try(order, airframe, commander)
+            if isinstance(got, Plan):
+                return airframe, got
+            refusals.append((airframe or None, got))
+        return refusals[0]
+
+    def _try(
+        self, order: FiveLineOrder, airframe: str, commander: AirframeCommander
+    ) -> Plan | Refusal:
+        if not airframe:
+            return Refusal("airframe", "the order names no airframe and none is reporting")
+        if not commander.is_known(airframe):
+            return Refusal("airframe", f"{airframe} is not an airframe of this node")
+        telemetry = self._telemetry.get(airframe)
+        if not commander.is_linked(airframe) or telemetry is None:
+            return Refusal("link", f"{airframe} has no active link")
+        fences = self.config.airframe_geofences
+        fence = fences.get(airframe, self.config.geofence)
+        cfg = self.config
+        limits = Limits(
+            cruise_speed_mps=cfg.cruise_speed_mps,
+            reserve_min=cfg.reserve_min,
+            time_on_task_s=cfg.time_on_task_s,
+            loiter_radius_m=cfg.loiter_radius_m,
+            clearance_m=cfg.clearance_m,
+            baro_sigma_m=self._baro_sigma_m,
+            fence=None if fence is None else tuple((c.lat_deg, c.lon_deg) for c in fence),
+        )
+        planned = plan(self._aimed(order), telemetry, commander.home(airframe), limits)
+        if isinstance(planned, Refusal):
+            return planned
+        refusal = check(planned, telemetry, self._terrain, limits)
+        return planned if refusal is None else refusal
+
+    # -- execution --------------------------------------------------------------------------
+
+    async def _carry_out(self, airframe: str, chosen: Plan, running: _Running) -> None:
+        order = running.order
+        try:
+            with running.scope:
+                await self._execute(airframe, chosen, running)
+            if running.superseded_by is not None:
+                self._report(
+                    order,
+                    OrderState.FAILED,
+                    airframe,
+                    check="superseded",
+                    reason=f"superseded by order {running.superseded_by}",
+                )
+        finally:
+            if self._running.get(airframe) is running:
+                del self._running[airframe]
+
+    async def _execute(self, airframe: str, chosen: Plan, running: _Running) -> None:
+        commander = self._commander
+        if commander is None:  # _decide refuses every order without one
+            return
+        cfg = self.config
+        order = running.order
+        if order.not_before is not None:
+            wait_s = (order.not_before - self._clock()).total_seconds()
+            if wait_s > 0:
+                await anyio.sleep(wait_s)
+        params: tuple[float, ...]
+        if chosen.is_return:
+            command, params = (
+                (MAV_CMD_DO_SET_MODE, _PX4_AUTO_RTL)
+                if cfg.mode_commands == "px4"
+                else (MAV_CMD_NAV_RETURN_TO_LAUNCH, ())
+            )
+        else:
+            uploaded = await commander.upload_mission(
+                airframe, chosen.items, timeout_s=cfg.mission_timeout_s, retries=cfg.mission_retries
+            )
+            if not uploaded.ok:
+                self._report(
+                    order,
+                    OrderState.FAILED,
+                    airframe,
+                    check="mission",
+                    reason=f"mission upload: {uploaded.detail}",
+                )
+                return
+            running.reached = running.current = -1
+            command, params = (
+                (MAV_CMD_DO_SET_MODE, _PX4_AUTO_MISSION)
+                if cfg.mode_commands == "px4"
+                else (MAV_CMD_MISSION_START, (0.0, float(len(chosen.items) - 1)))
+            )
+        answered = await commander.command(
+            airframe, command, params, timeout_s=cfg.command_timeout_s, retries=cfg.command_retries
+        )
+        if not answered.ok:
+            self._report(
+                order, OrderState.FAILED, airframe, check="command", reason=answered.detail
+            )
+            return
+        self._report(order, OrderState.EXECUTING, airframe, items=running.items or None)
+        last = running.items - 1
+        while not self._done(airframe, running, last):
+            running.changed = anyio.Event()
+            await running.changed.wait()
+        self._report(
+            order,
+            OrderState.COMPLETED,
+            airframe,
+            items=running.items or None,
+            current=None if running.items == 0 else last,
+        )
+
+    def _done(self, airframe: str, running: _Running, last: int) -> bool:
+        if running.items == 0:
+            telemetry = self._telemetry.get(airframe)
+            return telemetry is not None and telemetry.is_armed is False
+        return running.reached >= last or running.current > last
+
+    def _on_track(self, track: Track) -> None:
+        self._tracks.pop(track.track_id, None)
+        if track.status != "lost":
+            self._tracks[track.track_id] = track.position
+            while len(self._tracks) > _REMEMBERED_TRACKS:
+                self._tracks.popitem(last=False)
+
+    def _aimed(self, order: FiveLineOrder) -> FiveLineOrder:
+        """A track_target order naming a live track flies to the track's newest position."""
+        if order.task is not OrderTask.TRACK_TARGET or order.track_id is None:
+            return order
+        where = self._tracks.get(order.track_id)
+        if where is None:
+            return order
+        given = order.location.point.alt_msl_m if order.location.point is not None else None
+        point = Position(lat_deg=where.lat_deg, lon_deg=where.lon_deg, alt_msl_m=given)
+        return order.model_copy(update={"location": OrderArea(point=point)})
+
+    def _on_telemetry(self, telemetry: Telemetry) -> None:
+        self._telemetry[telemetry.airframe] = telemetry
+        running = self._running.get(telemetry.airframe)
+        if running is not None and running.items == 0:
+            running.changed.set()
+
+    def _on_mission(self, airframe: str, what: Literal["current", "reached"], seq: int) -> None:
+        running = self._running.get(airframe)
+        if running is None:
+            return
+        if what == "reached":
+            running.reached = max(running.reached, seq)
+        else:
+            running.current = seq
+        running.changed.set()
+
+
+def _iso(moment: datetime) -> str:
+    return moment.isoformat()

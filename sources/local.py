@@ -1,0 +1,230 @@
+"""The local order source: an operator's orders from ``fischer-gateway order`` on this node.
+
+Listens on a Unix socket (``socket``, created with mode ``socket_mode``, 0600 by default).
+The socket's file permissions and the peer's credentials are the authentication: a
+connection is served only if the kernel reports (SO_PEERCRED) a peer uid that is the
+daemon's own, root's, or one of ``allowed_uids``; anything else is closed unanswered and
+counted ``refused_peer``.
+
+One order per connection, as one line of JSON in SLB's order format
+(``gateway.codecs.slb_order``, schema ``slb-order.schema.json``; ``fischer-gateway order``
+writes it), at most ``max_line_bytes``, within ``timeout_s``. The answer is JSON lines:
+``{"order_id": .., "status": "received", "event_id": "local-order-<order_id>"}`` once the
+order is held durably (``{"status": "rejected", "reason": ..}`` for a malformed one,
+``{"status": "not_held"}`` if the spool refused it), then each ``OrderStatus`` of the order
+from the orders processor as it comes (``status``, ``check``, ``reason``, ``airframe``),
+until a final one (``rejected``, ``completed``, ``failed``) or the client hangs up. At most
+``max_connections`` connections are served at once; more are closed at once, counted.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import struct
+from collections import Counter
+from collections.abc import Callable
+from datetime import datetime
+from pathlib import Path
+from typing import Any, ClassVar
+
+import anyio
+import anyio.abc
+import structlog
+from anyio.streams.buffered import BufferedByteReceiveStream
+from anyio.streams.memory import MemoryObjectSendStream
+from pydantic import BaseModel, ConfigDict, Field
+
+from gateway.clock import utc_now
+from gateway.codecs.slb_order import read_order
+from gateway.errors import OrderRejected
+from gateway.events import Event, OrderState, OrderStatus
+from gateway.ops.logsetup import RateLimit
+
+__all__ = ["LocalOrderSource", "LocalOrderSourceConfig"]
+
+log = structlog.get_logger(__name__)
+
+EVENT_ID_PREFIX = "local-order-"
+_FINAL = frozenset({OrderState.REJECTED, OrderState.COMPLETED, OrderState.FAILED})
+_WATCH_QUEUE = 32
+
+
+class LocalOrderSourceConfig(BaseModel):
+    """Options of the local order source (beside ``name`` and ``type: local``)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    socket: Path = Field(
+        description="The Unix socket to listen on, e.g. /var/lib/fischer-gateway/orders.sock."
+    )
+    socket_mode: int = Field(
+        default=0o600, ge=0, le=0o777, description="Its file mode: 0600 (owner), 0660 (group)."
+    )
+    allowed_uids: tuple[int, ...] = Field(
+        default=(), description="Peer uids served besides the daemon's own and root's."
+    )
+    max_connections: int = Field(default=8, ge=1, le=256, description="Served at once.")
+    max_line_bytes: int = Field(
+        default=65536, ge=1024, le=1 << 20, description="Largest order line read."
+    )
+    timeout_s: float = Field(
+        default=5.0, gt=0, le=300, description="Deadline to read the order line."
+    )
+
+
+def _peer_uid(stream: anyio.abc.SocketStream) -> int | None:
+    raw = stream.extra(anyio.abc.SocketAttribute.raw_socket)
+    try:
+        creds = raw.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, struct.calcsize("3i"))
+    except (OSError, AttributeError):
+        return None
+    _pid, uid, _gid = struct.unpack("3i", creds)
+    return int(uid)
+
+
+class LocalOrderSource:
+    """Takes an operator's orders on a Unix socket and streams their statuses back."""
+
+    config_model: ClassVar[type[LocalOrderSourceConfig]] = LocalOrderSourceConfig
+
+    def __init__(
+        self,
+        name: str,
+        config: LocalOrderSourceConfig,
+        publish: Callable[[Event], bool],
+        *,
+        clock: Callable[[], datetime] = utc_now,
+    ) -> None:
+        self.name = name
+        self.config = config
+        self._publish = publish
+        self._clock = clock
+        self._uids = frozenset({os.getuid(), 0, *config.allowed_uids})
+        self._watchers: dict[str, set[MemoryObjectSendStream[OrderStatus]]] = {}
+        self._active = 0
+        self.counts: Counter[str] = Counter()
+        self._log_limit = RateLimit(interval_s=10.0)
+        self.log = log.bind(source=name, socket=str(config.socket))
+
+    def status(self) -> dict[str, object]:
+        """What /status shows for this source."""
+        return {
+            "source": self.name,
+            "type": "local",
+            "socket": str(self.config.socket),
+            "connections": self._active,
+            "counts": dict(self.counts),
+        }
+
+    def on_order_status(self, status: OrderStatus) -> None:
+        """Pass a status of one of this source's orders to the connections waiting for it."""
+        if status.source != self.name:
+            return
+        for watcher in list(self._watchers.get(status.order_event_id, ())):
+            try:
+                watcher.send_nowait(status)
+            except (anyio.WouldBlock, anyio.ClosedResourceError, anyio.BrokenResourceError):
+                self.counts["status_dropped"] += 1
+
+    async def run(
+        self, *, task_status: anyio.abc.TaskStatus[None] = anyio.TASK_STATUS_IGNORED
+    ) -> None:
+        """Bind the socket (replacing a stale one), report started, serve until cancelled."""
+        path = self.config.socket
+        if path.is_socket():
+            path.unlink()  # left by a daemon that did not stop cleanly
+        listener = await anyio.create_unix_listener(path)
+        try:
+            path.chmod(self.config.socket_mode)
+            task_status.started()
+            await listener.serve(self._serve)
+        finally:
+            path.unlink(missing_ok=True)  # before the await: a cancelled close ends here
+            await listener.aclose()
+
+    def _count(self, outcome: str, **fields: object) -> None:
+        self.counts[outcome] += 1
+        if self._log_limit.allow(outcome):
+            self.log.warning("local_order_problem", outcome=outcome, **fields)
+
+    async def _serve(self, stream: anyio.abc.SocketStream) -> None:
+        async with stream:
+            if self._active >= self.config.max_connections:
+                self._count("too_many_connections")
+                return
+            uid = _peer_uid(stream)
+            if uid is None or uid not in self._uids:
+                self._count("refused_peer", uid=uid)
+                return
+            self._active += 1
+            try:
+                await self._order(stream)
+            except (anyio.BrokenResourceError, anyio.ClosedResourceError, anyio.EndOfStream):
+                self.counts["client_gone"] += 1
+            finally:
+                self._active -= 1
+
+    async def _order(self, stream: anyio.abc.SocketStream) -> None:
+        reader = BufferedByteReceiveStream(stream)
+        try:
+            with anyio.fail_after(self.config.timeout_s):
+                line = await reader.receive_until(b"\n", self.config.max_line_bytes)
+        except (TimeoutError, anyio.DelimiterNotFound, anyio.IncompleteRead):
+            self._count("no_order_line")
+            await _say(stream, {"status": "rejected", "reason": "order: no JSON line received"})
+            return
+        try:
+            element: Any = json.loads(line)
+        except (ValueError, RecursionError):
+            self._count("malformed")
+            await _say(stream, {"status": "rejected", "reason": "order: not JSON"})
+            return
+        try:
+            parsed = read_order(element, source=self.name)
+        except OrderRejected as exc:
+            self._count("rejected", reason=str(exc))
+            order_id = element.get("order_id") if isinstance(element, dict) else None
+            await _say(stream, {"order_id": order_id, "status": "rejected", "reason": str(exc)})
+            return
+        order = parsed.model_copy(update={"event_id": EVENT_ID_PREFIX + parsed.order_id})
+        send, receive = anyio.create_memory_object_stream[OrderStatus](_WATCH_QUEUE)
+        watchers = self._watchers.setdefault(order.event_id, set())
+        watchers.add(send)
+        try:
+            if not self._publish(order):
+                self._count("not_held", order_id=order.order_id)
+                await _say(stream, {"order_id": order.order_id, "status": "not_held"})
+                return
+            self.counts["received"] += 1
+            self.log.info("local_order_received", order_id=order.order_id, task=order.task.value)
+            await _say(
+                stream,
+                {"order_id": order.order_id, "status": "received", "event_id": order.event_id},
+            )
+            async for status in receive:
+                await _say(stream, _line(status))
+                if status.status in _FINAL:
+                    return
+        finally:
+            watchers.discard(send)
+            if not watchers:
+                self._watchers.pop(order.event_id, None)
+            send.close()
+            receive.close()
+
+
+def _line(status: OrderStatus) -> dict[str, Any]:
+    return {
+        "order_id": status.order_id,
+        "status": status.status.value,
+        "airframe": status.airframe,
+        "check": status.check,
+        "reason": status.reason,
+        "event_id": status.event_id,
+    }
+
+
+async def _say(stream: anyio.abc.SocketStream, line: dict[str, Any]) -> None:
+    await stream.send(json.dumps(line).encode() + b"\n")

@@ -1,0 +1,71 @@
+"""Mission geometry: the geofence's inside and crossing tests, route lengths."""
+
+from __future__ import annotations
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from gateway.domain.geodesy import distance_bearing
+from gateway.domain.mission import crosses, inside, route_inside, route_length_m
+
+SQUARE = [(65.0, 20.0), (65.0, 22.0), (66.0, 22.0), (66.0, 20.0)]
+#: A U shape: the notch between its arms (65.3..66 N, 20.7..21.3 E) is outside.
+U_FENCE = [
+    (65.0, 20.0),
+    (65.0, 22.0),
+    (66.0, 22.0),
+    (66.0, 21.3),
+    (65.3, 21.3),
+    (65.3, 20.7),
+    (66.0, 20.7),
+    (66.0, 20.0),
+]
+
+
+@given(
+    st.floats(min_value=64.0, max_value=67.0, allow_nan=False),
+    st.floats(min_value=19.0, max_value=23.0, allow_nan=False),
+)
+def test_inside_a_rectangle_is_inside_its_bounds(lat: float, lon: float) -> None:
+    strictly_in = 65.0 < lat < 66.0 and 20.0 < lon < 22.0
+    strictly_out = not (65.0 <= lat <= 66.0 and 20.0 <= lon <= 22.0)
+    if strictly_in:
+        assert inside(SQUARE, (lat, lon))
+    elif strictly_out:
+        assert not inside(SQUARE, (lat, lon))
+
+
+def test_a_corner_and_an_edge_count_as_inside() -> None:
+    assert inside(SQUARE, (65.0, 20.0))
+    assert inside(SQUARE, (65.5, 22.0))
+
+
+def test_the_notch_of_a_u_is_outside() -> None:
+    assert not inside(U_FENCE, (65.8, 21.0))
+    assert inside(U_FENCE, (65.8, 20.3))
+
+
+def test_a_leg_across_the_notch_leaves_the_fence_between_two_inside_points() -> None:
+    west, east = (65.8, 20.3), (65.8, 21.7)
+    assert inside(U_FENCE, west)
+    assert inside(U_FENCE, east)
+    assert crosses(U_FENCE, west, east)
+    assert route_inside(U_FENCE, [west, east]) == west
+    assert route_inside(U_FENCE, [west, (65.1, 20.3), (65.1, 21.7), east]) is None
+
+
+def test_the_first_point_outside_is_named() -> None:
+    assert route_inside(SQUARE, [(65.5, 21.0), (64.5, 21.0), (63.0, 21.0)]) == (64.5, 21.0)
+
+
+def test_a_fence_needs_three_corners() -> None:
+    with pytest.raises(ValueError, match="at least 3 corners"):
+        inside(SQUARE[:2], (65.5, 21.0))
+
+
+def test_route_length_is_the_sum_of_geodesic_legs() -> None:
+    points = [(65.0, 20.0), (65.0, 21.0), (66.0, 21.0)]
+    legs = distance_bearing(65.0, 20.0, 65.0, 21.0)[0] + distance_bearing(65.0, 21.0, 66.0, 21.0)[0]
+    assert route_length_m(points) == pytest.approx(legs)
+    assert route_length_m(points[:1]) == 0.0

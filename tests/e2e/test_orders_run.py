@@ -1,0 +1,323 @@
+"""Orders to the airframe in the daemon as operators run it, answered by MAVSDK.
+
+``fischer-gateway run --config FILE`` in a child process with one airframe on an unsecured
+loopback UDP link (MAVSDK speaks neither the tunnel nor signing; the test config says
+``security: unsecured``), the ``orders`` processor with a geofence, an ``.hgt`` DEM tile with
+a hill, an ``slb`` order source polling a real HTTPS SLB (``SlbPeer``) and a jsonl archive.
+The airframe is ``MavsdkAutopilot``: MAVSDK's own autopilot-side command, mission and
+telemetry servers, behind a relay that records what the gateway uplinks.
+
+Orders out of endurance, outside the fence and below the terrain floor must be answered
+``rejected`` at SLB with the check and its numbers while nothing at all goes to the airframe;
+then an area reconnaissance order must go accepted → mission uploaded and acknowledged →
+executing → completed, each state a receipt at SLB. With the airframe's COMMAND_ACKs lost,
+the start command is retried and the order reported ``failed`` after the configured attempts.
+"""
+
+from __future__ import annotations
+
+import json
+import socket
+import stat
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from daemon_support import archive_events, free_udp_port, running, wait_until
+from mavsdk_autopilot import MavsdkAutopilot
+from slb_peer import SlbPeer
+from sweccis_peer import NS, SweccisPeer, order_document
+
+pytestmark = pytest.mark.timeout(120)
+
+ISSUED = "2026-11-22T12:00:00Z"
+FENCE = [(65.0, 20.0), (65.0, 24.0), (67.0, 24.0), (67.0, 20.0)]
+AREA = [(65.84, 21.02), (65.84, 21.06), (65.86, 21.06), (65.86, 21.02)]
+
+
+def order(order_id: str, location: dict[str, Any], task: str = "observe_point") -> dict[str, Any]:
+    return {
+        "order_id": order_id,
+        "issuer": "NB S3",
+        "issued": ISSUED,
+        "airframe": "F26E-001",
+        "task": task,
+        "location": location,
+        "priority": "immediate",
+    }
+
+
+def point(lat: float, lon: float) -> dict[str, Any]:
+    return {"point": {"lat_deg": lat, "lon_deg": lon}}
+
+
+def write_dem(directory: Path) -> Path:
+    """Flat ground at 100 m with a 650 m hill at 65.90-65.95 N, 21.40-21.45 E."""
+    directory.mkdir()
+    grid = np.full((1201, 1201), 100, dtype=">i2")
+    grid[60:121, 480:541] = 650  # rows from 66° N down, columns from 21° E, 3″ apart
+    (directory / "N65E021.hgt").write_bytes(grid.tobytes())
+    return directory
+
+
+def slb_source(peer: SlbPeer) -> str:
+    tls = peer.tls_options()
+    return f"""
+  - name: brigade-slb
+    type: slb
+    base_url: '{peer.base_url}'
+    ca_file: '{tls["ca_file"]}'
+    cert_file: '{tls["cert_file"]}'
+    key_file: '{tls["key_file"]}'
+    poll_interval_s: 0.2"""
+
+
+def sweccis_source(peer: SweccisPeer) -> str:
+    tls = peer.link_options()
+    return f"""
+  - {{name: brigade-orders, type: sweccis, client_id: node-orders, reconnect_initial_s: 0.2,
+     uri: '{tls["uri"]}', ca_file: '{tls["ca_file"]}', cert_file: '{tls["cert_file"]}',
+     key_file: '{tls["key_file"]}'}}"""
+
+
+def write_config(tmp_path: Path, source: str, link: int, **orders: Any) -> tuple[Path, Path]:
+    archive = tmp_path / "archive.jsonl"
+    dem = write_dem(tmp_path / "dem")
+    fence = ", ".join(f"{{lat_deg: {lat}, lon_deg: {lon}}}" for lat, lon in FENCE)
+    extra = "".join(f", {key}: {value}" for key, value in orders.items())
+    config = tmp_path / "node.yaml"
+    config.write_text(
+        f"""
+gateway: {{shutdown_deadline_s: 3}}
+health: {{port: 0}}
+terrain:
+  sources: [{{name: srtm, kind: hgt, directory: '{dem}', sigma_m: 5.0}}]
+airframes:
+  - {{id: F26E-001, sysid: 1, links: [{{uri: 'udp://127.0.0.1:{link}', security: unsecured,
+     name: fleet}}]}}
+sources:{source}
+processors:
+  - name: orders
+    type: orders
+    options: {{geofence: [{fence}], time_on_task_s: 5{extra}}}
+sinks:
+  - {{name: archive, type: jsonl, options: {{path: '{archive}'}}}}
+routes:
+  - {{sinks: [archive], kinds: [order, order_status, telemetry]}}
+"""
+    )
+    return config, archive
+
+
+def statuses(peer: SlbPeer, order_id: str) -> list[str]:
+    return [r["status"] for r in peer.receipts_for(order_id)]
+
+
+def ready(archive: Path) -> bool:
+    """The airframe's telemetry has a position and a predicted endurance."""
+    return any(
+        e["kind"] == "telemetry" and e["position"] and e["endurance_remaining_min"]
+        for e in archive_events(archive)
+    )
+
+
+def linked(daemon: Any) -> bool:
+    status = daemon.status()
+    (airframe,) = status["airframes"]
+    return airframe.get("active_link") is not None
+
+
+@pytest.fixture(scope="module")
+def tasked(
+    tmp_path_factory: pytest.TempPathFactory,
+) -> tuple[SlbPeer, MavsdkAutopilot, list[str], list[dict[str, Any]]]:
+    tmp_path = tmp_path_factory.mktemp("orders")
+    link = free_udp_port()
+    with SlbPeer(tmp_path / "pki").in_thread() as peer:
+        config, archive = write_config(tmp_path, slb_source(peer), link)
+        with running(config) as daemon, MavsdkAutopilot(link).running() as airframe:
+            wait_until(lambda: linked(daemon), 30.0, "the MAVSDK airframe linked")
+            wait_until(lambda: ready(archive), 20.0, "telemetry with endurance")
+            peer.queue_order(order("FAR", point(66.95, 23.95)))
+            peer.queue_order(order("OUT", point(64.50, 21.00)))
+            peer.queue_order(order("HILL", point(65.925, 21.425)))
+            for order_id in ("FAR", "OUT", "HILL"):
+                wait_until(
+                    lambda o=order_id: "rejected" in statuses(peer, o), 20.0, f"{order_id} rejected"
+                )
+            before = list(airframe.uplink)
+            peer.queue_order(
+                order(
+                    "AREA",
+                    {"polygon": [{"lat_deg": a, "lon_deg": b} for a, b in AREA]},
+                    task="recon_area",
+                )
+            )
+            wait_until(lambda: "completed" in statuses(peer, "AREA"), 30.0, "AREA completed")
+        return peer, airframe, before, archive_events(archive)
+
+
+def test_rejected_orders_name_the_check_and_send_nothing(
+    tasked: tuple[SlbPeer, MavsdkAutopilot, list[str], list[dict[str, Any]]],
+) -> None:
+    peer, _, before, _ = tasked
+    reasons = {o: peer.receipts_for(o)[-1]["reason"] for o in ("FAR", "OUT", "HILL")}
+    for order_id in ("FAR", "OUT", "HILL"):
+        assert statuses(peer, order_id) == ["received", "rejected"]
+    assert reasons["FAR"].startswith("endurance: needs ")
+    assert "has " in reasons["FAR"]
+    assert reasons["OUT"].startswith("geofence: the route leaves the geofence at 64.50000")
+    assert reasons["HILL"].startswith("terrain: commanded 500.0 m MSL is below the floor")
+    assert "ground 650.0 m" in reasons["HILL"]
+    # Nothing reached MAVSDK: no mission, no command, no frame at all from the gateway.
+    assert not {"MISSION_COUNT", "MISSION_ITEM_INT", "COMMAND_LONG"} & set(before)
+    assert before == []
+
+
+def test_area_order_round_trips_through_mavsdk(
+    tasked: tuple[SlbPeer, MavsdkAutopilot, list[str], list[dict[str, Any]]],
+) -> None:
+    peer, airframe, _, events = tasked
+    assert statuses(peer, "AREA") == ["received", "accepted", "executing", "completed"]
+    # MAVSDK's mission server took the perimeter: 4 corners and back to the first.
+    (mission,) = airframe.missions
+    assert [item[1] for item in mission] == [16] * 5
+    corners = [(round(lat, 5), round(lon, 5)) for _, _, lat, lon, _ in mission]
+    assert corners == [*AREA, AREA[0]]
+    assert all(item[4] == pytest.approx(500.0) for item in mission)
+    assert airframe.flight_modes == ["MISSION"]
+    assert airframe.items_completed == 5
+    assert airframe.uplink.count("MISSION_COUNT") == 1
+    archived = [e for e in events if e["kind"] == "order_status"]
+    area = [e for e in archived if e["order_id"] == "AREA"]
+    assert [e["status"] for e in area] == ["accepted", "executing", "completed"]
+    assert area[-1]["mission_items"] == 5
+    receipt = peer.receipts_for("AREA")[-1]
+    assert receipt["event_id"] == "slb-order-AREA-completed"
+
+
+@pytest.fixture(scope="module")
+def unacknowledged(tmp_path_factory: pytest.TempPathFactory) -> tuple[SlbPeer, MavsdkAutopilot]:
+    tmp_path = tmp_path_factory.mktemp("orders-ack")
+    link = free_udp_port()
+    with SlbPeer(tmp_path / "pki").in_thread() as peer:
+        config, archive = write_config(
+            tmp_path, slb_source(peer), link, command_timeout_s=0.5, command_retries=2
+        )
+        autopilot = MavsdkAutopilot(link, drop_command_acks=True)
+        with running(config) as daemon, autopilot.running() as airframe:
+            wait_until(lambda: linked(daemon), 30.0, "the MAVSDK airframe linked")
+            wait_until(lambda: ready(archive), 20.0, "telemetry with endurance")
+            peer.queue_order(order("NOACK", point(65.85, 21.10)))
+            wait_until(lambda: "failed" in statuses(peer, "NOACK"), 30.0, "NOACK failed")
+        return peer, airframe
+
+
+def test_lost_command_ack_is_retried_then_failed(
+    unacknowledged: tuple[SlbPeer, MavsdkAutopilot],
+) -> None:
+    peer, airframe = unacknowledged
+    assert statuses(peer, "NOACK") == ["received", "accepted", "failed"]
+    reason = peer.receipts_for("NOACK")[-1]["reason"]
+    assert reason == "command: no COMMAND_ACK for command 176 after 3 attempts"
+    assert airframe.uplink.count("COMMAND_LONG") == 3  # the first and two retries
+    assert airframe.dropped_acks >= 3  # MAVSDK answered each; the link lost them
+    assert len(airframe.missions) == 1  # the mission itself was uploaded and acknowledged
+
+
+@pytest.fixture(scope="module")
+def over_sweccis(tmp_path_factory: pytest.TempPathFactory) -> SweccisPeer:
+    tmp_path = tmp_path_factory.mktemp("orders-sweccis")
+    link = free_udp_port()
+    with SweccisPeer(tmp_path / "pki").in_thread() as peer:
+        config, archive = write_config(tmp_path, sweccis_source(peer), link)
+        with running(config) as daemon, MavsdkAutopilot(link).running():
+            wait_until(lambda: linked(daemon), 30.0, "the MAVSDK airframe linked")
+            wait_until(lambda: ready(archive), 20.0, "telemetry with endurance")
+            outside = order_document("doc-out", "SW-OUT", airframe="F26E-001", point=(64.5, 21.0))
+            inside = order_document("doc-in", "SW-IN", airframe="F26E-001", point=(65.85, 21.1))
+            peer.call(peer.push_order, outside)
+            peer.call(peer.push_order, inside)
+            wait_until(
+                lambda: (
+                    "completed" in peer.order_statuses("SW-IN")
+                    and "rejected" in peer.order_statuses("SW-OUT")
+                ),
+                30.0,
+                "SWECCIS told of both orders",
+            )
+        return peer
+
+
+def test_sweccis_gets_each_status_as_an_order_status_document(over_sweccis: SweccisPeer) -> None:
+    peer = over_sweccis
+    assert peer.invalid == []  # every OrderStatus document passed the shipped XSD
+    assert [(ref, status) for ref, status, _ in peer.order_acks] == [
+        ("doc-out", "accepted"),
+        ("doc-in", "accepted"),
+    ]
+    assert peer.order_statuses("SW-OUT") == ["rejected"]
+    assert peer.order_statuses("SW-IN") == ["accepted", "executing", "completed"]
+    (rejected,) = [d for d in peer.of("OrderStatus") if d.findtext(f"{NS}OrderId") == "SW-OUT"]
+    assert rejected.findtext(f"{NS}Check") == "geofence"
+    assert rejected.findtext(f"{NS}Reason", "").startswith("the route leaves the geofence at 64.5")
+    assert rejected.get("id") == "sweccis-order-SW-OUT-rejected"
+
+
+def order_cli(sock: Path, *args: str) -> tuple[int, list[dict[str, Any]], str]:
+    command = [sys.executable, "-m", "gateway", "order", "--socket", str(sock), *args]
+    done = subprocess.run(command, capture_output=True, timeout=60, check=False)
+    lines = [json.loads(line) for line in done.stdout.decode().splitlines() if line.strip()]
+    return done.returncode, lines, done.stderr.decode(errors="replace")
+
+
+@pytest.fixture(scope="module")
+def by_operator(
+    tmp_path_factory: pytest.TempPathFactory,
+) -> tuple[Path, dict[str, tuple[int, list[dict[str, Any]], str]], bytes, int]:
+    tmp_path = tmp_path_factory.mktemp("orders-local")
+    link = free_udp_port()
+    sock = tmp_path / "orders.sock"
+    source = f"\n  - {{name: operator, type: local, socket: '{sock}'}}"
+    config, archive = write_config(tmp_path, source, link)
+    runs = {}
+    with running(config) as daemon, MavsdkAutopilot(link).running():
+        wait_until(lambda: linked(daemon), 30.0, "the MAVSDK airframe linked")
+        wait_until(lambda: ready(archive), 20.0, "telemetry with endurance")
+        mode = stat.S_IMODE(sock.stat().st_mode)
+        common = ("--task", "observe_point", "--airframe", "F26E-001", "--follow")
+        runs["in"] = order_cli(sock, *common, "--order-id", "OP-1", "--point", "65.85", "21.10")
+        runs["out"] = order_cli(sock, *common, "--order-id", "OP-2", "--point", "64.5", "21.0")
+        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as raw:
+            raw.settimeout(10)
+            raw.connect(str(sock))
+            raw.sendall(b"{not json\n")
+            garbage = raw.makefile("rb").readline()
+    return sock, runs, garbage, mode
+
+
+def test_an_operator_order_from_the_command_line_runs_to_completed(
+    by_operator: tuple[Path, dict[str, tuple[int, list[dict[str, Any]], str]], bytes, int],
+) -> None:
+    _, runs, _, mode = by_operator
+    code, lines, stderr = runs["in"]
+    assert code == 0, stderr
+    assert [line["status"] for line in lines] == ["received", "accepted", "executing", "completed"]
+    assert lines[0]["event_id"] == "local-order-OP-1"
+    assert {line["airframe"] for line in lines[1:]} == {"F26E-001"}
+    assert mode == 0o600  # only the daemon's user (and root) may task the fleet
+
+
+def test_an_operator_order_outside_the_fence_is_rejected_with_its_reason(
+    by_operator: tuple[Path, dict[str, tuple[int, list[dict[str, Any]], str]], bytes, int],
+) -> None:
+    _, runs, garbage, _ = by_operator
+    code, lines, _ = runs["out"]
+    assert code == 1
+    assert [line["status"] for line in lines] == ["received", "rejected"]
+    assert lines[-1]["check"] == "geofence"
+    assert lines[-1]["reason"].startswith("the route leaves the geofence at 64.5")
+    assert json.loads(garbage) == {"status": "rejected", "reason": "order: not JSON"}

@@ -1,0 +1,483 @@
+"""Processor ``orders``: the acceptance checks, the translation, and the statuses it reports.
+
+The airframe side is an in-memory ``AirframeCommander`` that records every call: a unit test
+of the processor's decisions. The same processor against MAVSDK through ``fischer-gateway
+run`` is tests/e2e/test_orders_run.py.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from datetime import UTC, datetime, timedelta
+from pathlib import Path
+from typing import Any, Literal
+
+import anyio
+import numpy as np
+import pytest
+
+from gateway.domain.mission import MissionItem, Outcome
+from gateway.domain.terrain import DemSource, TerrainModel
+from gateway.events import (
+    Event,
+    FiveLineOrder,
+    OrderArea,
+    OrderState,
+    OrderStatus,
+    OrderTask,
+    Position,
+    Telemetry,
+    Track,
+    event_adapter,
+)
+from gateway.flow.tasking import AirframeCommander, MissionListener, TaskingProcessor
+from processors._orderplan import Limits, Plan, Refusal, check, plan
+from processors.orders import OrdersConfig, OrdersProcessor
+
+NOW = datetime(2026, 11, 22, 12, 0, tzinfo=UTC)
+HERE = (65.83, 21.00)
+FENCE = [
+    {"lat_deg": 65.0, "lon_deg": 20.0},
+    {"lat_deg": 65.0, "lon_deg": 24.0},
+    {"lat_deg": 67.0, "lon_deg": 24.0},
+    {"lat_deg": 67.0, "lon_deg": 20.0},
+]
+
+
+class Commander:
+    """Records what the processor asks of the airframe side; answers as told."""
+
+    def __init__(self, *, linked: bool = True, upload_ok: bool = True, ack: bool = True) -> None:
+        self.linked = linked
+        self.upload_ok = upload_ok
+        self.ack = ack
+        self.uploads: list[tuple[str, list[MissionItem]]] = []
+        self.commands: list[tuple[str, int, tuple[float, ...]]] = []
+        self.listeners: list[MissionListener] = []
+
+    def is_known(self, airframe: str) -> bool:
+        return airframe == "F26E-001"
+
+    def is_linked(self, airframe: str) -> bool:
+        return self.linked
+
+    def home(self, airframe: str) -> tuple[float, float] | None:
+        return HERE
+
+    async def command(
+        self,
+        airframe: str,
+        command: int,
+        params: Sequence[float],
+        *,
+        timeout_s: float,
+        retries: int,
+    ) -> Outcome:
+        self.commands.append((airframe, command, tuple(params)))
+        if self.ack:
+            return Outcome(True, "MAV_RESULT_ACCEPTED")
+        return Outcome(False, f"no COMMAND_ACK for command {command} after {retries + 1} attempts")
+
+    async def upload_mission(
+        self, airframe: str, items: Sequence[MissionItem], *, timeout_s: float, retries: int
+    ) -> Outcome:
+        self.uploads.append((airframe, list(items)))
+        return Outcome(
+            self.upload_ok, "MAV_MISSION_ACCEPTED" if self.upload_ok else "MAV_MISSION_DENIED"
+        )
+
+    def on_mission(self, listener: MissionListener) -> None:
+        self.listeners.append(listener)
+
+    def progress(self, what: Literal["current", "reached"], seq: int) -> None:
+        for listener in self.listeners:
+            listener("F26E-001", what, seq)
+
+
+def telemetry(
+    *, battery_pct: float | None = 80.0, alt: float = 500.0, armed: bool = True
+) -> Telemetry:
+    endurance = None if battery_pct is None else 60 * 800 * battery_pct / 100 / 415
+    return Telemetry(
+        event_id="t",
+        airframe="F26E-001",
+        time=NOW,
+        position=Position(lat_deg=HERE[0], lon_deg=HERE[1], alt_msl_m=alt),
+        battery_pct=battery_pct,
+        endurance_remaining_min=endurance,
+        is_armed=armed,
+    )
+
+
+def order(
+    order_id: str = "O-1",
+    *,
+    task: OrderTask = OrderTask.OBSERVE_POINT,
+    at: tuple[float, float] = (65.85, 21.10),
+    polygon: Sequence[tuple[float, float]] = (),
+    airframe: str | None = "F26E-001",
+    **extra: Any,
+) -> FiveLineOrder:
+    area = (
+        OrderArea(polygon=tuple(Position(lat_deg=a, lon_deg=b) for a, b in polygon))
+        if polygon
+        else OrderArea(point=Position(lat_deg=at[0], lon_deg=at[1]))
+    )
+    return FiveLineOrder(
+        event_id=f"slb-order-{order_id}",
+        order_id=order_id,
+        source="brigade-slb",
+        time=NOW,
+        airframe=airframe,
+        task=task,
+        location=area,
+        **extra,
+    )
+
+
+def limits(**changes: Any) -> Limits:
+    base: dict[str, Any] = {
+        "cruise_speed_mps": 25.0,
+        "reserve_min": 10.0,
+        "time_on_task_s": 600.0,
+        "loiter_radius_m": 300.0,
+        "clearance_m": 0.0,
+        "baro_sigma_m": 0.5,
+        "fence": tuple((c["lat_deg"], c["lon_deg"]) for c in FENCE),
+    }
+    return Limits(**{**base, **changes})
+
+
+def hill_terrain(tmp_path: Path, tile: str = "N65E021") -> TerrainModel:
+    grid = np.full((1201, 1201), 100, dtype=">i2")
+    grid[60:121, 480:541] = 650
+    (tmp_path / f"{tile}.hgt").write_bytes(grid.tobytes())
+    return TerrainModel([DemSource("srtm", tmp_path, "hgt", 5.0)])
+
+
+class TestPlan:
+    def test_observe_point_is_a_waypoint_then_a_timed_loiter_at_the_current_altitude(self) -> None:
+        got = plan(order(), telemetry(), None, limits())
+        assert isinstance(got, Plan)
+        assert [i.command for i in got.items] == [16, 19]
+        assert got.items[1].params[0] == 600.0
+        assert got.items[1].params[2] == 300.0
+        assert {i.alt_msl_m for i in got.items} == {500.0}
+        assert got.route == (HERE, (65.85, 21.10), HERE)
+
+    def test_an_area_is_flown_round_its_perimeter(self) -> None:
+        corners = [(65.84, 21.02), (65.84, 21.06), (65.86, 21.06)]
+        got = plan(order(task=OrderTask.RECON_AREA, polygon=corners), telemetry(), None, limits())
+        assert isinstance(got, Plan)
+        assert [(i.lat_deg, i.lon_deg) for i in got.items] == [*corners, corners[0]]
+
+    def test_return_to_base_is_no_mission(self) -> None:
+        got = plan(order(task=OrderTask.RETURN_TO_BASE), telemetry(), (65.9, 21.2), limits())
+        assert isinstance(got, Plan)
+        assert got.is_return
+        assert got.route == (HERE, (65.9, 21.2))
+
+    def test_the_altitude_the_order_gives_is_commanded(self) -> None:
+        area = OrderArea(point=Position(lat_deg=65.85, lon_deg=21.1, alt_msl_m=720.0))
+        got = plan(order().model_copy(update={"location": area}), telemetry(), None, limits())
+        assert isinstance(got, Plan)
+        assert {i.alt_msl_m for i in got.items} == {720.0}
+
+
+class TestChecks:
+    def test_within_everything_passes(self, tmp_path: Path) -> None:
+        got = plan(order(), telemetry(), None, limits())
+        assert isinstance(got, Plan)
+        assert check(got, telemetry(), hill_terrain(tmp_path), limits()) is None
+
+    def test_out_of_endurance_names_the_minutes(self) -> None:
+        far = plan(order(at=(66.95, 23.95)), telemetry(), None, limits())
+        assert isinstance(far, Plan)
+        refusal = check(far, telemetry(), None, limits())
+        assert isinstance(refusal, Refusal)
+        assert refusal.check == "endurance"
+        have = telemetry().endurance_remaining_min
+        assert have is not None
+        assert refusal.reason.endswith(f"has {have:.1f} min")
+        assert "+ reserve 10 min" in refusal.reason
+
+    def test_the_return_leg_counts(self) -> None:
+        """Out and back fits only without the way home: the order is refused."""
+        near = plan(order(at=(66.3, 21.0)), telemetry(battery_pct=60.0), None, limits())
+        assert isinstance(near, Plan)
+        one_way_min = 52_400 / 25 / 60  # about 52 km to the point
+        have = telemetry(battery_pct=60.0).endurance_remaining_min
+        assert have is not None
+        assert one_way_min + 10 + 10 < have < 2 * one_way_min + 10 + 10
+        refusal = check(near, telemetry(battery_pct=60.0), None, limits())
+        assert isinstance(refusal, Refusal)
+        assert refusal.check == "endurance"
+
+    def test_no_battery_state_is_refused(self) -> None:
+        got = plan(order(), telemetry(battery_pct=None), None, limits())
+        assert isinstance(got, Plan)
+        refusal = check(got, telemetry(battery_pct=None), None, limits())
+        assert refusal == Refusal("endurance", "F26E-001 reports no battery state")
+
+    def test_outside_the_fence_names_the_point(self) -> None:
+        got = plan(order(at=(64.5, 21.0)), telemetry(), None, limits())
+        assert isinstance(got, Plan)
+        refusal = check(got, telemetry(), None, limits())
+        assert refusal == Refusal(
+            "geofence", "the route leaves the geofence at 64.50000, 21.00000 (lat, lon)"
+        )
+
+    def test_below_the_terrain_floor_names_floor_ground_and_sigma(self, tmp_path: Path) -> None:
+        got = plan(order(at=(65.925, 21.425)), telemetry(), None, limits())
+        assert isinstance(got, Plan)
+        refusal = check(got, telemetry(), hill_terrain(tmp_path), limits())
+        assert isinstance(refusal, Refusal)
+        assert refusal.check == "terrain"
+        assert "ground 650.0 m" in refusal.reason
+        sigma = (0.5**2 + 5.0**2) ** 0.5
+        assert f"below the floor {650 + 3 * sigma:.1f} m MSL" in refusal.reason
+        assert "ground 650.0 m" in refusal.reason
+
+    def test_the_loiter_circle_is_checked_too(self, tmp_path: Path) -> None:
+        """A point just beside the hill: the circle round it crosses the high ground."""
+        beside = plan(order(at=(65.925, 21.452)), telemetry(), None, limits())
+        assert isinstance(beside, Plan)
+        refusal = check(beside, telemetry(), hill_terrain(tmp_path), limits())
+        assert isinstance(refusal, Refusal)
+        assert refusal.check == "terrain"
+
+    def test_where_no_dem_covers_there_is_no_terrain_check(self, tmp_path: Path) -> None:
+        got = plan(order(), telemetry(alt=10.0), None, limits())
+        assert isinstance(got, Plan)
+        elsewhere = hill_terrain(tmp_path, "N64E021")
+        assert check(got, telemetry(alt=10.0), elsewhere, limits()) is None
+        assert check(got, telemetry(alt=10.0), hill_terrain(tmp_path), limits()) is not None
+
+    def test_the_inbound_leg_is_checked(self, tmp_path: Path) -> None:
+        """The point is clear of the hill, the way there crosses it."""
+        got = plan(order(at=(66.05, 21.85)), telemetry(), None, limits())
+        assert isinstance(got, Plan)
+        refusal = check(got, telemetry(), hill_terrain(tmp_path), limits())
+        assert isinstance(refusal, Refusal)
+        assert refusal.check == "terrain"
+        assert "ground 650.0 m" in refusal.reason
+
+
+async def run_orders(
+    commander: Commander,
+    events: Sequence[Event],
+    *,
+    options: dict[str, Any] | None = None,
+    after: Any = None,
+    until: Any = None,
+) -> list[OrderStatus]:
+    """Feed ``events``; call ``after(commander)``; wait for ``until(statuses)``; statuses."""
+    config = OrdersConfig.model_validate({"geofence": FENCE, **(options or {})})
+    processor = OrdersProcessor("orders", config, clock=lambda: NOW)
+    assert isinstance(processor, TaskingProcessor)
+    assert isinstance(commander, AirframeCommander)
+    processor.attach(commander, None, 0.5)
+    published: list[OrderStatus] = []
+    changed = anyio.Event()
+
+    def publish(event: Event) -> bool:
+        nonlocal changed
+        assert isinstance(event, OrderStatus)
+        published.append(event)
+        changed.set()
+        changed = anyio.Event()
+        return True
+
+    send, receive = anyio.create_memory_object_stream[Event](100)
+    with anyio.fail_after(10):
+        async with anyio.create_task_group() as tg:
+            await tg.start(processor.run, receive, publish)
+            for event in events:
+                await send.send(event)
+            if after is not None:
+                while not any(s.status is OrderState.EXECUTING for s in published):
+                    await changed.wait()
+                after(commander)
+            while not (until or (lambda s: len(s) >= 1))(published):
+                await changed.wait()
+            await send.aclose()
+    receive.close()
+    return published
+
+
+def states(published: Sequence[OrderStatus], order_id: str = "O-1") -> list[str]:
+    return [s.status.value for s in published if s.order_id == order_id]
+
+
+@pytest.mark.anyio
+class TestProcessor:
+    async def test_an_accepted_point_order_runs_to_completed(self) -> None:
+        commander = Commander()
+
+        def fly(c: Commander) -> None:
+            c.progress("current", 0)
+            c.progress("reached", 0)
+            c.progress("current", 1)
+            c.progress("reached", 1)
+
+        published = await run_orders(
+            commander,
+            [telemetry(), order()],
+            after=fly,
+            until=lambda s: any(x.status is OrderState.COMPLETED for x in s),
+        )
+        assert states(published) == ["accepted", "executing", "completed"]
+        ((airframe, items),) = commander.uploads
+        assert airframe == "F26E-001"
+        assert [i.command for i in items] == [16, 19]
+        assert commander.commands == [("F26E-001", 176, (1.0, 4.0, 4.0))]
+        assert published[-1].event_id == "slb-order-O-1-completed"
+        assert published[-1].source == "brigade-slb"
+        assert published[-1].current_item == 1
+
+    async def test_mavlink_mode_commands_start_the_mission_with_mission_start(self) -> None:
+        commander = Commander()
+        await run_orders(
+            commander,
+            [telemetry(), order()],
+            options={"mode_commands": "mavlink"},
+            until=lambda s: any(x.status is OrderState.EXECUTING for x in s),
+        )
+        assert commander.commands == [("F26E-001", 300, (0.0, 1.0))]
+
+    async def test_a_rejected_order_sends_nothing(self) -> None:
+        commander = Commander()
+        published = await run_orders(commander, [telemetry(), order(at=(64.5, 21.0))])
+        assert states(published) == ["rejected"]
+        assert published[0].check == "geofence"
+        assert commander.uploads == []
+        assert commander.commands == []
+
+    async def test_an_unknown_airframe_is_rejected_by_name(self) -> None:
+        published = await run_orders(Commander(), [telemetry(), order(airframe="F26E-404")])
+        assert (published[0].check, published[0].reason) == (
+            "airframe",
+            "F26E-404 is not an airframe of this node",
+        )
+
+    async def test_an_airframe_without_a_link_is_rejected(self) -> None:
+        published = await run_orders(Commander(linked=False), [telemetry(), order()])
+        assert (published[0].check, published[0].reason) == ("link", "F26E-001 has no active link")
+
+    async def test_an_order_whose_window_ended_is_rejected(self) -> None:
+        late = order(not_after=NOW - timedelta(minutes=1))
+        published = await run_orders(Commander(), [telemetry(), late])
+        assert published[0].check == "window"
+
+    async def test_an_order_for_any_airframe_takes_one_that_reports(self) -> None:
+        commander = Commander()
+        published = await run_orders(
+            commander,
+            [telemetry(), order(airframe=None)],
+            until=lambda s: any(x.status is OrderState.EXECUTING for x in s),
+        )
+        assert {s.airframe for s in published} == {"F26E-001"}
+
+    async def test_a_refused_mission_fails_the_order_and_starts_nothing(self) -> None:
+        commander = Commander(upload_ok=False)
+        published = await run_orders(
+            commander,
+            [telemetry(), order()],
+            until=lambda s: any(x.status is OrderState.FAILED for x in s),
+        )
+        assert states(published) == ["accepted", "failed"]
+        assert published[-1].reason == "mission upload: MAV_MISSION_DENIED"
+        assert commander.commands == []
+
+    async def test_an_unacknowledged_command_fails_the_order(self) -> None:
+        published = await run_orders(
+            Commander(ack=False),
+            [telemetry(), order()],
+            until=lambda s: any(x.status is OrderState.FAILED for x in s),
+        )
+        assert published[-1].check == "command"
+        assert published[-1].reason == "no COMMAND_ACK for command 176 after 3 attempts"
+
+    async def test_a_newer_order_supersedes_the_running_one(self) -> None:
+        commander = Commander()
+        published = await run_orders(
+            commander,
+            [telemetry(), order("O-1"), order("O-2", at=(65.86, 21.12))],
+            until=lambda s: (
+                any(x.status is OrderState.FAILED for x in s)
+                and any(x.order_id == "O-2" and x.status is OrderState.EXECUTING for x in s)
+            ),
+        )
+        assert states(published, "O-1")[-1] == "failed"
+        assert [s.reason for s in published if s.status is OrderState.FAILED] == [
+            "superseded by order O-2"
+        ]
+        assert len(commander.uploads) == 2
+
+    async def test_return_to_base_completes_once_disarmed(self) -> None:
+        commander = Commander()
+        rtb = order(task=OrderTask.RETURN_TO_BASE)
+        published = await run_orders(
+            commander,
+            [telemetry(), rtb, telemetry(armed=False)],
+            until=lambda s: any(x.status is OrderState.COMPLETED for x in s),
+        )
+        assert states(published) == ["accepted", "executing", "completed"]
+        assert commander.uploads == []
+        assert commander.commands == [("F26E-001", 176, (1.0, 4.0, 5.0))]
+
+    async def test_the_same_order_twice_is_answered_once(self) -> None:
+        published = await run_orders(
+            Commander(linked=False),
+            [telemetry(), order(), order(), order("O-3")],
+            until=lambda s: len(s) >= 2,
+        )
+        assert [s.order_id for s in published] == ["O-1", "O-3"]
+
+
+def test_order_status_round_trips_as_json() -> None:
+    status = OrderStatus(
+        event_id="slb-order-X-rejected",
+        order_event_id="slb-order-X",
+        order_id="X",
+        source="brigade-slb",
+        time=NOW,
+        status=OrderState.REJECTED,
+        check="terrain",
+        reason="commanded 500.0 m MSL is below the floor",
+    )
+    assert event_adapter.validate_json(status.model_dump_json()) == status
+
+
+def test_a_fence_of_two_corners_is_a_config_error() -> None:
+    with pytest.raises(ValueError, match="at least 3"):
+        OrdersConfig.model_validate({"geofence": FENCE[:2]})
+    with pytest.raises(ValueError, match=r"airframe_geofences\.F26E-001"):
+        OrdersConfig.model_validate({"airframe_geofences": {"F26E-001": FENCE[:2]}})
+
+
+@pytest.mark.anyio
+async def test_track_target_naming_a_live_track_flies_to_the_track() -> None:
+    commander = Commander()
+    seen = Track.model_validate(
+        {
+            "event_id": "T-7-1",
+            "track_id": "T-7",
+            "time": NOW,
+            "object_class": "tank",
+            "confidence": 0.9,
+            "position": {"lat_deg": 65.87, "lon_deg": 21.15},
+            "cep50_m": 10.0,
+            "cep90_m": 20.0,
+            "first_seen": NOW,
+            "last_seen": NOW,
+        }
+    )
+    tasked = order(task=OrderTask.TRACK_TARGET, track_id="T-7")
+    await run_orders(
+        commander,
+        [telemetry(), seen, tasked],
+        until=lambda s: any(x.status is OrderState.EXECUTING for x in s),
+    )
+    ((_, items),) = commander.uploads
+    assert {(i.lat_deg, i.lon_deg) for i in items} == {(65.87, 21.15)}
