@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import shutil
 from collections import deque
 from dataclasses import dataclass
@@ -30,11 +31,13 @@ from gateway.codecs.ra180 import Cdm
 from gateway.codecs.ra180_voice import announcement
 from gateway.ops.logsetup import RateLimit
 
-__all__ = ["Voice", "VoiceCounts", "VoiceSettings", "prune"]
+__all__ = ["ANNOUNCEMENT_NAME", "Voice", "VoiceCounts", "VoiceSettings", "prune"]
 
 log = structlog.get_logger(__name__)
 
 _MISSING = "not found on PATH: install the Debian package espeak-ng"
+#: The names this voice gives its files; ``prune`` removes nothing else from the directory.
+ANNOUNCEMENT_NAME = re.compile(r"^\d{8}T\d{12}Z-\d{6}-NR\d{4}-(?:MAL|UPPD)\.wav$")
 
 
 @dataclass(frozen=True, slots=True)
@@ -63,13 +66,18 @@ class VoiceCounts:
 
 
 def prune(directory: Path, max_files: int, max_bytes: int) -> int:
-    """Remove the oldest ``*.wav`` files until at most ``max_files`` and ``max_bytes`` remain.
+    """Remove the oldest announcements until at most ``max_files`` and ``max_bytes`` remain.
 
-    Oldest by name (names start with the UTC time they were written). Returns how many were
-    removed; files that vanish meanwhile are skipped. Blocking: run it in a worker thread.
+    Only files named as this voice names them (``ANNOUNCEMENT_NAME``) are counted or removed:
+    the directory may be shared with other audio (a player's folder), which is not ours to
+    delete. Oldest by name (names start with the UTC time they were written). Returns how
+    many were removed; files that vanish meanwhile are skipped. Blocking: run it in a worker
+    thread.
     """
     files = []
     for path in directory.glob("*.wav"):
+        if not ANNOUNCEMENT_NAME.match(path.name):
+            continue
         try:
             files.append((path.name, path, path.stat().st_size))
         except OSError:

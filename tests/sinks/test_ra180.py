@@ -293,14 +293,13 @@ class TestVoice:
             assert sink.status()["voice"]["state"] == "unavailable"
 
     def test_the_directory_is_kept_to_its_caps_oldest_first(self, tmp_path: Path) -> None:
-        for n in range(6):
-            (tmp_path / f"2026112{n}-x.wav").write_bytes(b"x" * 1000)
+        names = [f"2026112{n}T203421920410Z-00000{n}-NR000{n}-MAL.wav" for n in range(6)]
+        for name in names:
+            (tmp_path / name).write_bytes(b"x" * 1000)
+        (tmp_path / "0000-not-ours.wav").write_bytes(b"x" * 1000)
         assert prune(tmp_path, max_files=4, max_bytes=10_000) == 2
         assert prune(tmp_path, max_files=10, max_bytes=2_500) == 2
-        assert sorted(p.name for p in tmp_path.glob("*.wav")) == [
-            "20261124-x.wav",
-            "20261125-x.wav",
-        ]
+        assert sorted(p.name for p in tmp_path.glob("*.wav")) == ["0000-not-ours.wav", *names[4:]]
 
 
 class TestBudgetOnTheWire:
