@@ -48,7 +48,7 @@ from gateway.errors import PermanentSinkError
 from gateway.events import Event, EventKind, Track
 from gateway.ops.logsetup import RateLimit
 from gateway.transports.serial import SerialWriter, is_supported_baud
-from gateway.transports.udp import DatagramSender
+from gateway.transports.udp_peer import UdpPeer
 from sinks._ra180_budget import Budget, Outgoing
 from sinks._ra180_voice import Voice, VoiceSettings
 
@@ -204,8 +204,10 @@ class _Radio(Protocol):
 
 
 class _UdpRadio:
+    # A connected socket: a gateway that is not listening (ICMP port unreachable) is an
+    # OSError here, so the message stays held and is sent again, rather than lost unseen.
     def __init__(self, config: Ra180UdpConfig) -> None:
-        self._sender = DatagramSender(config.host, config.port)
+        self._sender = UdpPeer(config.host, config.port)
         self.describe = f"udp://{config.host}:{config.port}"
 
     async def send(self, frame: bytes) -> None:

@@ -178,6 +178,8 @@ class TestUdp:
                 with anyio.fail_after(10):
                     await anyio.wait_readable(peer)
                 datagram = peer.recv(1024)
+                # Counted sent once no refusal came back (gateway.transports.udp_peer).
+                await wait_for(lambda: sink.status()["sent"] == 1, "counted sent")
             assert datagram.decode("ascii") == expected_text(track())
             assert parse_cdm(datagram.decode()).type == "MAL"
             detail = sink.status()
