@@ -21,6 +21,7 @@ from __future__ import annotations
 import math
 import os
 import random
+import re
 import shutil
 from collections.abc import Sequence
 from pathlib import Path
@@ -231,6 +232,11 @@ class _SerialRadio:
         self._port.close()
 
 
+def _is_known_class(name: str) -> bool:
+    """True for an object class a track can have (``gateway.fleet.normalise`` names them)."""
+    return name in CLASS_ABBREVIATIONS or re.fullmatch(r"class_\d+", name) is not None
+
+
 def _make_radio(config: Ra180SinkConfig) -> _Radio:
     if config.udp is not None:
         return _UdpRadio(config.udp)
@@ -289,6 +295,14 @@ class Ra180Sink:
         serial = self.config.serial
         if serial is not None and not os.path.exists(serial.device):
             notes.append(f"{serial.device} does not exist now; messages wait for it")
+        unknown = [name for name in self.config.abbreviations if not _is_known_class(name)]
+        if unknown:
+            known = ", ".join(c for c in CLASS_ABBREVIATIONS if c != "other") + " and other"
+            notes.append(
+                f"abbreviations for {', '.join(map(repr, unknown))}: no track has such a class "
+                f"(the classes are {known}, which stands for any class not listed, or class_N "
+                "for a number the fleet does not name), so the entry is never used"
+            )
         voice = self.config.voice
         if voice is not None and shutil.which(voice.program) is None:
             notes.append(

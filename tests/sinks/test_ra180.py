@@ -136,6 +136,7 @@ class TestConfig:
             "    options:\n"
             f"      serial: {{device: '{tmp_path / 'ttyNONE'}'}}\n"
             f"      voice: {{directory: '{tmp_path}', program: no-such-espeak}}\n"
+            "      abbreviations: {tnak: T-72, tank: STRV, class_9: ROBOT}\n"
             "routes: [{sinks: [radio], kinds: [track]}]\n"
         )
         done = subprocess.run(
@@ -147,13 +148,14 @@ class TestConfig:
         )
         assert done.returncode == 0, done.stderr
         warnings = [line for line in done.stderr.splitlines() if line.endswith("(warning)")]
-        assert len(warnings) == 2
+        assert len(warnings) == 3
         assert all(
             line.startswith(f"{config}:6 sinks[0].options: sink 'radio': ") for line in warnings
         )
         assert "ttyNONE does not exist now; messages wait for it" in warnings[0]
-        assert "install" in warnings[1]
-        assert "espeak-ng" in warnings[1]
+        assert "abbreviations for 'tnak': no track has such a class" in warnings[1]  # a typo
+        assert "install" in warnings[2]
+        assert "espeak-ng" in warnings[2]
 
 
 class TestUdp:
