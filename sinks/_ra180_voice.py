@@ -145,6 +145,10 @@ class Voice:
     def _make_directory(self) -> None:
         try:
             self.settings.directory.mkdir(parents=True, exist_ok=True)
+            # Partial files of renderings a stopped gateway never finished: ours, unplayable.
+            for stale in self.settings.directory.glob(".*.wav.part"):
+                if ANNOUNCEMENT_NAME.match(stale.name[1 : -len(".part")]):
+                    _discard(stale)
         except OSError as exc:
             self._unavailable(f"cannot create {self.settings.directory}: {exc.strerror or exc}")
         else:
@@ -179,8 +183,11 @@ class Voice:
             self._unavailable(f"{s.program} {_MISSING}")
             self.counts.unavailable += 1
             return
-        except (OSError, TimeoutError) as exc:
-            await self._failed(f"{s.program}: {type(exc).__name__}: {exc}", partial)
+        except TimeoutError:
+            await self._failed(f"{s.program} did not finish within {s.timeout_s:g} s", partial)
+            return
+        except OSError as exc:
+            await self._failed(f"{s.program}: {exc.strerror or exc}", partial)
             return
         if done.returncode != 0:
             detail = done.stderr.decode(errors="replace").strip()[:200]

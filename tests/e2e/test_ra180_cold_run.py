@@ -6,6 +6,8 @@ is not as the config assumed.
   ``waiting for radio`` and send the ``MAL`` once the gateway listens.
 - The voice directory is shared with other audio (a player's folder): keeping it to
   ``max_files`` removes only the announcements, never the other WAV files.
+- The synthesiser hangs: the messages still go out, the rendering is killed at its deadline
+  and counted with a clear reason; partial files a stopped gateway left are removed.
 
 One airframe on loopback UDP reports a tank (a hostile class); the ``fusion`` processor
 makes the track and routes it to the ``ra180`` sink.
@@ -114,3 +116,27 @@ def test_keeping_a_shared_voice_directory_small_removes_only_announcements(
     assert len(ours) == 1
     assert ours[0].name.endswith("-NR0001-MAL.wav")
     assert all(path.read_bytes() == b"RIFF not ours" for path in theirs)
+
+
+def test_a_hanging_synthesiser_neither_holds_the_net_nor_leaves_files(tmp_path: Path) -> None:
+    hanging = tmp_path / "espeak-ng"
+    hanging.write_text("#!/bin/sh\nexec sleep 600\n")
+    hanging.chmod(0o755)
+    directory = tmp_path / "voice"
+    directory.mkdir()
+    stale = directory / ".20261125T203421920410Z-000001-NR0001-MAL.wav.part"  # a crash's
+    stale.write_bytes(b"RIFF")
+    voice = f"      voice: {{directory: '{directory}', program: '{hanging}', timeout_s: 1}}"
+    link = free_udp_port()
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as radio:
+        radio.bind(("127.0.0.1", 0))
+        radio.settimeout(30)
+        config = write_config(tmp_path, link, radio.getsockname()[1], voice)
+        with running(config) as daemon:
+            report_a_tank(link)
+            assert radio.recv(1024).startswith(b"MAL FIENDE STRV ")
+            wait_until(lambda: detail(daemon)["voice"]["failed"] == 1, 30, "the deadline")
+            final = detail(daemon)["voice"]
+    assert final["reason"] == f"{hanging} did not finish within 1 s"
+    assert final["rendered"] == 0
+    assert list(directory.iterdir()) == []
