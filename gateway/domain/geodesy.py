@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 import re
+import warnings
 from dataclasses import dataclass
 from typing import Literal
 
@@ -132,7 +133,8 @@ def from_mgrs(text: str) -> MgrsRef:
     """Decode a 1, 10 or 100 m MGRS reference to its cell centre.
 
     Spaces and lower case are accepted. Raises ``MgrsError`` naming the input for a
-    malformed reference, one of another precision, or a polar (UPS) reference.
+    malformed reference, one of another precision, a polar (UPS) reference, or one whose
+    100 km square is not in its latitude band (which the mgrs package decodes, warning).
     """
     compact = re.sub(r"\s+", "", text).upper()
     if _UPS_PATTERN.match(compact):
@@ -144,7 +146,13 @@ def from_mgrs(text: str) -> MgrsRef:
     if digits not in (3, 4, 5):
         raise MgrsError(f"expected 3 to 5 digits each for easting and northing in {text!r}")
     try:
-        lat, lon = _CONVERTER.toLatLon(compact)
+        with warnings.catch_warnings():
+            # The package decodes a square outside its latitude band with a RuntimeWarning
+            # ("Latitude Warning") and a point elsewhere: that reference is malformed.
+            warnings.simplefilter("error", RuntimeWarning)
+            lat, lon = _CONVERTER.toLatLon(compact)
+    except RuntimeWarning:
+        raise MgrsError(f"{text!r}: the grid square is not in its band") from None
     except (mgrs.core.MGRSError, ValueError) as exc:
         raise MgrsError(f"not a valid MGRS reference: {text!r} ({exc})") from exc
     precision = 10 ** (5 - digits)

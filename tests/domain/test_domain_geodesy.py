@@ -169,3 +169,10 @@ def test_distance_on_a_meridian_is_the_ellipsoid_arc() -> None:
     distance, bearing = distance_bearing(59.5, 15.0, 60.5, 15.0)
     assert distance == pytest.approx(111_412.2, abs=1.0)
     assert bearing == pytest.approx(0.0, abs=1e-9)
+
+
+def test_a_reference_outside_its_latitude_band_is_refused_not_warned_through() -> None:
+    # Zone 4, band N, square AA: the mgrs package decodes it with a RuntimeWarning ("Latitude
+    # Warning") to a point outside band N; an order or a CDM naming it is malformed.
+    with pytest.raises(MgrsError, match="'4NAA 6602 0000': the grid square is not in its band"):
+        from_mgrs("4NAA 6602 0000")
