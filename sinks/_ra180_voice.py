@@ -126,21 +126,37 @@ class Voice:
         return len(self._queue)
 
     async def run(self) -> None:
-        """Render queued announcements until cancelled."""
-        program = shutil.which(self.settings.program)
-        if program is None:
-            self._unavailable(f"{self.settings.program} {_MISSING}")
-        else:
-            await anyio.to_thread.run_sync(self._make_directory)
+        """Render queued announcements until cancelled.
+
+        While unavailable (no synthesiser on ``PATH``, no directory), each announcement looks
+        again first, so installing espeak-ng on a running node brings the voice back.
+        """
+        program = await self._find()
         while True:
             while not self._queue:
                 await self._wake.wait()
                 self._wake = anyio.Event()
             cdm = self._queue.popleft()
             if program is None or self.state == "unavailable":
+                program = await self._find()
+            if program is None:
                 self.counts.unavailable += 1
                 continue
             await self._render(program, cdm)
+
+    async def _find(self) -> str | None:
+        """The synthesiser's path with the directory made, or None (and ``unavailable``)."""
+        program = shutil.which(self.settings.program)
+        if program is None:
+            self._unavailable(f"{self.settings.program} {_MISSING}")
+            return None
+        was_unavailable = self.state == "unavailable"
+        await anyio.to_thread.run_sync(self._make_directory)
+        if self.state != "ready":
+            return None
+        if was_unavailable:
+            self.log.info("ra180_voice_ready", program=program)
+        return program
 
     def _make_directory(self) -> None:
         try:
@@ -152,7 +168,7 @@ class Voice:
         except OSError as exc:
             self._unavailable(f"cannot create {self.settings.directory}: {exc.strerror or exc}")
         else:
-            self.state = "ready"
+            self.state, self.reason = "ready", ""
 
     async def _failed(self, reason: str, partial: Path) -> None:
         self.counts.failed += 1
@@ -162,8 +178,9 @@ class Voice:
         await anyio.to_thread.run_sync(_discard, partial)
 
     def _unavailable(self, reason: str) -> None:
+        if (self.state, self.reason) != ("unavailable", reason):  # logged once, not per try
+            self.log.warning("ra180_voice_unavailable", reason=reason)
         self.state, self.reason = "unavailable", reason
-        self.log.warning("ra180_voice_unavailable", reason=reason)
 
     async def _render(self, program: str, cdm: Cdm) -> None:
         s = self.settings

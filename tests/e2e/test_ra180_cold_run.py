@@ -8,6 +8,8 @@ is not as the config assumed.
   ``max_files`` removes only the announcements, never the other WAV files.
 - The synthesiser hangs: the messages still go out, the rendering is killed at its deadline
   and counted with a clear reason; partial files a stopped gateway left are removed.
+- espeak-ng is installed while the gateway runs: the next new target is spoken, without a
+  restart, and the unavailability was logged once.
 
 One airframe on loopback UDP reports a tank (a hostile class); the ``fusion`` processor
 makes the track and routes it to the ``ra180`` sink.
@@ -17,6 +19,7 @@ from __future__ import annotations
 
 import shutil
 import socket
+import time
 from pathlib import Path
 from typing import Any
 
@@ -24,6 +27,7 @@ import pytest
 from daemon_support import Airframe, Daemon, free_udp_port, running, wait_until
 
 from gateway.codecs.ra180 import parse_cdm
+from gateway.fleet.dialect import fischer_detection
 
 pytestmark = pytest.mark.timeout(90)
 
@@ -140,3 +144,53 @@ def test_a_hanging_synthesiser_neither_holds_the_net_nor_leaves_files(tmp_path: 
     assert final["reason"] == f"{hanging} did not finish within 1 s"
     assert final["rendered"] == 0
     assert list(directory.iterdir()) == []
+
+
+def test_espeak_installed_while_running_brings_the_voice_back(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    espeak = shutil.which("espeak-ng")
+    if espeak is None:
+        pytest.skip("espeak-ng is not installed (Debian package espeak-ng)")
+    path = tmp_path / "bin"  # the daemon's PATH: empty until the package is "installed"
+    path.mkdir()
+    monkeypatch.setenv("PATH", str(path))
+    directory = tmp_path / "voice"
+    link = free_udp_port()
+    airframe = Airframe(1)
+    with (
+        socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as radio,
+        socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock,
+    ):
+        radio.bind(("127.0.0.1", 0))
+        radio.settimeout(30)
+        config = write_config(
+            tmp_path, link, radio.getsockname()[1], f"      voice: {{directory: '{directory}'}}"
+        )
+        with running(config) as daemon:
+            sock.sendto(airframe.heartbeat(), ("127.0.0.1", link))
+            sock.sendto(airframe.detection(), ("127.0.0.1", link))
+            assert parse_cdm(radio.recv(1024).decode("ascii")).number == 1
+            wait_until(lambda: detail(daemon)["voice"]["unavailable"] == 1, 30, "unavailable")
+            (path / "espeak-ng").symlink_to(espeak)
+            far = fischer_detection(  # a second tank 5.5 km north: a new target
+                time_usec=round(time.time() * 1e6),
+                detection_id=99,
+                lat_e7=593_800_000,
+                lon_e7=181_000_000,
+                alt_msl_m=30.0,
+                sigma_h_m=8.0,
+                class_id=1,
+                sensor=1,
+                confidence_pct=91,
+                subtype="T-72",
+            )
+            sock.sendto(bytes(far.pack(airframe.mav)), ("127.0.0.1", link))
+            assert parse_cdm(radio.recv(1024).decode("ascii")).number == 2
+            wait_until(lambda: detail(daemon)["voice"]["rendered"] == 1, 60, "the voice back")
+            voice = detail(daemon)["voice"]
+            events = [line.get("event") for line in daemon.lines]
+    assert (voice["state"], voice["reason"], voice["unavailable"]) == ("ready", "", 1)
+    assert [p.name[-15:] for p in directory.glob("*.wav")] == ["-NR0002-MAL.wav"]
+    assert events.count("ra180_voice_unavailable") == 1
+    assert events.count("ra180_voice_ready") == 1
