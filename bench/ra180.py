@@ -7,8 +7,10 @@ through the sink's ``Budget.offer`` (the CDM composed, fitted and encoded, the m
 the held line) as fast as possible; the peer, in the same run, is the ``mgrs`` package
 converting the same positions (``MGRS().toMGRS``), the step of a CDM no code of ours does.
 Their ratio is the overhead of everything else (best of ``--rounds``, interleaved). The last
-row times ``next_due`` and ``sent`` (the head of the line, a heap) with ``--tracks``
-messages held: the cost per message transmitted.
+rows time ``next_due`` and ``sent`` (the head of the line, a heap) with ``--tracks``
+messages held: the cost per message transmitted; and ``offer`` of new tracks to a budget
+full at ``max_tracks`` with every track holding a message (each newcomer makes room:
+the least important held message gives way, a second heap).
 """
 
 from __future__ import annotations
@@ -112,6 +114,16 @@ def main() -> None:
         picks += 1
     scan_s = (time.perf_counter() - started) / picks
 
+    full = budget(args.tracks)
+    for t in tracks:
+        full.offer(t)
+    newcomers = [t.model_copy(update={"track_id": f"N-{t.track_id}"}) for t in tracks]
+    started = time.perf_counter()
+    for t in newcomers:
+        full.offer(t)
+    full_s = (time.perf_counter() - started) / len(newcomers)
+    assert full.held == args.tracks
+
     print(f"# Ra 180 benchmark, {datetime.now(UTC):%Y-%m-%d %H:%M} UTC")
     machine = f"{cpu_model()}, {os.cpu_count()} cores (one used)"
     print(f"machine: {machine}, Python {platform.python_version()}")
@@ -125,6 +137,8 @@ def main() -> None:
         f"{ours_s / peer_s:.1f} |"
     )
     print(f"| `next_due` + `sent` with {n:,} held | {scan_s * 1e6:.0f} µs | {1 / scan_s:,.0f} | |")
+    row = f"| `offer` of a new track, {n:,} held (full) | {full_s * 1e6:.0f} µs"
+    print(f"{row} | {1 / full_s:,.0f} | |")
 
 
 if __name__ == "__main__":

@@ -106,6 +106,7 @@ class Outgoing:
 @dataclass(slots=True)
 class _Known:
     number: int
+    heard: int  # when last offered, in offers: the lower, the longer ago
     sent: tuple[float, float, str, str] | None = None  # lat, lon, class, hostility last sent
 
 
@@ -152,6 +153,13 @@ class Budget:
         self._known: OrderedDict[str, _Known] = OrderedDict()
         self._held: dict[str, Outgoing] = {}
         self._line: list[tuple[int, int, int, int, Outgoing]] = []
+        # The same held messages, least important first (a max-heap by negated order), and
+        # the tracks with nothing held, least recently heard first: a new track makes room
+        # in O(log n) even when every one of ``max_tracks`` tracks holds a message. Both are
+        # lazy: entries of sent, replaced, re-heard or forgotten tracks are skipped.
+        self._worst: list[tuple[int, int, int, int, Outgoing]] = []
+        self._idle: list[tuple[int, str]] = []
+        self._heard = 0
         self._pushes = 0
         self._seq = 0
         self._next_number = 1
@@ -176,14 +184,14 @@ class Budget:
         c.offered += 1
         if track.status == "lost":
             self._known.pop(track.track_id, None)
-            if self._held.pop(track.track_id, None) is not None:
+            if self._drop_held(track.track_id) is not None:
                 c.dropped_lost += 1
                 return "dropped_lost"
             return "not_reported"
         if track.hostility not in self.report:
             c.not_reported += 1
             # No longer what the net hears (say hostile → suspect): its waiting message goes.
-            if self._held.pop(track.track_id, None) is not None:
+            if self._drop_held(track.track_id) is not None:
                 c.superseded += 1
             return "not_reported"
         return self._place(track)
@@ -204,7 +212,7 @@ class Budget:
                 track.hostility,
             ):
                 c.suppressed += 1
-                if self._held.pop(track.track_id, None) is not None:
+                if self._drop_held(track.track_id) is not None:
                     c.superseded += 1  # a held update the track has since come back from
                 return "suppressed"
         message_type: MessageType = "MAL" if priority is Priority.NEW else "UPPD"
@@ -239,25 +247,47 @@ class Budget:
 
     def _remember(self, track: Track) -> _Known | None:
         """The track's state, made room for if new; None if every slot matters more."""
+        self._heard += 1
         known = self._known.get(track.track_id)
         if known is not None:
             self._known.move_to_end(track.track_id)
-            return known
-        if len(self._known) >= self.max_tracks and not self._forget_one(track):
-            return None
-        known = self._known[track.track_id] = _Known(self._number())
+            known.heard = self._heard
+        else:
+            if len(self._known) >= self.max_tracks and not self._forget_one(track):
+                return None
+            known = self._known[track.track_id] = _Known(self._number(), self._heard)
+        if track.track_id not in self._held:
+            self._push_idle(track.track_id, known)
         return known
+
+    def _push_idle(self, track_id: str, known: _Known) -> None:
+        heapq.heappush(self._idle, (known.heard, track_id))
+        if len(self._idle) > 2 * len(self._known) + 64:  # keep the stale entries bounded
+            self._idle = [(k.heard, tid) for tid, k in self._known.items() if tid not in self._held]
+            heapq.heapify(self._idle)
+
+    def _drop_held(self, track_id: str) -> Outgoing | None:
+        """Take ``track_id``'s held message away; the track, if still known, is idle now."""
+        item = self._held.pop(track_id, None)
+        known = self._known.get(track_id)
+        if item is not None and known is not None:
+            self._push_idle(track_id, known)
+        return item
 
     def _forget_one(self, track: Track) -> bool:
         # The least recently heard track with nothing waiting costs only the net's memory of
         # it (its next update is announced as new); only if every track has a message
         # waiting does the least important message give way, unless the newcomer's would
         # be less important still.
-        for track_id in self._known:
-            if track_id not in self._held:
+        while self._idle:
+            heard, track_id = heapq.heappop(self._idle)
+            known = self._known.get(track_id)
+            if known is not None and known.heard == heard and track_id not in self._held:
                 del self._known[track_id]
                 return True
-        worst = max(self._held.values(), key=Outgoing.order)
+        worst = self._least_important()
+        if worst is None:
+            return False  # max_tracks known and none idle or held: cannot happen
         if (Priority.NEW, _RANK.get(track.hostility, len(_RANK))) > worst.order()[:2]:
             return False
         del self._held[worst.track_id]
@@ -265,14 +295,27 @@ class Budget:
         self.counts.dropped_full += 1
         return True
 
+    def _least_important(self) -> Outgoing | None:
+        while self._worst:
+            item = self._worst[0][-1]
+            if self._held.get(item.track_id) is item:
+                return item
+            heapq.heappop(self._worst)
+        return None
+
     def _hold(self, item: Outgoing) -> None:
         """Put ``item`` in the line (a heap; entries of replaced or sent items are skipped)."""
         self._held[item.track_id] = item
         self._pushes += 1
         heapq.heappush(self._line, (*item.order(), self._pushes, item))
+        priority, rank, seq = item.order()
+        heapq.heappush(self._worst, (-priority, -rank, -seq, -self._pushes, item))
         if len(self._line) > 2 * len(self._held) + 64:  # keep the stale entries bounded
             self._line = [e for e in self._line if self._held.get(e[-1].track_id) is e[-1]]
             heapq.heapify(self._line)
+        if len(self._worst) > 2 * len(self._held) + 64:
+            self._worst = [e for e in self._worst if self._held.get(e[-1].track_id) is e[-1]]
+            heapq.heapify(self._worst)
 
     def _head(self) -> Outgoing | None:
         while self._line:
@@ -309,7 +352,7 @@ class Budget:
         known = self._known.get(item.track_id)
         if known is not None:
             known.sent = (item.lat_deg, item.lon_deg, item.object_class, item.hostility)
-        newer = self._held.pop(item.track_id, None)
+        newer = self._drop_held(item.track_id)
         if newer is not None and newer is not item:
             # Offered while this one was on its way: weigh it again against what the net now
             # knows (a new target's second message is an update, or a repeat).

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import shutil
 from collections import deque
 from dataclasses import dataclass
@@ -30,11 +31,13 @@ from gateway.codecs.ra180 import Cdm
 from gateway.codecs.ra180_voice import announcement
 from gateway.ops.logsetup import RateLimit
 
-__all__ = ["Voice", "VoiceCounts", "VoiceSettings", "prune"]
+__all__ = ["ANNOUNCEMENT_NAME", "Voice", "VoiceCounts", "VoiceSettings", "prune"]
 
 log = structlog.get_logger(__name__)
 
 _MISSING = "not found on PATH: install the Debian package espeak-ng"
+#: The names this voice gives its files; ``prune`` removes nothing else from the directory.
+ANNOUNCEMENT_NAME = re.compile(r"^\d{8}T\d{12}Z-\d{6}-NR\d{4}-(?:MAL|UPPD)\.wav$")
 
 
 @dataclass(frozen=True, slots=True)
@@ -63,13 +66,18 @@ class VoiceCounts:
 
 
 def prune(directory: Path, max_files: int, max_bytes: int) -> int:
-    """Remove the oldest ``*.wav`` files until at most ``max_files`` and ``max_bytes`` remain.
+    """Remove the oldest announcements until at most ``max_files`` and ``max_bytes`` remain.
 
-    Oldest by name (names start with the UTC time they were written). Returns how many were
-    removed; files that vanish meanwhile are skipped. Blocking: run it in a worker thread.
+    Only files named as this voice names them (``ANNOUNCEMENT_NAME``) are counted or removed:
+    the directory may be shared with other audio (a player's folder), which is not ours to
+    delete. Oldest by name (names start with the UTC time they were written). Returns how
+    many were removed; files that vanish meanwhile are skipped. Blocking: run it in a worker
+    thread.
     """
     files = []
     for path in directory.glob("*.wav"):
+        if not ANNOUNCEMENT_NAME.match(path.name):
+            continue
         try:
             files.append((path.name, path, path.stat().st_size))
         except OSError:
@@ -118,29 +126,49 @@ class Voice:
         return len(self._queue)
 
     async def run(self) -> None:
-        """Render queued announcements until cancelled."""
-        program = shutil.which(self.settings.program)
-        if program is None:
-            self._unavailable(f"{self.settings.program} {_MISSING}")
-        else:
-            await anyio.to_thread.run_sync(self._make_directory)
+        """Render queued announcements until cancelled.
+
+        While unavailable (no synthesiser on ``PATH``, no directory), each announcement looks
+        again first, so installing espeak-ng on a running node brings the voice back.
+        """
+        program = await self._find()
         while True:
             while not self._queue:
                 await self._wake.wait()
                 self._wake = anyio.Event()
             cdm = self._queue.popleft()
             if program is None or self.state == "unavailable":
+                program = await self._find()
+            if program is None:
                 self.counts.unavailable += 1
                 continue
             await self._render(program, cdm)
 
+    async def _find(self) -> str | None:
+        """The synthesiser's path with the directory made, or None (and ``unavailable``)."""
+        program = shutil.which(self.settings.program)
+        if program is None:
+            self._unavailable(f"{self.settings.program} {_MISSING}")
+            return None
+        was_unavailable = self.state == "unavailable"
+        await anyio.to_thread.run_sync(self._make_directory)
+        if self.state != "ready":
+            return None
+        if was_unavailable:
+            self.log.info("ra180_voice_ready", program=program)
+        return program
+
     def _make_directory(self) -> None:
         try:
             self.settings.directory.mkdir(parents=True, exist_ok=True)
+            # Partial files of renderings a stopped gateway never finished: ours, unplayable.
+            for stale in self.settings.directory.glob(".*.wav.part"):
+                if ANNOUNCEMENT_NAME.match(stale.name[1 : -len(".part")]):
+                    _discard(stale)
         except OSError as exc:
             self._unavailable(f"cannot create {self.settings.directory}: {exc.strerror or exc}")
         else:
-            self.state = "ready"
+            self.state, self.reason = "ready", ""
 
     async def _failed(self, reason: str, partial: Path) -> None:
         self.counts.failed += 1
@@ -150,8 +178,9 @@ class Voice:
         await anyio.to_thread.run_sync(_discard, partial)
 
     def _unavailable(self, reason: str) -> None:
+        if (self.state, self.reason) != ("unavailable", reason):  # logged once, not per try
+            self.log.warning("ra180_voice_unavailable", reason=reason)
         self.state, self.reason = "unavailable", reason
-        self.log.warning("ra180_voice_unavailable", reason=reason)
 
     async def _render(self, program: str, cdm: Cdm) -> None:
         s = self.settings
@@ -171,8 +200,11 @@ class Voice:
             self._unavailable(f"{s.program} {_MISSING}")
             self.counts.unavailable += 1
             return
-        except (OSError, TimeoutError) as exc:
-            await self._failed(f"{s.program}: {type(exc).__name__}: {exc}", partial)
+        except TimeoutError:
+            await self._failed(f"{s.program} did not finish within {s.timeout_s:g} s", partial)
+            return
+        except OSError as exc:
+            await self._failed(f"{s.program}: {exc.strerror or exc}", partial)
             return
         if done.returncode != 0:
             detail = done.stderr.decode(errors="replace").strip()[:200]

@@ -21,6 +21,7 @@ from __future__ import annotations
 import math
 import os
 import random
+import re
 import shutil
 from collections.abc import Sequence
 from pathlib import Path
@@ -48,7 +49,7 @@ from gateway.errors import PermanentSinkError
 from gateway.events import Event, EventKind, Track
 from gateway.ops.logsetup import RateLimit
 from gateway.transports.serial import SerialWriter, is_supported_baud
-from gateway.transports.udp import DatagramSender
+from gateway.transports.udp_peer import UdpPeer
 from sinks._ra180_budget import Budget, Outgoing
 from sinks._ra180_voice import Voice, VoiceSettings
 
@@ -204,8 +205,10 @@ class _Radio(Protocol):
 
 
 class _UdpRadio:
+    # A connected socket: a gateway that is not listening (ICMP port unreachable) is an
+    # OSError here, so the message stays held and is sent again, rather than lost unseen.
     def __init__(self, config: Ra180UdpConfig) -> None:
-        self._sender = DatagramSender(config.host, config.port)
+        self._sender = UdpPeer(config.host, config.port)
         self.describe = f"udp://{config.host}:{config.port}"
 
     async def send(self, frame: bytes) -> None:
@@ -227,6 +230,11 @@ class _SerialRadio:
 
     async def aclose(self) -> None:
         self._port.close()
+
+
+def _is_known_class(name: str) -> bool:
+    """True for an object class a track can have (``gateway.fleet.normalise`` names them)."""
+    return name in CLASS_ABBREVIATIONS or re.fullmatch(r"class_\d+", name) is not None
 
 
 def _make_radio(config: Ra180SinkConfig) -> _Radio:
@@ -287,6 +295,14 @@ class Ra180Sink:
         serial = self.config.serial
         if serial is not None and not os.path.exists(serial.device):
             notes.append(f"{serial.device} does not exist now; messages wait for it")
+        unknown = [name for name in self.config.abbreviations if not _is_known_class(name)]
+        if unknown:
+            known = ", ".join(c for c in CLASS_ABBREVIATIONS if c != "other") + " and other"
+            notes.append(
+                f"abbreviations for {', '.join(map(repr, unknown))}: no track has such a class "
+                f"(the classes are {known}, which stands for any class not listed, or class_N "
+                "for a number the fleet does not name), so the entry is never used"
+            )
         voice = self.config.voice
         if voice is not None and shutil.which(voice.program) is None:
             notes.append(

@@ -16,6 +16,7 @@ as in radio procedure, is ``gateway.codecs.ra180_voice``.
 
 from __future__ import annotations
 
+import math
 import re
 import unicodedata
 from dataclasses import dataclass, replace
@@ -230,10 +231,11 @@ def compose(
     if (
         track.speed_mps is not None
         and track.course_deg is not None
+        and math.isfinite(track.speed_mps)  # a Track allows inf; the net hears none then
         and track.speed_mps >= min_speed_mps
     ):
         course = round(track.course_deg) % 360
-        speed = min(999, round(track.speed_mps * 3.6))
+        speed = round(min(track.speed_mps * 3.6, 999.0))
     return Cdm(
         type=message_type,
         hostility=word,

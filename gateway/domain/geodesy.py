@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 import re
+import warnings
 from dataclasses import dataclass
 from typing import Literal
 
@@ -108,6 +109,18 @@ def utm_zone(lat: float, lon: float) -> tuple[int, str]:
     return zone, band
 
 
+#: Latitudes this close south of the equator are written as the equator (about 1 cm).
+_EQUATOR_SNAP_DEG = 1e-7
+
+
+def _decodes(text: str) -> bool:
+    try:
+        _CONVERTER.toLatLon(text)
+    except (mgrs.core.MGRSError, ValueError):
+        return False
+    return True
+
+
 def to_mgrs(lat: float, lon: float, precision_m: MgrsPrecision = 1, *, spaced: bool = False) -> str:
     """The MGRS reference of a WGS 84 point at 1, 10 or 100 m, truncated as MGRS requires.
 
@@ -118,6 +131,11 @@ def to_mgrs(lat: float, lon: float, precision_m: MgrsPrecision = 1, *, spaced: b
     if precision_m not in _DIGITS:
         raise MgrsError(f"precision must be 1, 10 or 100 m, found {precision_m}")
     text = str(_CONVERTER.toMGRS(lat, lon, MGRSPrecision=_DIGITS[precision_m]))
+    if -_EQUATOR_SNAP_DEG < lat < 0.0 and not _decodes(text):
+        # Within a centimetre south of the equator the package may round the southern
+        # northing up to 10,000 km and write band M with row A, a reference nothing (itself
+        # included) decodes; the equator's own reference is a centimetre away.
+        text = str(_CONVERTER.toMGRS(0.0, lon, MGRSPrecision=_DIGITS[precision_m]))
     if not spaced:
         return text
     match = _PATTERN.match(text)
@@ -132,7 +150,8 @@ def from_mgrs(text: str) -> MgrsRef:
     """Decode a 1, 10 or 100 m MGRS reference to its cell centre.
 
     Spaces and lower case are accepted. Raises ``MgrsError`` naming the input for a
-    malformed reference, one of another precision, or a polar (UPS) reference.
+    malformed reference, one of another precision, a polar (UPS) reference, or one whose
+    100 km square is not in its latitude band (which the mgrs package decodes, warning).
     """
     compact = re.sub(r"\s+", "", text).upper()
     if _UPS_PATTERN.match(compact):
@@ -144,7 +163,13 @@ def from_mgrs(text: str) -> MgrsRef:
     if digits not in (3, 4, 5):
         raise MgrsError(f"expected 3 to 5 digits each for easting and northing in {text!r}")
     try:
-        lat, lon = _CONVERTER.toLatLon(compact)
+        with warnings.catch_warnings():
+            # The package decodes a square outside its latitude band with a RuntimeWarning
+            # ("Latitude Warning") and a point elsewhere: that reference is malformed.
+            warnings.simplefilter("error", RuntimeWarning)
+            lat, lon = _CONVERTER.toLatLon(compact)
+    except RuntimeWarning:
+        raise MgrsError(f"{text!r}: the grid square is not in its band") from None
     except (mgrs.core.MGRSError, ValueError) as exc:
         raise MgrsError(f"not a valid MGRS reference: {text!r} ({exc})") from exc
     precision = 10 ** (5 - digits)

@@ -780,7 +780,9 @@ class TestRa180:
             )
             assert nearest < 7.1 + 0.1
         detail = sink_status(matrix, "ra180")["detail"]
-        assert detail["sent"] == len(cdms)
+        # A datagram counts as sent once no refusal came back within 0.2 s
+        # (gateway.transports.udp_peer): the last one may be in that window at the snapshot.
+        assert detail["sent"] <= len(cdms) <= detail["sent"] + 1
         assert detail["radio_state"] == "sending"
 
     def test_new_targets_were_spoken_to_wav_files(self, matrix: MatrixRun) -> None:

@@ -133,6 +133,7 @@ class TestConfig:
             "    options:\n"
             f"      serial: {{device: '{tmp_path / 'ttyNONE'}'}}\n"
             f"      voice: {{directory: '{tmp_path}', program: no-such-espeak}}\n"
+            "      abbreviations: {tnak: T-72, tank: STRV, class_9: ROBOT}\n"
             "routes: [{sinks: [radio], kinds: [track]}]\n"
         )
         done = subprocess.run(
@@ -144,13 +145,14 @@ class TestConfig:
         )
         assert done.returncode == 0, done.stderr
         warnings = [line for line in done.stderr.splitlines() if line.endswith("(warning)")]
-        assert len(warnings) == 2
+        assert len(warnings) == 3
         assert all(
             line.startswith(f"{config}:6 sinks[0].options: sink 'radio': ") for line in warnings
         )
         assert "ttyNONE does not exist now; messages wait for it" in warnings[0]
-        assert "install" in warnings[1]
-        assert "espeak-ng" in warnings[1]
+        assert "abbreviations for 'tnak': no track has such a class" in warnings[1]  # a typo
+        assert "install" in warnings[2]
+        assert "espeak-ng" in warnings[2]
 
 
 class TestUdp:
@@ -175,6 +177,8 @@ class TestUdp:
                 with anyio.fail_after(10):
                     await anyio.wait_readable(peer)
                 datagram = peer.recv(1024)
+                # Counted sent once no refusal came back (gateway.transports.udp_peer).
+                await wait_for(lambda: sink.status()["sent"] == 1, "counted sent")
             assert datagram.decode("ascii") == expected_text(track())
             assert parse_cdm(datagram.decode()).type == "MAL"
             detail = sink.status()
@@ -290,14 +294,13 @@ class TestVoice:
             assert sink.status()["voice"]["state"] == "unavailable"
 
     def test_the_directory_is_kept_to_its_caps_oldest_first(self, tmp_path: Path) -> None:
-        for n in range(6):
-            (tmp_path / f"2026112{n}-x.wav").write_bytes(b"x" * 1000)
+        names = [f"2026112{n}T203421920410Z-00000{n}-NR000{n}-MAL.wav" for n in range(6)]
+        for name in names:
+            (tmp_path / name).write_bytes(b"x" * 1000)
+        (tmp_path / "0000-not-ours.wav").write_bytes(b"x" * 1000)
         assert prune(tmp_path, max_files=4, max_bytes=10_000) == 2
         assert prune(tmp_path, max_files=10, max_bytes=2_500) == 2
-        assert sorted(p.name for p in tmp_path.glob("*.wav")) == [
-            "20261124-x.wav",
-            "20261125-x.wav",
-        ]
+        assert sorted(p.name for p in tmp_path.glob("*.wav")) == ["0000-not-ours.wav", *names[4:]]
 
 
 class TestBudgetOnTheWire:

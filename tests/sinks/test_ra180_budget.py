@@ -4,6 +4,9 @@ from __future__ import annotations
 
 from datetime import UTC, datetime
 
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
 from gateway.codecs.ra180 import Cdm, MessageType, compose
 from gateway.domain.geodesy import destination
 from gateway.events import Position, Track
@@ -207,3 +210,66 @@ class TestWhatIsWorthSending:
         head = b._head()
         assert head is not None
         assert head.hostility == "hostile"
+
+
+class _ScanningBudget(Budget):
+    """The reference: make room by scanning every track (O(n) a new track), as first written."""
+
+    def _forget_one(self, track: Track) -> bool:
+        for track_id in self._known:
+            if track_id not in self._held:
+                del self._known[track_id]
+                return True
+        worst = max(self._held.values(), key=Outgoing.order)
+        if (Priority.NEW, {"hostile": 0, "suspect": 1}[track.hostility]) > worst.order()[:2]:
+            return False
+        del self._held[worst.track_id]
+        del self._known[worst.track_id]
+        self.counts.dropped_full += 1
+        return True
+
+
+_steps = st.lists(
+    st.tuples(
+        st.integers(0, 11),  # which track
+        st.sampled_from(["hostile", "suspect", "lost", "send"]),
+        st.integers(0, 3),  # how far it moved, in 150 m steps
+    ),
+    max_size=120,
+)
+
+
+class TestMakingRoom:
+    """At ``max_tracks`` a new track makes room in O(log n), choosing as a full scan would."""
+
+    @given(_steps)
+    @settings(max_examples=150, deadline=None)
+    def test_the_same_tracks_are_kept_and_held_as_by_a_full_scan(
+        self, steps: list[tuple[int, str, int]]
+    ) -> None:
+        options: dict[str, object] = {
+            "bytes_per_minute": BYTES_PER_MINUTE,
+            "burst_bytes": 260,
+            "min_move_m": 100.0,
+            "max_tracks": 4,
+            "report": frozenset({"hostile", "suspect"}),
+            "now": 0.0,
+        }
+        fast, reference = Budget(encode, **options), _ScanningBudget(encode, **options)  # type: ignore[arg-type]
+        now = 0.0
+        for n, what, moved in steps:
+            for b in (fast, reference):
+                if what == "send":
+                    item = b.next_due(now)
+                    if item is not None:
+                        b.sent(item, now)
+                elif what == "lost":
+                    b.offer(track(n, status="lost"))
+                else:
+                    b.offer(track(n, north_m=150.0 * moved, hostility=what, status="updated"))
+            now += 7.0
+            assert list(fast._known) == list(reference._known)
+            assert {k: i.frame for k, i in fast._held.items()} == {
+                k: i.frame for k, i in reference._held.items()
+            }
+            assert fast.counts == reference.counts

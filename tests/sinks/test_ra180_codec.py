@@ -67,7 +67,7 @@ tracks = st.builds(
     object_class=st.sampled_from([*CLASS_ABBREVIATIONS, "bicycle", ""]),
     hostility=st.sampled_from(["hostile", "suspect", "unknown"]),
     confidence=st.floats(0.0, 1.0),
-    speed_mps=st.none() | st.floats(0.0, 1000.0),
+    speed_mps=st.none() | st.floats(0.0, 1000.0) | st.floats(0.0, allow_nan=False),
     course_deg=st.none() | st.floats(0.0, 359.999),
     time=st.datetimes(
         min_value=datetime(2000, 1, 1),  # noqa: DTZ001 - hypothesis takes naive bounds
