@@ -64,7 +64,7 @@ def camera(port: int) -> Iterator[subprocess.Popen[bytes]]:
 @contextmanager
 def simulator(link: int) -> Iterator[None]:
     command = [sys.executable, "-m", "gateway", "simulate", "--scenario", "loitering-munitions",
-               "--to", f"udp://127.0.0.1:{link}", "--duration", "110", "--speed", "1",
+               "--to", f"udp://127.0.0.1:{link}", "--duration", "300", "--speed", "3",
                "--no-resend"]  # fmt: skip
     process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
