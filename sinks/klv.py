@@ -24,7 +24,7 @@ from collections.abc import Sequence
 import anyio
 import anyio.abc
 import structlog
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, model_validator
 
 from gateway.c2.sink import SinkConfig
 from gateway.codecs.klv.mpegts import TS_PACKET_BYTES, KlvTsMuxer, pts_90khz
@@ -66,8 +66,10 @@ class KlvMpegTs(KlvUdp):
     ffmpeg: str = Field(default="ffmpeg", description="The ffmpeg executable.")
 
     @model_validator(mode="after")
-    def _ffmpeg_found(self) -> KlvMpegTs:
-        if self.video is not None and shutil.which(self.ffmpeg) is None:
+    def _ffmpeg_found(self, info: ValidationInfo) -> KlvMpegTs:
+        # On the node only (run, check-config): not with ``check-config --no-environment``.
+        on_node = isinstance(info.context, dict) and info.context.get("environment")
+        if on_node and self.video is not None and shutil.which(self.ffmpeg) is None:
             raise ValueError(f"video needs ffmpeg, and {self.ffmpeg!r} is not on the PATH")
         return self
 

@@ -2,18 +2,23 @@
 
 from __future__ import annotations
 
+import contextlib
 import shutil
 import subprocess
 from datetime import UTC, datetime
+from functools import cache, partial
 from pathlib import Path
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from tools import need
 
 from gateway.codecs.klv.ber import split_packets
 from gateway.codecs.klv.imapb import Special
 from gateway.codecs.klv.st0601 import decode
 from gateway.errors import Malformed
+from gateway.testing import fuzz_examples
 
 pytestmark = pytest.mark.corpus
 
@@ -89,3 +94,46 @@ def test_kwiver_h264_klv_ts_all_tags_including_two_byte_ones(tmp_path: Path) -> 
     assert first[65] == 17
     assert set(range(128, 143)) <= set(first)  # BER-OID two-byte tags, read by their length
     assert first[113] == pytest.approx(2150.0, abs=0.01)  # IMAPB
+
+
+@cache
+def corpus_seeds() -> list[bytes]:
+    """Real packets to mutate: Cheyenne, realflight and the ST 0902 samples."""
+    names = ("Cheyenne.bin", "realflight.bin", "DynamicOnlyMISMMSPacketData.bin",
+             "DynamicConstantMISMMSPacketData_0ed97ca_original.bin")  # fmt: skip
+    return [p for name in names for p in list(split_packets(klv_file(name)))[:25]]
+
+
+def with_checksum(packet: bytearray) -> bytes:
+    """``packet`` with its last two bytes set to the running sum of the rest (spec §2)."""
+    total = sum((b << 8) if i % 2 == 0 else b for i, b in enumerate(packet[:-2]))
+    packet[-2:] = (total & 0xFFFF).to_bytes(2, "big")
+    return bytes(packet)
+
+
+mutation = st.tuples(st.integers(0, 1 << 16), st.integers(0, 255), st.sampled_from("sidt"))
+
+
+@settings(max_examples=fuzz_examples(300), deadline=None)
+@given(st.data(), st.lists(mutation, min_size=1, max_size=6), st.booleans())
+def test_mutated_corpus_packets_decode_or_raise_malformed(
+    data: st.DataObject, mutations: list[tuple[int, int, str]], fix_checksum: bool
+) -> None:
+    """Real packets with bytes set, inserted, deleted or cut off; with the checksum made good
+    again half the time, so the mutation reaches the item parser behind it."""
+    packet = bytearray(data.draw(st.sampled_from(corpus_seeds())))
+    for position, byte, op in mutations:
+        i = position % (len(packet) + 1)
+        if op == "s" and i < len(packet):
+            packet[i] = byte
+        elif op == "i":
+            packet[i:i] = bytes([byte])
+        elif op == "d":
+            del packet[i : i + 1 + byte % 8]
+        elif op == "t":
+            del packet[i:]
+    wire = with_checksum(packet) if fix_checksum and len(packet) >= 2 else bytes(packet)
+    unchecked = partial(decode, verify_checksum=False)
+    for decoder in (decode, unchecked, lambda b: list(split_packets(b))):
+        with contextlib.suppress(Malformed):  # and nothing else
+            decoder(wire)

@@ -24,6 +24,7 @@ from gateway.ops.instruments import Instruments
 from gateway.sim.airframe import SimProfile, SimulatedAirframe
 from gateway.testing import fuzz_examples
 
+stanag = pytest.importorskip("stanag4609.st0601")
 T0 = datetime(2026, 11, 22, 12, 0, tzinfo=UTC)
 PROFILE = SimProfile(camera_hz=5, alt_msl_m=600, home_alt_msl_m=150, radius_m=700)
 INT32_MAX = 0x7FFFFFFF
@@ -155,4 +156,6 @@ def test_hostile_camera_and_gimbal_values_never_raise(
     )
     for event in (camera.view.gimbal_attitude(gimbal), camera.view.camera_fov(msg)):
         if event is not None:
-            decode(frame_packet(event))  # and every event makes a valid packet
+            packet = frame_packet(event)
+            decode(packet)  # and every event makes a valid packet, for us
+            stanag.decode_uas_local_set(packet)  # and for a strict independent decoder

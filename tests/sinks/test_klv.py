@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import socket
 import subprocess
+import sys
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import Any
@@ -291,7 +293,8 @@ def test_mpegts_beside_test_video_through_ffmpeg(tmp_path: Path) -> None:
 def test_video_needs_ffmpeg_on_the_path() -> None:
     options = {"mpegts": {"host": "127.0.0.1", "port": 9, "video": "in.ts", "ffmpeg": "no-such"}}
     with pytest.raises(ValueError, match="'no-such' is not on the PATH"):
-        KlvSinkConfig.model_validate(options)
+        KlvSinkConfig.model_validate(options, context={"environment": True})
+    KlvSinkConfig.model_validate(options)  # away from the node: not looked for
 
 
 @needs_ffmpeg
@@ -312,3 +315,29 @@ async def test_an_ffmpeg_that_exits_is_reported_by_the_lifetime(tmp_path: Path) 
     message = str(caught.value)
     assert "sink klv-7: ffmpeg is not running" in message
     assert "no-video.ts" in message  # ffmpeg's own last line says what it could not open
+
+
+def test_check_config_names_a_missing_ffmpeg_on_the_node_only(tmp_path: Path) -> None:
+    """On the node it is an error with its key and line; ``--no-environment`` does not look."""
+    config = tmp_path / "node.yaml"
+    config.write_text(
+        "airframes:\n"
+        "  - {id: F26E-001, sysid: 1,\n"
+        "     links: [{uri: 'udp://127.0.0.1:14550', security: unsecured}]}\n"
+        "sinks:\n"
+        "  - name: klv-001\n"
+        "    type: klv\n"
+        "    options:\n"
+        "      mpegts: {host: 127.0.0.1, port: 5004, video: 'udp://0.0.0.0:5600'}\n"
+    )
+    env = {**os.environ, "PATH": str(tmp_path)}  # no ffmpeg there
+
+    def check(*flags: str) -> subprocess.CompletedProcess[str]:
+        command = [sys.executable, "-m", "gateway", "check-config", *flags, str(config)]
+        return subprocess.run(command, capture_output=True, text=True, env=env, timeout=60)
+
+    on_node = check()
+    assert on_node.returncode == 2, on_node.stderr
+    assert "node.yaml:8 sinks[0].options.mpegts: video needs ffmpeg" in on_node.stderr
+    away = check("--no-environment")
+    assert away.returncode == 0, away.stderr
