@@ -436,6 +436,11 @@ class OrdersProcessor:
         running = self._running.get(airframe)
         if running is None:
             return
+        # Only items this order uploaded count (a current item one past the last is how some
+        # autopilots say the mission is over); anything else is a lie or another mission's.
+        if not 0 <= seq < running.items + (what == "current"):
+            self.counts["progress_ignored"] = self.counts.get("progress_ignored", 0) + 1
+            return
         if what == "reached":
             running.reached = max(running.reached, seq)
         else:

@@ -1,0 +1,174 @@
+"""A hostile airframe and a hostile local operator against the orders processor, through ``run``.
+
+``fischer-gateway run --config FILE`` in a child process with one airframe on an unsecured
+loopback UDP link, the ``orders`` processor and the ``local`` order source. The airframe is a
+pymavlink peer in this process that answers the mission protocol as an attacker would: it asks
+for mission items that do not exist, then reports items far past the end of the mission as
+reached and current. An order must never be reported ``completed`` on such reports: only the
+items the gateway uploaded count.
+"""
+
+from __future__ import annotations
+
+import json
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from daemon_support import free_udp_port, running, wait_until
+from pymavlink.dialects.v20 import common as mav
+
+pytestmark = pytest.mark.timeout(120)
+
+
+class HostileAirframe:
+    """Telemetry for the checks, and hostile answers to the gateway's mission protocol."""
+
+    def __init__(self, gateway_port: int) -> None:
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.settimeout(0.1)
+        self.gateway = ("127.0.0.1", gateway_port)
+        self.mav = mav.MAVLink(None, srcSystem=1, srcComponent=1)
+        self.parser = mav.MAVLink(None)
+        self.uplink: list[Any] = []
+        self.bogus_progress = True
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def send(self, msg: Any) -> None:
+        self.sock.sendto(bytes(msg.pack(self.mav)), self.gateway)
+
+    def _telemetry(self) -> None:
+        self.send(mav.MAVLink_heartbeat_message(2, 12, 128 | 1, 0, 4, 3))
+        self.send(
+            mav.MAVLink_global_position_int_message(
+                0, 658_300_000, 210_000_000, 500_000, 400_000, 0, 0, 0, 0
+            )
+        )
+        self.send(mav.MAVLink_sys_status_message(0, 0, 0, 500, 16000, 1000, 80, 0, 0, 0, 0, 0, 0))
+
+    def _answer(self, msg: Any) -> None:
+        name = msg.get_type()
+        self.uplink.append(msg)
+        if name == "MISSION_COUNT":
+            # Items that do not exist first, then the real ones.
+            for seq in (65535, msg.count, msg.count + 7, *range(msg.count)):
+                self.send(mav.MAVLink_mission_request_int_message(255, 191, seq, 0))
+        elif name == "MISSION_ITEM_INT" and msg.seq == max(0, self._count() - 1):
+            self.send(mav.MAVLink_mission_ack_message(255, 191, 0, 0))
+        elif name == "COMMAND_LONG":
+            self.send(mav.MAVLink_command_ack_message(msg.command, 0))
+            if self.bogus_progress:
+                for _ in range(200):  # items that were never uploaded
+                    self.send(mav.MAVLink_mission_item_reached_message(60000))
+                    self.send(mav.MAVLink_mission_current_message(4000))
+                    self.send(mav.MAVLink_command_ack_message(400, 0))  # never sent
+
+    def _count(self) -> int:
+        counts = [m.count for m in self.uplink if m.get_type() == "MISSION_COUNT"]
+        return counts[-1] if counts else 0
+
+    def _run(self) -> None:
+        last = 0.0
+        while not self._stop.is_set():
+            if time.monotonic() - last > 0.2:
+                self._telemetry()
+                last = time.monotonic()
+            try:
+                data = self.sock.recv(4096)
+            except TimeoutError:
+                continue
+            for byte in data:
+                try:
+                    msg = self.parser.parse_char(bytes([byte]))
+                except mav.MAVError:
+                    continue
+                if msg is not None:
+                    self._answer(msg)
+
+    def __enter__(self) -> HostileAirframe:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
+        self.sock.close()
+
+
+def write_config(tmp_path: Path, link: int, sock: Path) -> Path:
+    config = tmp_path / "node.yaml"
+    config.write_text(
+        f"""
+gateway: {{shutdown_deadline_s: 3}}
+health: {{port: 0}}
+airframes:
+  - {{id: F26E-001, sysid: 1, links: [{{uri: 'udp://127.0.0.1:{link}', security: unsecured,
+     name: fleet}}]}}
+sources:
+  - {{name: operator, type: local, socket: '{sock}', socket_mode: 0666}}
+processors:
+  - {{name: orders, type: orders, options: {{time_on_task_s: 5, mission_timeout_s: 1,
+      command_timeout_s: 1, command_retries: 0}}}}
+"""
+    )
+    return config
+
+
+def order_cli(sock: Path, *args: str, timeout: str = "8") -> tuple[int, list[dict[str, Any]]]:
+    command = [sys.executable, "-m", "gateway", "order", "--socket", str(sock), "--timeout"]
+    done = subprocess.run([*command, timeout, *args], capture_output=True, timeout=60, check=False)
+    lines = [json.loads(line) for line in done.stdout.decode().splitlines() if line.strip()]
+    return done.returncode, lines
+
+
+@pytest.fixture(scope="module")
+def node(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Any, HostileAirframe, Path]]:
+    tmp_path = tmp_path_factory.mktemp("order-attacks")
+    link = free_udp_port()
+    sock = tmp_path / "orders.sock"
+    with running(write_config(tmp_path, link, sock)) as daemon, HostileAirframe(link) as airframe:
+        wait_until(
+            lambda: daemon.status()["airframes"][0].get("active_link") is not None,
+            30.0,
+            "the airframe linked",
+        )
+        yield daemon, airframe, sock
+
+
+def test_progress_for_items_never_uploaded_does_not_complete_the_order(
+    node: tuple[Any, HostileAirframe, Path],
+) -> None:
+    daemon, airframe, sock = node
+    code, lines = order_cli(
+        sock,
+        "--task",
+        "observe_point",
+        "--point",
+        "65.84",
+        "21.01",
+        "--follow",
+        "--airframe",
+        "F26E-001",
+        "--order-id",
+        "BOGUS-1",
+        timeout="4",
+    )
+    statuses = [line["status"] for line in lines]
+    assert statuses == ["received", "accepted", "executing"], lines[-1]
+    assert code == 2  # still executing: no honest completion came
+    sent = [m.seq for m in airframe.uplink if m.get_type() == "MISSION_ITEM_INT"]
+    assert sorted(set(sent)) == [0, 1]  # never an item that does not exist
+    assert len(daemon.events("command_ack_unexpected")) <= 2
+    processors = json.dumps(daemon.status())
+    assert '"progress_ignored"' in processors
+    # 600 hostile frames: counted, not a log line each.
+    names = [line.get("event") for line in list(daemon.lines)]
+    assert max(names.count(name) for name in set(names)) < 20, sorted(set(names))
