@@ -23,7 +23,7 @@ import json
 import os
 import socket
 import struct
-from collections import Counter
+from collections import Counter, OrderedDict
 from collections.abc import Callable
 from datetime import datetime
 from pathlib import Path
@@ -49,6 +49,8 @@ log = structlog.get_logger(__name__)
 EVENT_ID_PREFIX = "local-order-"
 _FINAL = frozenset({OrderState.REJECTED, OrderState.COMPLETED, OrderState.FAILED})
 _WATCH_QUEUE = 32
+#: Order ids taken, remembered so a second order with one of them is refused, not lost.
+_REMEMBERED_IDS = 10_000
 
 
 class LocalOrderSourceConfig(BaseModel):
@@ -103,6 +105,7 @@ class LocalOrderSource:
         self._clock = clock
         self._uids = frozenset({os.getuid(), 0, *config.allowed_uids})
         self._watchers: dict[str, set[MemoryObjectSendStream[OrderStatus]]] = {}
+        self._taken: OrderedDict[str, None] = OrderedDict()
         self._active = 0
         self.counts: Counter[str] = Counter()
         self._log_limit = RateLimit(interval_s=10.0)
@@ -189,6 +192,13 @@ class LocalOrderSource:
             await _say(stream, {"order_id": order_id, "status": "rejected", "reason": str(exc)})
             return
         order = parsed.model_copy(update={"event_id": EVENT_ID_PREFIX + parsed.order_id})
+        if order.event_id in self._taken or order.event_id in self._watchers:
+            # The orders processor answers each order id once: a second order with it
+            # (changed or not) would wait for statuses that never come.
+            self._count("duplicate_order_id", order_id=order.order_id)
+            reason = f"order_id: {order.order_id} was already taken; give a new order id"
+            await _say(stream, {"order_id": order.order_id, "status": "rejected", "reason": reason})
+            return
         send, receive = anyio.create_memory_object_stream[OrderStatus](_WATCH_QUEUE)
         watchers = self._watchers.setdefault(order.event_id, set())
         watchers.add(send)
@@ -198,15 +208,23 @@ class LocalOrderSource:
                 await _say(stream, {"order_id": order.order_id, "status": "not_held"})
                 return
             self.counts["received"] += 1
+            self._taken[order.event_id] = None
+            while len(self._taken) > _REMEMBERED_IDS:
+                self._taken.popitem(last=False)
             self.log.info("local_order_received", order_id=order.order_id, task=order.task.value)
             await _say(
                 stream,
                 {"order_id": order.order_id, "status": "received", "event_id": order.event_id},
             )
-            async for status in receive:
-                await _say(stream, _line(status))
-                if status.status in _FINAL:
-                    return
+            async with anyio.create_task_group() as tg:
+                # A client that hangs up (the command without --follow, once accepted) frees
+                # its connection now, not at the order's next status, which may never come.
+                tg.start_soon(_until_hangup, reader, tg.cancel_scope)
+                async for status in receive:
+                    await _say(stream, _line(status))
+                    if status.status in _FINAL:
+                        tg.cancel_scope.cancel()
+                        return
         finally:
             watchers.discard(send)
             if not watchers:
@@ -224,6 +242,15 @@ def _line(status: OrderStatus) -> dict[str, Any]:
         "reason": status.reason,
         "event_id": status.event_id,
     }
+
+
+async def _until_hangup(reader: BufferedByteReceiveStream, scope: anyio.CancelScope) -> None:
+    """Read and drop whatever the client sends until it hangs up, then cancel ``scope``."""
+    try:
+        while True:
+            await reader.receive(4096)
+    except (anyio.EndOfStream, anyio.BrokenResourceError, anyio.ClosedResourceError):
+        scope.cancel()
 
 
 async def _say(stream: anyio.abc.SocketStream, line: dict[str, Any]) -> None:

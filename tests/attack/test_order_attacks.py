@@ -172,3 +172,48 @@ def test_progress_for_items_never_uploaded_does_not_complete_the_order(
     # 600 hostile frames: counted, not a log line each.
     names = [line.get("event") for line in list(daemon.lines)]
     assert max(names.count(name) for name in set(names)) < 20, sorted(set(names))
+
+
+def test_replayed_order_id_with_other_content_is_answered(
+    node: tuple[Any, HostileAirframe, Path],
+) -> None:
+    _daemon, _airframe, sock = node
+    first = ("--task", "observe_point", "--airframe", "F26E-001", "--order-id", "REPLAY-1")
+    code, lines = order_cli(sock, *first, "--point", "65.84", "21.01", timeout="6")
+    assert [line["status"] for line in lines] == ["received", "accepted"], lines
+    code, lines = order_cli(sock, *first, "--point", "65.80", "21.30", timeout="6")
+    assert code == 1, lines
+    assert lines[-1]["status"] == "rejected"
+
+
+def test_clients_that_hang_up_free_their_connection(tmp_path: Path) -> None:
+    # No orders processor: nothing ever answers beyond "received", so only the hang-up frees
+    # a connection. Three clients give up in turn; a fourth must still be served.
+    sock = tmp_path / "orders.sock"
+    config = tmp_path / "node.yaml"
+    config.write_text(
+        f"""
+gateway: {{shutdown_deadline_s: 3}}
+health: {{port: 0}}
+airframes:
+  - {{id: F26E-001, sysid: 1, links: [{{uri: 'udp://127.0.0.1:{free_udp_port()}',
+     security: unsecured, name: fleet}}]}}
+sources:
+  - {{name: operator, type: local, socket: '{sock}', max_connections: 2}}
+"""
+    )
+    with running(config):
+        wait_until(sock.exists, 10.0, "the socket")
+        for n in range(4):
+            code, lines = order_cli(
+                sock,
+                "--task",
+                "return_to_base",
+                "--mgrs",
+                "34WDA1234567890",
+                "--order-id",
+                f"GONE-{n}",
+                timeout="1",
+            )
+            assert code == 2
+            assert [line["status"] for line in lines] == ["received"], (n, lines)
