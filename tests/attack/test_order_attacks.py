@@ -11,9 +11,12 @@ items the gateway uploaded count.
 from __future__ import annotations
 
 import json
+import os
+import shutil
 import socket
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from collections.abc import Iterator
@@ -133,7 +136,10 @@ def order_cli(sock: Path, *args: str, timeout: str = "8") -> tuple[int, list[dic
 def node(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Any, HostileAirframe, Path]]:
     tmp_path = tmp_path_factory.mktemp("order-attacks")
     link = free_udp_port()
-    sock = tmp_path / "orders.sock"
+    # A directory other uids may traverse (pytest's is 0700), for the peer-credentials test.
+    open_dir = Path(tempfile.mkdtemp(prefix="fg-orders-"))
+    open_dir.chmod(0o755)
+    sock = open_dir / "orders.sock"
     with running(write_config(tmp_path, link, sock)) as daemon, HostileAirframe(link) as airframe:
         wait_until(
             lambda: daemon.status()["airframes"][0].get("active_link") is not None,
@@ -141,6 +147,7 @@ def node(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Any, Hostil
             "the airframe linked",
         )
         yield daemon, airframe, sock
+    shutil.rmtree(open_dir, ignore_errors=True)
 
 
 def test_progress_for_items_never_uploaded_does_not_complete_the_order(
@@ -217,3 +224,43 @@ sources:
             )
             assert code == 2
             assert [line["status"] for line in lines] == ["received"], (n, lines)
+
+
+def as_nobody(sock: Path, payload: bytes) -> bytes:
+    """What a process of uid 65534 (not the daemon's, not allowed) reads back after sending."""
+    script = (
+        "import os, socket, sys\n"
+        "os.setgid(65534); os.setuid(65534)\n"
+        "s = socket.socket(socket.AF_UNIX); s.settimeout(10); s.connect(sys.argv[1])\n"
+        "try:\n"
+        "    s.sendall(sys.stdin.buffer.read()); sys.stdout.buffer.write(s.recv(65536))\n"
+        "except (BrokenPipeError, ConnectionResetError):\n"
+        "    pass  # closed unanswered\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", script, str(sock)], input=payload, capture_output=True, timeout=30
+    )
+    assert done.returncode == 0, done.stderr
+    return done.stdout
+
+
+@pytest.mark.skipif(not hasattr(socket, "SO_PEERCRED"), reason="Linux peer credentials")
+def test_a_peer_of_another_uid_is_closed_unanswered(
+    node: tuple[Any, HostileAirframe, Path],
+) -> None:
+    if os.geteuid() != 0:
+        pytest.skip("needs root to act as another uid")
+    daemon, airframe, sock = node
+    order = {
+        "order_id": "NOBODY-1",
+        "issuer": "x",
+        "issued": "2026-11-22T12:00:00Z",
+        "task": "return_to_base",
+        "location": {"mgrs": "34WDA1234567890"},
+        "priority": "flash",
+    }
+    before = len(airframe.uplink)
+    # The socket is 0666 in this config: only the peer credentials keep uid 65534 out.
+    assert as_nobody(sock, json.dumps(order).encode() + b"\n") == b""
+    assert '"refused_peer": 1' in json.dumps(daemon.status())
+    assert len(airframe.uplink) == before
