@@ -264,3 +264,70 @@ def test_a_peer_of_another_uid_is_closed_unanswered(
     assert as_nobody(sock, json.dumps(order).encode() + b"\n") == b""
     assert '"refused_peer": 1' in json.dumps(daemon.status())
     assert len(airframe.uplink) == before
+
+
+def raw_order(sock: Path, order: dict[str, Any]) -> list[dict[str, Any]]:
+    """Send ``order`` as the command would and read the answers until a final one."""
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as raw:
+        raw.settimeout(10)
+        raw.connect(str(sock))
+        raw.sendall(json.dumps(order).encode() + b"\n")
+        lines = []
+        for line in raw.makefile("rb"):
+            lines.append(json.loads(line))
+            if lines[-1]["status"] in ("rejected", "accepted", "failed", "completed"):
+                break
+        return lines
+
+
+def test_hostile_order_shapes_and_windows_are_rejected_with_their_reason(
+    node: tuple[Any, HostileAirframe, Path],
+) -> None:
+    _daemon, airframe, sock = node
+    before = len(airframe.uplink)
+    bow_tie = ["65.80,21.00", "65.90,21.10", "65.90,21.00", "65.80,21.10"]
+    code, lines = order_cli(
+        sock, "--task", "recon_area", "--airframe", "F26E-001", "--polygon", *bow_tie
+    )
+    assert code == 1
+    assert (lines[-1]["status"], lines[-1]["check"]) == ("rejected", "area")
+    assert lines[-1]["reason"] == "the order's polygon crosses itself: edge 1-2 crosses edge 3-4"
+    later = {
+        "order_id": "LATER-1",
+        "issuer": "x",
+        "issued": "2026-11-22T12:00:00Z",
+        "task": "observe_point",
+        "airframe": "F26E-001",
+        "location": {"point": {"lat_deg": 65.84, "lon_deg": 21.01}},
+        "priority": "routine",
+        "not_before": "2999-01-01T00:00:00Z",
+    }
+    lines = raw_order(sock, later)
+    assert (lines[-1]["status"], lines[-1]["check"]) == ("rejected", "window")
+    assert "at most 3600 s ahead" in lines[-1]["reason"]
+    assert len(airframe.uplink) == before  # nothing reached the airframe
+
+
+def test_check_config_names_a_fence_that_crosses_itself_with_key_and_line(
+    tmp_path: Path,
+) -> None:
+    config = tmp_path / "node.yaml"
+    config.write_text(
+        """processors:
+  - name: orders
+    type: orders
+    options:
+      geofence:
+        - {lat_deg: 65.0, lon_deg: 20.0}
+        - {lat_deg: 67.0, lon_deg: 24.0}
+        - {lat_deg: 65.0, lon_deg: 24.0}
+        - {lat_deg: 67.0, lon_deg: 20.0}
+"""
+    )
+    command = [sys.executable, "-m", "gateway", "check-config", "--no-environment", str(config)]
+    done = subprocess.run(command, capture_output=True, timeout=60, check=False)
+    assert done.returncode == 2
+    assert (
+        f"{config}:5 processors[0].options.geofence: the fence crosses itself:"
+        " edge 1-2 crosses edge 3-4"
+    ) in done.stdout.decode() + done.stderr.decode()
