@@ -223,8 +223,10 @@ class LocalOrderSource:
                 async for status in receive:
                     await _say(stream, _line(status))
                     if status.status in _FINAL:
-                        tg.cancel_scope.cancel()
-                        return
+                        break
+                # The final answer is out: the client has timeout_s to hang up (the reader
+                # then ends on its own; cancelling it as the client closes races uvloop).
+                tg.cancel_scope.deadline = anyio.current_time() + self.config.timeout_s
         finally:
             watchers.discard(send)
             if not watchers:

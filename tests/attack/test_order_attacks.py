@@ -331,3 +331,25 @@ def test_check_config_names_a_fence_that_crosses_itself_with_key_and_line(
         f"{config}:5 processors[0].options.geofence: the fence crosses itself:"
         " edge 1-2 crosses edge 3-4"
     ) in done.stdout.decode() + done.stderr.decode()
+
+
+def test_the_loop_logged_no_error_through_all_of_it(
+    node: tuple[Any, HostileAirframe, Path],
+) -> None:
+    daemon, _airframe, sock = node
+    for n in range(5):  # final answers and hang-ups in quick succession
+        code, _lines = order_cli(
+            sock,
+            "--task",
+            "observe_point",
+            "--airframe",
+            "F26E-404",
+            "--point",
+            "65.84",
+            "21.01",
+            "--order-id",
+            f"LAST-{n}",
+        )
+        assert code == 1
+    assert daemon.proc.poll() is None
+    assert daemon.events("asyncio_error") == []
