@@ -185,6 +185,12 @@ class FleetCommander:
             log.warning("mission_upload_timed_out", airframe=airframe, attempts=attempts)
             return Outcome(False, f"no MISSION_ACK after {attempts} attempts", attempts)
         name = _MISSION_RESULT_NAMES.get(upload.acked, str(upload.acked))
+        missing = sorted(set(range(len(items))) - upload.sent)
+        if upload.acked == 0 and missing:
+            # An airframe that "accepts" a mission it never asked all the items of holds
+            # some other mission: that is no execution of this order.
+            shown = ", ".join(map(str, missing[:8])) + (", ..." if len(missing) > 8 else "")
+            return Outcome(False, f"{name} without asking for items {shown}", attempts)
         return Outcome(upload.acked == 0, name, attempts)
 
     # -- handlers (synchronous, on ingest's path: never block, never raise) ----------------

@@ -42,6 +42,8 @@ class HostileAirframe:
         self.parser = mav.MAVLink(None)
         self.uplink: list[Any] = []
         self.bogus_progress = True
+        #: Answer MISSION_COUNT with MISSION_ACK ACCEPTED at once, asking for no item.
+        self.early_ack = False
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
 
@@ -60,7 +62,9 @@ class HostileAirframe:
     def _answer(self, msg: Any) -> None:
         name = msg.get_type()
         self.uplink.append(msg)
-        if name == "MISSION_COUNT":
+        if name == "MISSION_COUNT" and self.early_ack:
+            self.send(mav.MAVLink_mission_ack_message(255, 191, 0, 0))
+        elif name == "MISSION_COUNT":
             # Items that do not exist first, then the real ones.
             for seq in (65535, msg.count, msg.count + 7, *range(msg.count)):
                 self.send(mav.MAVLink_mission_request_int_message(255, 191, seq, 0))
@@ -353,3 +357,31 @@ def test_the_loop_logged_no_error_through_all_of_it(
         assert code == 1
     assert daemon.proc.poll() is None
     assert daemon.events("asyncio_error") == []
+
+
+def test_a_mission_acknowledged_without_its_items_is_not_executing(
+    node: tuple[Any, HostileAirframe, Path],
+) -> None:
+    _daemon, airframe, sock = node
+    airframe.early_ack = True
+    try:
+        code, lines = order_cli(
+            sock,
+            "--task",
+            "observe_point",
+            "--airframe",
+            "F26E-001",
+            "--point",
+            "65.84",
+            "21.01",
+            "--order-id",
+            "EARLY-1",
+            "--follow",
+        )
+    finally:
+        airframe.early_ack = False
+    assert code == 1, lines
+    assert (lines[-1]["status"], lines[-1]["check"]) == ("failed", "mission")
+    assert lines[-1]["reason"] == (
+        "mission upload: MAV_MISSION_ACCEPTED without asking for items 0, 1"
+    )
