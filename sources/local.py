@@ -174,7 +174,13 @@ class LocalOrderSource:
         try:
             with anyio.fail_after(self.config.timeout_s):
                 line = await reader.receive_until(b"\n", self.config.max_line_bytes)
-        except (TimeoutError, anyio.DelimiterNotFound, anyio.IncompleteRead):
+        except anyio.DelimiterNotFound:
+            self._count("oversize")
+            limit = self.config.max_line_bytes
+            reason = f"order: no end of line within max_line_bytes ({limit})"
+            await _say(stream, {"status": "rejected", "reason": reason})
+            return
+        except (TimeoutError, anyio.IncompleteRead):
             self._count("no_order_line")
             await _say(stream, {"status": "rejected", "reason": "order: no JSON line received"})
             return

@@ -10,6 +10,7 @@ items the gateway uploaded count.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
@@ -385,3 +386,39 @@ def test_a_mission_acknowledged_without_its_items_is_not_executing(
     assert lines[-1]["reason"] == (
         "mission upload: MAV_MISSION_ACCEPTED without asking for items 0, 1"
     )
+
+
+def refused_for_room(daemon: Any) -> int:
+    (source,) = [s for s in daemon.status()["sources"] if s.get("type") == "local"]
+    return int(source["counts"].get("too_many_connections", 0))
+
+
+def test_oversized_and_idle_connections_are_answered_and_bounded(
+    node: tuple[Any, HostileAirframe, Path],
+) -> None:
+    daemon, _airframe, sock = node
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as big:
+        big.settimeout(10)
+        big.connect(str(sock))
+        with contextlib.suppress(BrokenPipeError, ConnectionResetError):
+            big.sendall(b"{" + b" " * 70_000)
+        answer = json.loads(big.makefile("rb").readline())
+    assert answer == {
+        "status": "rejected",
+        "reason": "order: no end of line within max_line_bytes (65536)",
+    }
+    idle = []
+    try:
+        for _ in range(40):  # beyond max_connections (8): the rest are closed at once
+            conn = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+            conn.connect(str(sock))
+            idle.append(conn)
+        wait_until(
+            lambda: refused_for_room(daemon) >= 32,
+            10.0,
+            "the connections over the cap closed and counted",
+        )
+    finally:
+        for conn in idle:
+            conn.close()
+    assert daemon.proc.poll() is None
