@@ -33,6 +33,16 @@ def _corner(text: str) -> dict[str, float]:
     return {"lat_deg": lat, "lon_deg": lon}
 
 
+def _when(text: str) -> str:
+    try:
+        moment = datetime.fromisoformat(text.replace("Z", "+00:00"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an ISO 8601 time, got {text!r}") from None
+    if moment.tzinfo is None:
+        raise argparse.ArgumentTypeError(f"expected a time with a zone (Z, +01:00), got {text!r}")
+    return moment.isoformat()
+
+
 def add_order_parser(sub: Any) -> None:
     """Add the ``order`` command to the CLI's subparsers."""
     order = sub.add_parser(
@@ -56,6 +66,15 @@ def add_order_parser(sub: Any) -> None:
         "--priority", default="priority", choices=["flash", "immediate", "priority", "routine"]
     )
     order.add_argument("--target", help="line 4: what to observe or track")
+    order.add_argument(
+        "--track-id", help="track_target: a live fused track to fly to (its newest position)"
+    )
+    order.add_argument(
+        "--not-before", type=_when, metavar="TIME", help="line 3: start, ISO 8601 with a zone"
+    )
+    order.add_argument(
+        "--not-after", type=_when, metavar="TIME", help="line 3: end, ISO 8601 with a zone"
+    )
     order.add_argument(
         "--follow", action="store_true", help="wait until the order completed or failed"
     )
@@ -86,6 +105,9 @@ def _document(args: argparse.Namespace) -> dict[str, Any]:
         document["airframe"] = args.airframe
     if args.target:
         document["target"] = args.target
+    for key in ("track_id", "not_before", "not_after"):
+        if getattr(args, key):
+            document[key] = getattr(args, key)
     return document
 
 

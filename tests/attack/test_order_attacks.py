@@ -422,3 +422,28 @@ def test_oversized_and_idle_connections_are_answered_and_bounded(
         for conn in idle:
             conn.close()
     assert daemon.proc.poll() is None
+
+
+def test_an_operator_window_that_is_over_is_rejected(
+    node: tuple[Any, HostileAirframe, Path],
+) -> None:
+    _daemon, _airframe, sock = node
+    code, lines = order_cli(
+        sock,
+        "--task",
+        "track_target",
+        "--airframe",
+        "F26E-001",
+        "--point",
+        "65.84",
+        "21.01",
+        "--track-id",
+        "trk-none",
+        "--not-after",
+        "2020-01-01T00:00:00Z",
+        "--order-id",
+        "PAST-1",
+    )
+    assert code == 1
+    assert (lines[-1]["status"], lines[-1]["check"]) == ("rejected", "window")
+    assert lines[-1]["reason"].startswith("the window ended at 2020-01-01T00:00:00+00:00")
