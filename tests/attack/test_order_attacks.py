@@ -45,6 +45,8 @@ class HostileAirframe:
         self.bogus_progress = True
         #: Answer MISSION_COUNT with MISSION_ACK ACCEPTED at once, asking for no item.
         self.early_ack = False
+        #: Answer MISSION_COUNT with this MAV_MISSION_RESULT error instead.
+        self.ack_error: int | None = None
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
 
@@ -63,8 +65,9 @@ class HostileAirframe:
     def _answer(self, msg: Any) -> None:
         name = msg.get_type()
         self.uplink.append(msg)
-        if name == "MISSION_COUNT" and self.early_ack:
-            self.send(mav.MAVLink_mission_ack_message(255, 191, 0, 0))
+        if name == "MISSION_COUNT" and (self.early_ack or self.ack_error is not None):
+            answer = 0 if self.ack_error is None else self.ack_error
+            self.send(mav.MAVLink_mission_ack_message(255, 191, answer, 0))
         elif name == "MISSION_COUNT":
             # Items that do not exist first, then the real ones.
             for seq in (65535, msg.count, msg.count + 7, *range(msg.count)):
@@ -447,3 +450,30 @@ def test_an_operator_window_that_is_over_is_rejected(
     assert code == 1
     assert (lines[-1]["status"], lines[-1]["check"]) == ("rejected", "window")
     assert lines[-1]["reason"].startswith("the window ended at 2020-01-01T00:00:00+00:00")
+
+
+def test_a_mission_the_airframe_refuses_fails_with_its_result(
+    node: tuple[Any, HostileAirframe, Path],
+) -> None:
+    _daemon, airframe, sock = node
+    airframe.ack_error = mav.MAV_MISSION_NO_SPACE
+    try:
+        code, lines = order_cli(
+            sock,
+            "--task",
+            "recon_area",
+            "--airframe",
+            "F26E-001",
+            "--order-id",
+            "NOSPACE-1",
+            "--polygon",
+            "65.84,21.02",
+            "65.84,21.06",
+            "65.86,21.06",
+            "--follow",
+        )
+    finally:
+        airframe.ack_error = None
+    assert code == 1, lines
+    assert (lines[-1]["status"], lines[-1]["check"]) == ("failed", "mission")
+    assert lines[-1]["reason"] == "mission upload: MAV_MISSION_NO_SPACE"
