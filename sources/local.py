@@ -225,14 +225,12 @@ class LocalOrderSource:
             async with anyio.create_task_group() as tg:
                 # A client that hangs up (the command without --follow, once accepted) frees
                 # its connection now, not at the order's next status, which may never come.
-                tg.start_soon(_until_hangup, reader, tg.cancel_scope)
+                tg.start_soon(_until_hangup, stream, tg.cancel_scope)
                 async for status in receive:
                     await _say(stream, _line(status))
                     if status.status in _FINAL:
+                        tg.cancel_scope.cancel()
                         break
-                # The final answer is out: the client has timeout_s to hang up (the reader
-                # then ends on its own; cancelling it as the client closes races uvloop).
-                tg.cancel_scope.deadline = anyio.current_time() + self.config.timeout_s
         finally:
             watchers.discard(send)
             if not watchers:
@@ -252,13 +250,24 @@ def _line(status: OrderStatus) -> dict[str, Any]:
     }
 
 
-async def _until_hangup(reader: BufferedByteReceiveStream, scope: anyio.CancelScope) -> None:
-    """Read and drop whatever the client sends until it hangs up, then cancel ``scope``."""
-    try:
-        while True:
-            await reader.receive(4096)
-    except (anyio.EndOfStream, anyio.BrokenResourceError, anyio.ClosedResourceError):
-        scope.cancel()
+async def _until_hangup(stream: anyio.abc.SocketStream, scope: anyio.CancelScope) -> None:
+    """Drop whatever the client sends until it hangs up, then cancel ``scope``.
+
+    Waits on the raw socket with ``anyio.wait_readable``: cancelling a pending
+    ``stream.receive`` as the client closes makes the event loop log an InvalidStateError.
+    """
+    raw = stream.extra(anyio.abc.SocketAttribute.raw_socket)
+    while True:
+        try:
+            await anyio.wait_readable(raw)
+            data = raw.recv(4096, socket.MSG_DONTWAIT)
+        except BlockingIOError:
+            continue
+        except (OSError, anyio.ClosedResourceError):
+            break
+        if not data:
+            break
+    scope.cancel()
 
 
 async def _say(stream: anyio.abc.SocketStream, line: dict[str, Any]) -> None:
