@@ -477,3 +477,38 @@ def test_a_mission_the_airframe_refuses_fails_with_its_result(
     assert code == 1, lines
     assert (lines[-1]["status"], lines[-1]["check"]) == ("failed", "mission")
     assert lines[-1]["reason"] == "mission upload: MAV_MISSION_NO_SPACE"
+
+
+def test_a_fence_for_an_airframe_id_that_is_not_configured_is_refused(tmp_path: Path) -> None:
+    config = tmp_path / "node.yaml"
+    config.write_text(
+        f"""airframes:
+  - {{id: F26E-001, sysid: 1, links: [{{uri: 'udp://127.0.0.1:{free_udp_port()}',
+     security: unsecured, name: fleet}}]}}
+processors:
+  - name: orders
+    type: orders
+    options:
+      airframe_geofences:
+        F26E-01:
+          - {{lat_deg: 65.0, lon_deg: 20.0}}
+          - {{lat_deg: 65.0, lon_deg: 24.0}}
+          - {{lat_deg: 67.0, lon_deg: 20.0}}
+"""
+    )
+    expected = (
+        f"{config}:9 processors[0].options.airframe_geofences.F26E-01: 'F26E-01' is not an"
+        " airframe of this config (airframes: F26E-001)"
+    )
+    for command in (
+        ["check-config", "--no-environment", str(config)],
+        ["run", "--config", str(config)],
+    ):
+        done = subprocess.run(
+            [sys.executable, "-m", "gateway", *command],
+            capture_output=True,
+            timeout=60,
+            check=False,
+        )
+        assert done.returncode == 2
+        assert expected in done.stdout.decode() + done.stderr.decode()
