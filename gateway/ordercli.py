@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import secrets
 import socket
 from datetime import UTC, datetime
@@ -25,10 +26,17 @@ _FINAL = {"rejected", "completed", "failed", "not_held"}
 _MAX_LINE = 65536
 
 
+def _number(text: str) -> float:
+    value = float(text)  # argparse reports a ValueError as an invalid value
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+    return value
+
+
 def _corner(text: str) -> dict[str, float]:
     try:
-        lat, lon = (float(part) for part in text.split(","))
-    except ValueError:
+        lat, lon = (_number(part) for part in text.split(","))
+    except (ValueError, argparse.ArgumentTypeError):
         raise argparse.ArgumentTypeError(f"expected LAT,LON, got {text!r}") from None
     return {"lat_deg": lat, "lon_deg": lon}
 
@@ -55,10 +63,10 @@ def add_order_parser(sub: Any) -> None:
         choices=["observe_point", "track_target", "recon_area", "return_to_base"],
     )
     where = order.add_mutually_exclusive_group(required=True)
-    where.add_argument("--point", nargs=2, type=float, metavar=("LAT", "LON"))
+    where.add_argument("--point", nargs=2, type=_number, metavar=("LAT", "LON"))
     where.add_argument("--mgrs", help="an MGRS reference, 1/10/100 m")
     where.add_argument("--polygon", nargs="+", type=_corner, metavar="LAT,LON")
-    order.add_argument("--alt-msl-m", type=float, help="commanded altitude (with --point)")
+    order.add_argument("--alt-msl-m", type=_number, help="commanded altitude (with --point)")
     order.add_argument("--airframe", help="the airframe tasked; default: any suitable")
     order.add_argument("--order-id", help="default: op-<random>")
     order.add_argument("--issuer", default="local operator")

@@ -185,7 +185,11 @@ class LocalOrderSource:
             await _say(stream, {"status": "rejected", "reason": "order: no JSON line received"})
             return
         try:
-            element: Any = json.loads(line)
+            element: Any = json.loads(line, parse_constant=_no_constant)
+        except _NotJson as exc:
+            self._count("malformed")
+            await _say(stream, {"status": "rejected", "reason": f"order: {exc}"})
+            return
         except (ValueError, RecursionError):
             self._count("malformed")
             await _say(stream, {"status": "rejected", "reason": "order: not JSON"})
@@ -237,6 +241,14 @@ class LocalOrderSource:
                 self._watchers.pop(order.event_id, None)
             send.close()
             receive.close()
+
+
+class _NotJson(ValueError):
+    """A constant JSON does not have (NaN, Infinity), as SLB's reader refuses it too."""
+
+
+def _no_constant(name: str) -> Any:
+    raise _NotJson(f"{name} is not JSON")
 
 
 def _line(status: OrderStatus) -> dict[str, Any]:

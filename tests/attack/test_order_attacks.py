@@ -312,6 +312,11 @@ def test_hostile_order_shapes_and_windows_are_rejected_with_their_reason(
     }
     lines = raw_order(sock, later)
     assert (lines[-1]["status"], lines[-1]["check"]) == ("rejected", "window")
+    nan = {**later, "order_id": "NAN-1", "not_before": None}
+    nan["location"] = {"point": {"lat_deg": float("nan"), "lon_deg": 21.0}}
+    assert raw_order(sock, {k: v for k, v in nan.items() if v is not None}) == [
+        {"status": "rejected", "reason": "order: NaN is not JSON"}
+    ]
     assert "at most 3600 s ahead" in lines[-1]["reason"]
     assert len(airframe.uplink) == before  # nothing reached the airframe
 
