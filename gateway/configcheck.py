@@ -191,12 +191,19 @@ def _components(data: dict[str, Any], *, build: bool) -> Iterator[Finding]:
         options = {k: v for k, v in entry.items() if k not in ("name", "type")}
         loc: Loc = ("sources", i)
         yield from _component(SOURCE_GROUP, type_name, str(name), options, loc, build=build)
+    airframes = sorted(str(a.get("id")) for a in _items(data.get("airframes")))
     for i, entry in enumerate(_items(data.get("processors"))):
         type_name, options = entry.get("type"), entry.get("options") or {}
         if isinstance(type_name, str) and isinstance(options, dict):
             loc = ("processors", i, "options")
             name = str(entry.get("name", type_name))
             yield from _component(PROCESSOR_GROUP, type_name, name, options, loc, build=build)
+            # A fence for a mistyped airframe id would leave the real one unfenced.
+            for key in _mapping(options.get("airframe_geofences")) if type_name == "orders" else ():
+                if str(key) not in airframes:
+                    known = ", ".join(airframes) or "none"
+                    message = f"{key!r} is not an airframe of this config (airframes: {known})"
+                    yield (*loc, "airframe_geofences", key), message, True
 
 
 def _component(

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import secrets
 import socket
 from datetime import UTC, datetime
@@ -25,12 +26,29 @@ _FINAL = {"rejected", "completed", "failed", "not_held"}
 _MAX_LINE = 65536
 
 
+def _number(text: str) -> float:
+    value = float(text)  # argparse reports a ValueError as an invalid value
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+    return value
+
+
 def _corner(text: str) -> dict[str, float]:
     try:
-        lat, lon = (float(part) for part in text.split(","))
-    except ValueError:
+        lat, lon = (_number(part) for part in text.split(","))
+    except (ValueError, argparse.ArgumentTypeError):
         raise argparse.ArgumentTypeError(f"expected LAT,LON, got {text!r}") from None
     return {"lat_deg": lat, "lon_deg": lon}
+
+
+def _when(text: str) -> str:
+    try:
+        moment = datetime.fromisoformat(text.replace("Z", "+00:00"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an ISO 8601 time, got {text!r}") from None
+    if moment.tzinfo is None:
+        raise argparse.ArgumentTypeError(f"expected a time with a zone (Z, +01:00), got {text!r}")
+    return moment.isoformat()
 
 
 def add_order_parser(sub: Any) -> None:
@@ -45,10 +63,10 @@ def add_order_parser(sub: Any) -> None:
         choices=["observe_point", "track_target", "recon_area", "return_to_base"],
     )
     where = order.add_mutually_exclusive_group(required=True)
-    where.add_argument("--point", nargs=2, type=float, metavar=("LAT", "LON"))
+    where.add_argument("--point", nargs=2, type=_number, metavar=("LAT", "LON"))
     where.add_argument("--mgrs", help="an MGRS reference, 1/10/100 m")
     where.add_argument("--polygon", nargs="+", type=_corner, metavar="LAT,LON")
-    order.add_argument("--alt-msl-m", type=float, help="commanded altitude (with --point)")
+    order.add_argument("--alt-msl-m", type=_number, help="commanded altitude (with --point)")
     order.add_argument("--airframe", help="the airframe tasked; default: any suitable")
     order.add_argument("--order-id", help="default: op-<random>")
     order.add_argument("--issuer", default="local operator")
@@ -56,6 +74,15 @@ def add_order_parser(sub: Any) -> None:
         "--priority", default="priority", choices=["flash", "immediate", "priority", "routine"]
     )
     order.add_argument("--target", help="line 4: what to observe or track")
+    order.add_argument(
+        "--track-id", help="track_target: a live fused track to fly to (its newest position)"
+    )
+    order.add_argument(
+        "--not-before", type=_when, metavar="TIME", help="line 3: start, ISO 8601 with a zone"
+    )
+    order.add_argument(
+        "--not-after", type=_when, metavar="TIME", help="line 3: end, ISO 8601 with a zone"
+    )
     order.add_argument(
         "--follow", action="store_true", help="wait until the order completed or failed"
     )
@@ -86,6 +113,9 @@ def _document(args: argparse.Namespace) -> dict[str, Any]:
         document["airframe"] = args.airframe
     if args.target:
         document["target"] = args.target
+    for key in ("track_id", "not_before", "not_after"):
+        if getattr(args, key):
+            document[key] = getattr(args, key)
     return document
 
 

@@ -30,6 +30,7 @@ from gateway.domain.mission import (
     MAV_CMD_NAV_LOITER_TIME,
     MAV_CMD_NAV_WAYPOINT,
     MissionItem,
+    polygon_problem,
     route_inside,
     route_length_m,
 )
@@ -127,6 +128,9 @@ def plan(
         route = (start, point, back)
         return Plan(items, task, route, alt, on_task_s, route_length_m(route))
     corners = tuple((p.lat_deg, p.lon_deg) for p in area.polygon)
+    problem = polygon_problem(corners)
+    if problem is not None:
+        return Refusal("area", f"the order's polygon {problem}")
     loop = (*corners, corners[0])
     area_items = tuple(MissionItem(MAV_CMD_NAV_WAYPOINT, lat, lon, alt) for lat, lon in loop)
     perimeter_m = route_length_m(loop)

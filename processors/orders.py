@@ -36,13 +36,14 @@ import anyio
 import anyio.abc
 import structlog
 from anyio.streams.memory import MemoryObjectReceiveStream
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from gateway.clock import Clock, utc_now
 from gateway.domain.mission import (
     MAV_CMD_DO_SET_MODE,
     MAV_CMD_MISSION_START,
     MAV_CMD_NAV_RETURN_TO_LAUNCH,
+    polygon_problem,
 )
 from gateway.domain.terrain import TerrainModel
 from gateway.events import (
@@ -125,12 +126,34 @@ class OrdersConfig(ProcessorConfig):
         default=64, ge=1, le=10_000, description="Orders being carried out at once, at most."
     )
 
-    @model_validator(mode="after")
-    def _fences(self) -> OrdersConfig:
-        for airframe, fence in self.airframe_geofences.items():
+    max_start_delay_s: float = Field(
+        default=3600.0,
+        gt=0,
+        le=7 * 86400,
+        description="Latest start (not_before) accepted, seconds from now: the checks hold now.",
+    )
+
+    @field_validator("geofence")
+    @classmethod
+    def _simple_fence(cls, fence: Fence | None) -> Fence | None:
+        if fence is not None:
+            _check_fence(fence, "the fence")
+        return fence
+
+    @field_validator("airframe_geofences")
+    @classmethod
+    def _simple_fences(cls, fences: dict[str, Fence]) -> dict[str, Fence]:
+        for airframe, fence in fences.items():
             if len(fence) < 3:
-                raise ValueError(f"airframe_geofences.{airframe}: a fence needs 3+ corners")
-        return self
+                raise ValueError(f"{airframe}: a fence needs 3+ corners")
+            _check_fence(fence, f"{airframe}: the fence")
+        return fences
+
+
+def _check_fence(fence: Fence, what: str) -> None:
+    problem = polygon_problem([(c.lat_deg, c.lon_deg) for c in fence])
+    if problem is not None:
+        raise ValueError(f"{what} {problem}")
 
 
 @dataclass(slots=True)
@@ -286,6 +309,15 @@ class OrdersProcessor:
             return order.airframe, Refusal(
                 "window", f"the window ended at {order.not_after.isoformat()} (now {_iso(now)})"
             )
+        if order.not_before is not None:
+            delay_s = (order.not_before - now).total_seconds()
+            if delay_s > self.config.max_start_delay_s:
+                return order.airframe, Refusal(
+                    "window",
+                    f"the window starts at {order.not_before.isoformat()}, {delay_s:.0f} s from"
+                    f" now; at most {self.config.max_start_delay_s:g} s ahead is taken (the"
+                    " checks hold for now, not then)",
+                )
         if order.airframe is not None:
             candidates = [order.airframe]
         else:
@@ -435,6 +467,11 @@ class OrdersProcessor:
     def _on_mission(self, airframe: str, what: Literal["current", "reached"], seq: int) -> None:
         running = self._running.get(airframe)
         if running is None:
+            return
+        # Only items this order uploaded count (a current item one past the last is how some
+        # autopilots say the mission is over); anything else is a lie or another mission's.
+        if not 0 <= seq < running.items + (what == "current"):
+            self.counts["progress_ignored"] = self.counts.get("progress_ignored", 0) + 1
             return
         if what == "reached":
             running.reached = max(running.reached, seq)

@@ -23,7 +23,7 @@ import json
 import os
 import socket
 import struct
-from collections import Counter
+from collections import Counter, OrderedDict
 from collections.abc import Callable
 from datetime import datetime
 from pathlib import Path
@@ -49,6 +49,8 @@ log = structlog.get_logger(__name__)
 EVENT_ID_PREFIX = "local-order-"
 _FINAL = frozenset({OrderState.REJECTED, OrderState.COMPLETED, OrderState.FAILED})
 _WATCH_QUEUE = 32
+#: Order ids taken, remembered so a second order with one of them is refused, not lost.
+_REMEMBERED_IDS = 10_000
 
 
 class LocalOrderSourceConfig(BaseModel):
@@ -103,6 +105,7 @@ class LocalOrderSource:
         self._clock = clock
         self._uids = frozenset({os.getuid(), 0, *config.allowed_uids})
         self._watchers: dict[str, set[MemoryObjectSendStream[OrderStatus]]] = {}
+        self._taken: OrderedDict[str, None] = OrderedDict()
         self._active = 0
         self.counts: Counter[str] = Counter()
         self._log_limit = RateLimit(interval_s=10.0)
@@ -171,12 +174,22 @@ class LocalOrderSource:
         try:
             with anyio.fail_after(self.config.timeout_s):
                 line = await reader.receive_until(b"\n", self.config.max_line_bytes)
-        except (TimeoutError, anyio.DelimiterNotFound, anyio.IncompleteRead):
+        except anyio.DelimiterNotFound:
+            self._count("oversize")
+            limit = self.config.max_line_bytes
+            reason = f"order: no end of line within max_line_bytes ({limit})"
+            await _say(stream, {"status": "rejected", "reason": reason})
+            return
+        except (TimeoutError, anyio.IncompleteRead):
             self._count("no_order_line")
             await _say(stream, {"status": "rejected", "reason": "order: no JSON line received"})
             return
         try:
-            element: Any = json.loads(line)
+            element: Any = json.loads(line, parse_constant=_no_constant)
+        except _NotJson as exc:
+            self._count("malformed")
+            await _say(stream, {"status": "rejected", "reason": f"order: {exc}"})
+            return
         except (ValueError, RecursionError):
             self._count("malformed")
             await _say(stream, {"status": "rejected", "reason": "order: not JSON"})
@@ -189,6 +202,13 @@ class LocalOrderSource:
             await _say(stream, {"order_id": order_id, "status": "rejected", "reason": str(exc)})
             return
         order = parsed.model_copy(update={"event_id": EVENT_ID_PREFIX + parsed.order_id})
+        if order.event_id in self._taken or order.event_id in self._watchers:
+            # The orders processor answers each order id once: a second order with it
+            # (changed or not) would wait for statuses that never come.
+            self._count("duplicate_order_id", order_id=order.order_id)
+            reason = f"order_id: {order.order_id} was already taken; give a new order id"
+            await _say(stream, {"order_id": order.order_id, "status": "rejected", "reason": reason})
+            return
         send, receive = anyio.create_memory_object_stream[OrderStatus](_WATCH_QUEUE)
         watchers = self._watchers.setdefault(order.event_id, set())
         watchers.add(send)
@@ -198,21 +218,37 @@ class LocalOrderSource:
                 await _say(stream, {"order_id": order.order_id, "status": "not_held"})
                 return
             self.counts["received"] += 1
+            self._taken[order.event_id] = None
+            while len(self._taken) > _REMEMBERED_IDS:
+                self._taken.popitem(last=False)
             self.log.info("local_order_received", order_id=order.order_id, task=order.task.value)
             await _say(
                 stream,
                 {"order_id": order.order_id, "status": "received", "event_id": order.event_id},
             )
-            async for status in receive:
-                await _say(stream, _line(status))
-                if status.status in _FINAL:
-                    return
+            async with anyio.create_task_group() as tg:
+                # A client that hangs up (the command without --follow, once accepted) frees
+                # its connection now, not at the order's next status, which may never come.
+                tg.start_soon(_until_hangup, stream, tg.cancel_scope)
+                async for status in receive:
+                    await _say(stream, _line(status))
+                    if status.status in _FINAL:
+                        tg.cancel_scope.cancel()
+                        break
         finally:
             watchers.discard(send)
             if not watchers:
                 self._watchers.pop(order.event_id, None)
             send.close()
             receive.close()
+
+
+class _NotJson(ValueError):
+    """A constant JSON does not have (NaN, Infinity), as SLB's reader refuses it too."""
+
+
+def _no_constant(name: str) -> Any:
+    raise _NotJson(f"{name} is not JSON")
 
 
 def _line(status: OrderStatus) -> dict[str, Any]:
@@ -224,6 +260,26 @@ def _line(status: OrderStatus) -> dict[str, Any]:
         "reason": status.reason,
         "event_id": status.event_id,
     }
+
+
+async def _until_hangup(stream: anyio.abc.SocketStream, scope: anyio.CancelScope) -> None:
+    """Drop whatever the client sends until it hangs up, then cancel ``scope``.
+
+    Waits on the raw socket with ``anyio.wait_readable``: cancelling a pending
+    ``stream.receive`` as the client closes makes the event loop log an InvalidStateError.
+    """
+    raw = stream.extra(anyio.abc.SocketAttribute.raw_socket)
+    while True:
+        try:
+            await anyio.wait_readable(raw)
+            data = raw.recv(4096, socket.MSG_DONTWAIT)
+        except BlockingIOError:
+            continue
+        except (OSError, anyio.ClosedResourceError):
+            break
+        if not data:
+            break
+    scope.cancel()
 
 
 async def _say(stream: anyio.abc.SocketStream, line: dict[str, Any]) -> None:

@@ -30,6 +30,7 @@ __all__ = [
     "Outcome",
     "crosses",
     "inside",
+    "polygon_problem",
     "route_inside",
     "route_length_m",
 ]
@@ -73,7 +74,10 @@ def route_length_m(points: Sequence[LatLon]) -> float:
 
 def _plane(fence: Sequence[LatLon]) -> tuple[float, float, float]:
     lat0 = sum(p[0] for p in fence) / len(fence)
-    lon0 = sum(p[1] for p in fence) / len(fence)
+    # Longitudes averaged as offsets from the first corner: a fence across the antimeridian
+    # (179° and -179°) is centred on 180°, not on 0° (which turned it inside out).
+    ref = fence[0][1]
+    lon0 = ref + sum((p[1] - ref + 180.0) % 360.0 - 180.0 for p in fence) / len(fence)
     return lat0, lon0, math.cos(math.radians(lat0))
 
 
@@ -134,4 +138,31 @@ def route_inside(fence: Sequence[LatLon], points: Sequence[LatLon]) -> LatLon | 
     for a, b in pairwise(points):
         if crosses(fence, a, b):
             return a
+    return None
+
+
+def polygon_problem(corners: Sequence[LatLon]) -> str | None:
+    """Why ``corners`` is not a simple polygon (a repeated corner, no area, edges that cross),
+    or None. Corners are 1-based in the answer, as an operator counts them."""
+    plane = _plane(corners)
+    pts = [_xy(c, plane) for c in corners]
+    n = len(pts)
+    edges = list(zip(pts, pts[1:] + pts[:1], strict=True))
+    for i, (a, b) in enumerate(edges):
+        if math.hypot(b[0] - a[0], b[1] - a[1]) < 1e-9:
+            return f"has corners {i + 1} and {(i + 1) % n + 1} at the same point"
+    for i in range(n):
+        for j in range(i + 2, n):
+            if i == 0 and j == n - 1:
+                continue  # adjacent through the closing edge
+            (p, q), (c1, c2) = edges[i], edges[j]
+            d1, d2 = _cross(c1, c2, p), _cross(c1, c2, q)
+            d3, d4 = _cross(p, q, c1), _cross(p, q, c2)
+            if d1 * d2 < 0 and d3 * d4 < 0:
+                return (
+                    f"crosses itself: edge {i + 1}-{i + 2} crosses edge {j + 1}-{(j + 1) % n + 1}"
+                )
+    area = sum(a[0] * b[1] - b[0] * a[1] for a, b in edges) / 2.0
+    if abs(area) < 1e-12:
+        return "has no area (its corners are on one line)"
     return None

@@ -24,7 +24,15 @@ import anyio.abc
 import structlog
 from anyio.streams.memory import MemoryObjectSendStream
 
-from gateway.domain.mission import MissionItem, Outcome
+from gateway.domain.mission import (
+    MAV_CMD_DO_SET_MODE,
+    MAV_CMD_MISSION_START,
+    MAV_CMD_NAV_LOITER_TIME,
+    MAV_CMD_NAV_RETURN_TO_LAUNCH,
+    MAV_CMD_NAV_WAYPOINT,
+    MissionItem,
+    Outcome,
+)
 from gateway.errors import FrameError, LinkError
 from gateway.fleet.mavlink import MavMessage, dialect
 from gateway.fleet.session import GATEWAY_COMPID, GATEWAY_SYSID, AirframeSession
@@ -39,6 +47,12 @@ _MISSION_RESULT_NAMES: dict[int, str] = {
     int(key): str(entry.name) for key, entry in dialect.enums["MAV_MISSION_RESULT"].items()
 }
 _MAX_ITEMS = 500
+#: The only commands and mission items this port ever sends: reconnaissance never arms,
+#: releases, moves a servo or actuator, or sets a parameter, whatever a caller asks for.
+_COMMANDS = frozenset({MAV_CMD_DO_SET_MODE, MAV_CMD_MISSION_START, MAV_CMD_NAV_RETURN_TO_LAUNCH})
+_ITEMS = frozenset({MAV_CMD_NAV_WAYPOINT, MAV_CMD_NAV_LOITER_TIME})
+#: DO_SET_MODE's base mode may only say "custom mode": never MAV_MODE_FLAG_SAFETY_ARMED.
+_CUSTOM_MODE_ONLY = 1.0
 _QUEUE_MAX = 256
 
 
@@ -105,7 +119,14 @@ class FleetCommander:
         """COMMAND_LONG ``command`` with ``params``; ok only when the ACK says ACCEPTED.
 
         A link that cannot carry it (down, no peer, unsignable) is an outcome, not an error.
+        A command outside the reconnaissance set (``_COMMANDS``; DO_SET_MODE only with the
+        custom-mode flag, never the armed one) is refused and never sent.
         """
+        if command not in _COMMANDS or (
+            command == MAV_CMD_DO_SET_MODE and (params[:1] or (0.0,))[0] != _CUSTOM_MODE_ONLY
+        ):
+            log.error("command_refused", airframe=airframe, command=command)
+            return Outcome(False, f"command {command} refused: not a reconnaissance command", 0)
         try:
             result = await self._sessions[airframe].command_long(
                 command, *params, timeout_s=timeout_s, retries=retries
@@ -126,6 +147,10 @@ class FleetCommander:
         """Upload ``items`` (see the module docstring); ok only for MAV_MISSION_ACCEPTED."""
         if not 0 < len(items) <= _MAX_ITEMS:
             raise ValueError(f"expected 1..{_MAX_ITEMS} mission items, found {len(items)}")
+        refused = sorted({item.command for item in items} - _ITEMS)
+        if refused:
+            log.error("mission_refused", airframe=airframe, commands=refused)
+            return Outcome(False, f"mission items {refused} refused: not navigation", 0)
         session = self._sessions[airframe]
         lock = self._locks.setdefault(airframe, anyio.Lock())
         try:
@@ -160,6 +185,12 @@ class FleetCommander:
             log.warning("mission_upload_timed_out", airframe=airframe, attempts=attempts)
             return Outcome(False, f"no MISSION_ACK after {attempts} attempts", attempts)
         name = _MISSION_RESULT_NAMES.get(upload.acked, str(upload.acked))
+        missing = sorted(set(range(len(items))) - upload.sent)
+        if upload.acked == 0 and missing:
+            # An airframe that "accepts" a mission it never asked all the items of holds
+            # some other mission: that is no execution of this order.
+            shown = ", ".join(map(str, missing[:8])) + (", ..." if len(missing) > 8 else "")
+            return Outcome(False, f"{name} without asking for items {shown}", attempts)
         return Outcome(upload.acked == 0, name, attempts)
 
     # -- handlers (synchronous, on ingest's path: never block, never raise) ----------------

@@ -7,7 +7,13 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from gateway.domain.geodesy import distance_bearing
-from gateway.domain.mission import crosses, inside, route_inside, route_length_m
+from gateway.domain.mission import (
+    crosses,
+    inside,
+    polygon_problem,
+    route_inside,
+    route_length_m,
+)
 
 SQUARE = [(65.0, 20.0), (65.0, 22.0), (66.0, 22.0), (66.0, 20.0)]
 #: A U shape: the notch between its arms (65.3..66 N, 20.7..21.3 E) is outside.
@@ -69,3 +75,26 @@ def test_route_length_is_the_sum_of_geodesic_legs() -> None:
     legs = distance_bearing(65.0, 20.0, 65.0, 21.0)[0] + distance_bearing(65.0, 21.0, 66.0, 21.0)[0]
     assert route_length_m(points) == pytest.approx(legs)
     assert route_length_m(points[:1]) == 0.0
+
+
+def test_a_fence_across_the_antimeridian_is_not_turned_inside_out() -> None:
+    fence = [(65.0, 179.0), (65.0, -179.0), (66.0, -179.0), (66.0, 179.0)]
+    assert inside(fence, (65.5, 179.5))
+    assert inside(fence, (65.5, -179.5))
+    assert inside(fence, (65.5, 180.0))
+    assert not inside(fence, (65.5, 0.0))
+    assert not inside(fence, (65.5, 178.0))
+    assert route_inside(fence, [(65.5, 179.5), (65.5, -179.5)]) is None
+
+
+def test_polygon_problems_are_named_with_their_corners() -> None:
+    square = [(65.8, 21.0), (65.8, 21.1), (65.9, 21.1), (65.9, 21.0)]
+    assert polygon_problem(square) is None
+    bow_tie = [(65.8, 21.0), (65.9, 21.1), (65.9, 21.0), (65.8, 21.1)]
+    assert polygon_problem(bow_tie) == "crosses itself: edge 1-2 crosses edge 3-4"
+    repeated = [(65.8, 21.0), (65.8, 21.0), (65.9, 21.1)]
+    assert polygon_problem(repeated) == "has corners 1 and 2 at the same point"
+    line = [(65.8, 21.0), (65.85, 21.0), (65.9, 21.0)]
+    assert polygon_problem(line) == "has no area (its corners are on one line)"
+    across = [(65.0, 179.9), (65.0, -179.9), (66.0, -179.9), (66.0, 179.9)]
+    assert polygon_problem(across) is None

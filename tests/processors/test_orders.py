@@ -452,7 +452,7 @@ def test_order_status_round_trips_as_json() -> None:
 def test_a_fence_of_two_corners_is_a_config_error() -> None:
     with pytest.raises(ValueError, match="at least 3"):
         OrdersConfig.model_validate({"geofence": FENCE[:2]})
-    with pytest.raises(ValueError, match=r"airframe_geofences\.F26E-001"):
+    with pytest.raises(ValueError, match=r"airframe_geofences\n.*F26E-001: a fence needs 3"):
         OrdersConfig.model_validate({"airframe_geofences": {"F26E-001": FENCE[:2]}})
 
 

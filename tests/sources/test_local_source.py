@@ -106,7 +106,7 @@ async def test_bad_lines_are_answered_rejected_and_nothing_is_published(tmp_path
             tg.cancel_scope.cancel()
     assert [a[0]["status"] for a in answers] == ["rejected"] * 4
     assert answers[0][0]["reason"] == "order: not JSON"
-    assert answers[1][0]["reason"] == "order: no JSON line received"
+    assert answers[1][0]["reason"] == "order: no end of line within max_line_bytes (1024)"
     assert str(answers[3][0]["reason"]).startswith("task: ")
     assert published == []
     assert source.counts["malformed"] == 1
