@@ -486,7 +486,8 @@ class SourcePublish:
     A ``BlueForce`` whose ``uid`` a processor pins (``counter_uas`` ``blue_forces``) would
     otherwise reach every sink and draw the fixed unit wherever the report says (the registry
     ignores it, ATAK would not); one under the uid a sink gives our own airframe (an ``nffi``
-    sink's trackSource read back: a C2 system echoing our tracks, or a forgery) would make our
+    sink's trackSource read back: a C2 system echoing our tracks, or a forgery; a ``cot``
+    sink's own-airframe uid heard back on a mesh the gateway also listens on) would make our
     airframe a second, "friendly" unit. Both are refused, counted (``pinned_refused``,
     ``own_refused`` on /status) and logged at most once per 10 s each.
     """
@@ -513,7 +514,9 @@ class SourcePublish:
             if reason is not None:
                 self.refused[reason] += 1
                 if self._log_limit.allow(reason):
-                    log.warning(
+                    # Our own reports heard back are routine on a CoT mesh the gateway both
+                    # sends to and listens on: info, not a warning every 10 s for ever.
+                    (log.warning if reason == "pinned" else log.info)(
                         _REFUSED_EVENT[reason],
                         source=self.source,
                         uid=event.uid,

@@ -49,7 +49,7 @@ from pydantic import (
 
 from gateway.c2.sink import SinkConfig
 from gateway.codecs.cot.codec import Encoded
-from gateway.codecs.cot.event import CotOptions, StaleTimes, build
+from gateway.codecs.cot.event import CotOptions, StaleTimes, build, own_uid
 from gateway.domain.geoid import GeoidGrid, bundled_geoid
 from gateway.errors import PermanentSinkError, TransientSinkError
 from gateway.events import Event, EventKind, Track
@@ -302,6 +302,9 @@ class CotSink:
             version=_package_version(),
         )
         self._refresh = timedelta(seconds=config.track_refresh_s or stale.track_s / 2)
+        #: A CoT source hearing our own reports back (a mesh echo, a TAK server relaying
+        #: everything, or a forgery) must not make our airframes friendly units: the gateway
+        #: refuses a source's report under these uids (``gateway.c2.sink.ReleasesOwnAirframes``).
         self._transports: list[UdpSender | StreamConnection] = []
         for dest in config.destinations:
             endpoint = dest.endpoint(config.protocol)
@@ -324,6 +327,10 @@ class CotSink:
         self._log_limit = RateLimit(interval_s=30.0)
         # Per track uid: its CoT content when last delivered, and that event's time.
         self._delivered: dict[str, tuple[tuple[object, ...], datetime]] = {}
+
+    def own_uids(self, airframes: Sequence[str]) -> frozenset[str]:
+        """The uids our own airframes' CoT carries, which a CoT source would read back."""
+        return frozenset(own_uid(self.options.uid_prefix, airframe) for airframe in airframes)
 
     @property
     def kinds(self) -> frozenset[EventKind]:

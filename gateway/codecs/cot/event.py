@@ -31,7 +31,16 @@ from gateway.domain.sidc import Hostility
 from gateway.domain.targeting import CEP50_FACTOR
 from gateway.events import BlueForce, Detection, Event, Position, Telemetry, Track
 
-__all__ = ["CotEvent", "CotOptions", "Geoid", "StaleTimes", "build", "how_and_source", "xml_safe"]
+__all__ = [
+    "CotEvent",
+    "CotOptions",
+    "Geoid",
+    "StaleTimes",
+    "build",
+    "how_and_source",
+    "own_uid",
+    "xml_safe",
+]
 
 Geoid = Callable[[float, float], float | None]
 """Geoid undulation N in metres at (lat, lon), or None where unknown."""
@@ -111,6 +120,11 @@ class CotEvent:
 
 def _uid(*parts: str) -> str:
     return xml_safe(_NOT_IN_UID.sub("_", "".join(parts)))
+
+
+def own_uid(uid_prefix: str, airframe: str) -> str:
+    """The CoT uid of our own airframe ``airframe`` (its position reports and links)."""
+    return _uid(uid_prefix, airframe)
 
 
 def _num(value: float | None) -> float:
@@ -197,7 +211,7 @@ def _telemetry(event: Telemetry, opts: CotOptions, own: Symbol) -> CotEvent | No
     if event.endurance_remaining_min is not None:
         remarks.append(f"endurance {event.endurance_remaining_min:.0f} min")
     return CotEvent(
-        uid=_uid(opts.uid_prefix, event.airframe),
+        uid=own_uid(opts.uid_prefix, event.airframe),
         type=own.cot_type,
         how=how,
         time=event.time,
@@ -223,7 +237,7 @@ def _telemetry(event: Telemetry, opts: CotOptions, own: Symbol) -> CotEvent | No
 
 def _link(opts: CotOptions, airframe: str, own_types: Mapping[str, str]) -> str:
     own_type = own_types.get(airframe, own_symbol(None).cot_type)
-    return _element("link", uid=_uid(opts.uid_prefix, airframe), type=own_type, relation="p-p")
+    return _element("link", uid=own_uid(opts.uid_prefix, airframe), type=own_type, relation="p-p")
 
 
 def _detection(event: Detection, opts: CotOptions, own_types: Mapping[str, str]) -> CotEvent:
