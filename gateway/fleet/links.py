@@ -31,6 +31,7 @@ from gateway.config import Endpoint, LinkConfig
 from gateway.errors import LinkClosed, LinkUnavailable, os_reason
 from gateway.ops.logsetup import RateLimit
 from gateway.transports.listener import Connection, TcpListener, connect
+from gateway.transports.serial import open_raw
 
 __all__ = ["DataHandler", "Link", "make_link"]
 
@@ -411,7 +412,7 @@ class SerialLink(Link):
         task_status.started()
         while True:
             try:
-                fd = self._open(ep.device, ep.baud)
+                fd = open_raw(ep.device, ep.baud)  # raw 8N1: nothing touches MAVLink bytes
             except OSError as exc:
                 reason = f"cannot open {ep.device}: {os_reason(exc)}"
                 if self.reason != reason:
@@ -449,34 +450,6 @@ class SerialLink(Link):
             self.on_close(self.label, peer)
             self._fd = None
             os.close(fd)
-
-    @staticmethod
-    def _open(device: str, baud: int) -> int:
-        import termios
-
-        fd = os.open(device, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
-        try:
-            attrs = termios.tcgetattr(fd)
-            speed = getattr(termios, f"B{baud}", None)
-            if speed is None:
-                raise OSError(f"unsupported baud rate {baud}")
-            # Raw 8N1: no line discipline may touch binary MAVLink bytes.
-            attrs[0] = 0
-            attrs[1] = 0
-            attrs[2] = termios.CS8 | termios.CREAD | termios.CLOCAL
-            attrs[3] = 0
-            attrs[4] = attrs[5] = speed
-            termios.tcsetattr(fd, termios.TCSANOW, attrs)
-        except termios.error as exc:
-            if not os.isatty(fd):
-                os.close(fd)
-                raise OSError(f"{device} is not a terminal device") from exc
-            os.close(fd)
-            raise OSError(str(exc)) from exc
-        except OSError:
-            os.close(fd)
-            raise
-        return fd
 
     async def send(self, data: bytes) -> None:
         fd = self._fd

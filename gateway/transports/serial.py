@@ -4,8 +4,9 @@
 discipline touches the bytes, and writes each frame whole, waiting while the driver's buffer
 is full. Any failure is an ``OSError`` naming the device: the caller decides to retry (a USB
 radio data terminal unplugged and plugged back is reopened by the next ``open``). It uses
-``os`` and ``termios`` directly, as the airframe links do (``gateway.fleet.links``), rather
-than pyserial: one non-blocking descriptor the event loop can wait on, and no dependency.
+``os`` and ``termios`` directly rather than pyserial: one non-blocking descriptor the event
+loop can wait on, and no dependency. ``open_raw`` is also how the airframes' serial links
+(``gateway.fleet.links``) open their devices.
 """
 
 from __future__ import annotations
