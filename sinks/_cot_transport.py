@@ -33,7 +33,7 @@ import structlog
 from gateway.codecs.cot.codec import Encoded, Encoding, cot_time
 from gateway.codecs.cot.validate import TakControl, scan_control
 from gateway.errors import TransientSinkError
-from gateway.transports.stream import open_tcp, start_tls
+from gateway.transports.stream import open_tcp, send_all, start_tls
 from gateway.transports.tls import TlsFiles, describe_tls_error, tls_context
 
 __all__ = ["Endpoint", "StreamConnection"]
@@ -237,15 +237,9 @@ class StreamConnection:
 
     async def _write(self, data: bytes) -> None:
         assert self._sock is not None  # noqa: S101 - connected
-        view, done = memoryview(data), False
+        done = False
         try:
-            while view:
-                try:
-                    view = view[self._sock.send(view) :]
-                except (BlockingIOError, ssl.SSLWantWriteError):
-                    await anyio.wait_writable(self._sock)
-                except ssl.SSLWantReadError:
-                    await anyio.wait_readable(self._sock)
+            await send_all(self._sock, data)
             done = True
         finally:
             if not done:

@@ -43,7 +43,7 @@ from gateway.domain.geoid import bundled_geoid
 from gateway.errors import TransientSinkError
 from gateway.events import BlueForce, Event, EventKind, Telemetry
 from gateway.ops.logsetup import RateLimit
-from gateway.transports.stream import open_tcp, start_tls
+from gateway.transports.stream import open_tcp, send_all, start_tls
 from gateway.transports.tls import TlsFiles, describe_tls_error, tls_context, tls_problem
 
 __all__ = ["MAX_UNITS", "NffiSink", "NffiSinkConfig", "NffiTls"]
@@ -260,15 +260,9 @@ class NffiSink:
 
     async def _write(self, data: bytes) -> None:
         assert self._sock is not None  # noqa: S101 - connected
-        view, done = memoryview(data), False
+        done = False
         try:
-            while view:
-                try:
-                    view = view[self._sock.send(view) :]
-                except (BlockingIOError, ssl.SSLWantWriteError):
-                    await anyio.wait_writable(self._sock)
-                except ssl.SSLWantReadError:
-                    await anyio.wait_readable(self._sock)
+            await send_all(self._sock, data)
             done = True
         finally:
             if not done:

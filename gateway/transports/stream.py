@@ -3,8 +3,8 @@
 ``open_tcp`` resolves and connects without blocking the loop (every address of the name in
 turn), with keep-alive and no Nagle delay; ``start_tls`` runs the TLS handshake on it with a
 context from ``gateway.transports.tls`` (CA pinned, hostname verified). The caller's deadline
-bounds both. The fleet's TCP client links and the CoT sink's TAK server streams use them;
-C2 sinks over HTTPS or TLS streams will too.
+bounds both. ``send_all`` writes a buffer whole on either kind of socket. The fleet's TCP
+client links, the CoT sink's TAK server streams and the NFFI sink's IP1 stream use them.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ import ssl
 
 import anyio
 
-__all__ = ["open_tcp", "start_tls"]
+__all__ = ["open_tcp", "send_all", "start_tls"]
 
 
 async def open_tcp(host: str, port: int) -> socket.socket:
@@ -66,3 +66,19 @@ async def start_tls(raw: socket.socket, context: ssl.SSLContext, hostname: str) 
         if not done:
             sock.close()
     return sock
+
+
+async def send_all(sock: socket.socket, data: bytes) -> None:
+    """Write ``data`` whole on the non-blocking ``sock`` (plain or TLS), waiting as it asks.
+
+    Raises ``OSError`` (``ssl.SSLError`` included) if the peer fails; how much of ``data`` was
+    written is then unknown, so a framed stream must be closed by the caller.
+    """
+    view = memoryview(data)
+    while view:
+        try:
+            view = view[sock.send(view) :]
+        except (BlockingIOError, ssl.SSLWantWriteError):
+            await anyio.wait_writable(sock)
+        except ssl.SSLWantReadError:
+            await anyio.wait_readable(sock)
