@@ -22,6 +22,7 @@ import anyio
 import anyio.abc
 import structlog
 
+from gateway.codecs.xmlstream import RootSplitter
 from gateway.ops.logsetup import RateLimit
 from gateway.transports.listener import Connection, TcpListener
 
@@ -29,44 +30,15 @@ __all__ = ["CotStreamServer", "EventSplitter"]
 
 log = structlog.get_logger(__name__)
 
-_END = b"</event>"
+_END = re.compile(rb"</event>")
 _EVENT_START = re.compile(rb"<event[\s>/]")
-_DECLARATION = re.compile(rb"<\?xml[^>]*\?>\s*\Z")
 
 
-class EventSplitter:
+class EventSplitter(RootSplitter):
     """Cuts a CoT XML stream into events, skipping (and counting) what is not one."""
 
     def __init__(self, max_event_bytes: int) -> None:
-        self.max_event_bytes = max_event_bytes
-        #: Pieces of the stream before an event that were not part of it.
-        self.fragments = 0
-        self._buffer = bytearray()
-
-    @property
-    def is_overflowing(self) -> bool:
-        """More than ``max_event_bytes`` buffered without an ``</event>``."""
-        return len(self._buffer) > self.max_event_bytes
-
-    def feed(self, chunk: bytes) -> list[bytes]:
-        """Take ``chunk``; return the events it completed, each from its ``<?xml``/``<event``."""
-        self._buffer += chunk
-        events: list[bytes] = []
-        while (end := self._buffer.find(_END)) >= 0:
-            piece = bytes(self._buffer[: end + len(_END)])
-            del self._buffer[: end + len(_END)]
-            starts = [m.start() for m in _EVENT_START.finditer(piece)]
-            if not starts:
-                self.fragments += 1  # an ``</event>`` with no event before it
-                continue
-            start = starts[-1]
-            declaration = piece.rfind(b"<?xml", 0, start)
-            if declaration >= 0 and _DECLARATION.match(piece, declaration, start):
-                start = declaration
-            if piece[:start].strip():
-                self.fragments += 1
-            events.append(piece[start:])
-        return events
+        super().__init__(_EVENT_START, _END, max_event_bytes)
 
 
 class CotStreamServer:
