@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import socket
 import struct
-from collections import Counter, OrderedDict
+from collections import Counter
 from collections.abc import Callable
 from datetime import datetime, timedelta
 from typing import ClassVar, Literal
@@ -35,6 +35,7 @@ import anyio.abc
 import structlog
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from gateway.c2.newest import NewestTimes
 from gateway.clock import utc_now
 from gateway.codecs.cot.validate import CotError, ParsedCot, is_unknown, parse_cot
 from gateway.events import BlueForce, Event, Position, event_id
@@ -125,7 +126,7 @@ class CotSource:
         self.counts: Counter[str] = Counter()
         #: Invalid events by the validator's problem code (xml, time, position, ...).
         self.problems: Counter[str] = Counter()
-        self._newest: OrderedDict[str, datetime] = OrderedDict()
+        self._newest = NewestTimes(config.max_uids)
         self._log_limit = RateLimit(interval_s=10.0)
         self.log = log.bind(source=name)
         self._stream = CotStreamServer(
@@ -224,19 +225,13 @@ class CotSource:
         if abs(cot.lat) < NO_FIX_DEG and abs(cot.lon) < NO_FIX_DEG:
             self._reject("no_fix", uid=cot.uid)
             return
-        newest = self._newest.get(cot.uid)
-        if newest is not None and cot.time <= newest:
-            self._reject("older" if cot.time < newest else "duplicate", uid=cot.uid)
+        refusal = self._newest.refusal(cot.uid, cot.time)
+        if refusal is not None:
+            self._reject(refusal, uid=cot.uid)
             return
-        self._remember(cot.uid, cot.time)
+        self._newest.remember(cot.uid, cot.time)
         self.counts["accepted"] += 1
         self._publish(_blue_force(cot))
-
-    def _remember(self, uid: str, time: datetime) -> None:
-        self._newest[uid] = time
-        self._newest.move_to_end(uid)
-        while len(self._newest) > self.config.max_uids:
-            self._newest.popitem(last=False)  # the unit heard from longest ago
 
     async def run(
         self, *, task_status: anyio.abc.TaskStatus[None] = anyio.TASK_STATUS_IGNORED

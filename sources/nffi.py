@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import ipaddress
 import ssl
-from collections import Counter, OrderedDict
+from collections import Counter
 from collections.abc import Awaitable, Callable
 from datetime import datetime, timedelta
 from pathlib import Path
@@ -46,6 +46,7 @@ from pydantic import (
     model_validator,
 )
 
+from gateway.c2.newest import NewestTimes
 from gateway.clock import utc_now
 from gateway.codecs.nffi import MAX_MESSAGE_BYTES, NffiError, NffiTrack, parse_message
 from gateway.codecs.nffi_stream import MessageSplitter
@@ -213,7 +214,7 @@ class NffiSource:
         self.counts: Counter[str] = Counter()
         #: Invalid documents and skipped tracks by problem (xml, dtd, root, dateTime, ...).
         self.problems: Counter[str] = Counter()
-        self._newest: OrderedDict[str, datetime] = OrderedDict()
+        self._newest = NewestTimes(config.max_units)
         self._log_limit = RateLimit(interval_s=LOG_INTERVAL_S)
         self.log = log.bind(source=name)
         self._listener = TcpListener(
@@ -278,14 +279,11 @@ class NffiSource:
         if track.unit_symbol is not None and track.unit_symbol[1] in _NOT_FRIENDLY:
             self._count("not_friendly", uid=uid)
             return
-        newest = self._newest.get(uid)
-        if newest is not None and track.time <= newest:
-            self._count("older" if track.time < newest else "duplicate", uid=uid)
+        refusal = self._newest.refusal(uid, track.time)
+        if refusal is not None:
+            self._count(refusal, uid=uid)
             return
-        self._newest[uid] = track.time
-        self._newest.move_to_end(uid)
-        while len(self._newest) > self.config.max_units:
-            self._newest.popitem(last=False)
+        self._newest.remember(uid, track.time)
         self.counts["accepted"] += 1
         self._publish(_blue_force(track))
 
