@@ -51,6 +51,9 @@ _RESULT_NAMES: dict[int, str] = {
     int(key): str(entry.name) for key, entry in dialect.enums["MAV_RESULT"].items()
 }
 _MAV_RESULT_IN_PROGRESS = 5
+#: Builds message objects (``*_encode``); each frame is packed by ``encode`` with the
+#: session's own sequence number.
+_BUILDER = dialect.MAVLink(None, srcSystem=GATEWAY_SYSID, srcComponent=GATEWAY_COMPID)
 
 
 @dataclass(frozen=True, slots=True)
@@ -152,11 +155,9 @@ class AirframeSession:
 
     def encode_detection_ack(self, detection_id: int, time_usec: int, result: int) -> bytes:
         """A FISCHER_DETECTION_ACK frame for one of this airframe's detections."""
-        mav = dialect.MAVLink(None, srcSystem=GATEWAY_SYSID, srcComponent=GATEWAY_COMPID)
-        mav.seq = self._seq
-        self._seq = (self._seq + 1) % 256
-        msg = fischer_detection_ack(time_usec, detection_id, self.config.sysid, 1, result)
-        return bytes(msg.pack(mav))
+        return self.encode(
+            fischer_detection_ack(time_usec, detection_id, self.config.sysid, 1, result)
+        )
 
     def encode(self, msg: MavMessage) -> bytes:
         """``msg`` (a pymavlink message) as a frame from the gateway, in this session's
@@ -168,20 +169,13 @@ class AirframeSession:
 
     def pack(self, name: str, *fields: Any) -> bytes:
         """One frame of message ``name`` (``mission_count`` ...) from the gateway's identity."""
-        mav = dialect.MAVLink(None, srcSystem=GATEWAY_SYSID, srcComponent=GATEWAY_COMPID)
-        mav.seq = self._seq
-        self._seq = (self._seq + 1) % 256
-        return bytes(getattr(mav, f"{name}_encode")(*fields).pack(mav))
+        return self.encode(getattr(_BUILDER, f"{name}_encode")(*fields))
 
     def _encode_command_long(
         self, command: int, params: tuple[float, ...], confirmation: int
     ) -> bytes:
-        mav = dialect.MAVLink(None, srcSystem=GATEWAY_SYSID, srcComponent=GATEWAY_COMPID)
-        mav.seq = self._seq
-        self._seq = (self._seq + 1) % 256
         padded = (*params, *(0.0,) * (7 - len(params)))[:7]
-        msg = mav.command_long_encode(self.config.sysid, 1, command, confirmation, *padded)
-        return bytes(msg.pack(mav))
+        return self.pack("command_long", self.config.sysid, 1, command, confirmation, *padded)
 
     async def command_long(
         self,
