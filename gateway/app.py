@@ -32,6 +32,7 @@ from gateway.fleet.hopschedule import HopSchedules
 from gateway.fleet.ingest import Ingest, LinkIntake
 from gateway.fleet.links import Link, make_link
 from gateway.fleet.passthrough import Passthrough
+from gateway.fleet.security.keys import read_key_file
 from gateway.fleet.security.material import Security
 from gateway.flow.bus import Bus
 from gateway.flow.processor import PinsUnits
@@ -219,7 +220,19 @@ class Gateway:
         self.passthroughs: dict[str, Passthrough] = {}
         for airframe in config.airframes:
             if airframe.passthrough is not None:
-                passthrough = Passthrough(airframe.id, airframe.passthrough, self.send_to_airframe)
+                gcs_key = (
+                    None
+                    if airframe.passthrough.key_file is None
+                    else read_key_file(airframe.passthrough.key_file, exact=True)
+                )
+                passthrough = Passthrough(
+                    airframe.id,
+                    airframe.sysid,
+                    airframe.passthrough,
+                    self.send_to_airframe,
+                    gcs_key=gcs_key,
+                    refused_metric=self.instruments.passthrough_refused,
+                )
                 self.passthroughs[airframe.id] = passthrough
                 self.ingest.set_passthrough(airframe.id, passthrough.forward)
         self.health: HealthServer | None = None

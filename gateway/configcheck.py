@@ -90,6 +90,11 @@ class NodeCheck:
             if isinstance(key_file, str):
                 loc = ("airframes", i, "signing", "key_file")
                 yield from _key_problem(loc, Path(key_file), exact=True)
+            gcs_key_file = _mapping(airframe.get("passthrough")).get("key_file")
+            if isinstance(gcs_key_file, str):
+                loc = ("airframes", i, "passthrough", "key_file")
+                yield from _key_problem(loc, Path(gcs_key_file), exact=True)
+                yield from _same_key(loc, gcs_key_file, key_file)
 
     def _devices(self, data: dict[str, Any]) -> Iterator[Finding]:
         for i, airframe in enumerate(_items(data.get("airframes"))):
@@ -254,6 +259,26 @@ def _key_problem(loc: Loc, path: Path, *, exact: bool) -> Iterator[Finding]:
         read_key_file(path, exact=exact)
     except ConfigError as exc:
         yield loc, f"{path}: " + "; ".join(issue.message for issue in exc.issues), True
+
+
+def _same_key(loc: Loc, gcs_key_file: str, airframe_key_file: object) -> Iterator[Finding]:
+    """A ground station holding the airframe's own key could command it around the policy."""
+    if not isinstance(airframe_key_file, str):
+        return
+    try:
+        same = read_key_file(Path(gcs_key_file), exact=True) == read_key_file(
+            Path(airframe_key_file), exact=True
+        )
+    except ConfigError:
+        return  # reported on its own key
+    if same:
+        yield (
+            loc,
+            "the ground station's key is the airframe's signing key: with it a ground "
+            "station could sign commands to the airframe directly, around the gateway's "
+            "command policy; give it a key of its own",
+            True,
+        )
 
 
 def _mapping(value: object) -> dict[str, Any]:

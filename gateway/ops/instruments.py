@@ -130,6 +130,12 @@ class Instruments:
             "Sends to an airframe refused, by reason (no_link, no_peer, unsignable, send_failed).",
             ("airframe", "reason"),
         )
+        self.passthrough_refused = r.counter(
+            "fg_passthrough_refused_total",
+            "Ground-station frames the passthrough did not relay, by airframe and reason "
+            "(docs/security.md#the-passthrough).",
+            ("airframe", "reason"),
+        )
         self.processor_events = r.counter(
             "fg_processor_events_total",
             "Events into and out of a processor, and dropped when its inbox was full.",
