@@ -156,13 +156,14 @@ class Passthrough:
             task_status.started()
             async for peer, data in receive:
                 try:
-                    await self._datagram(peer, data)
+                    await self.receive(peer, data)
                 except Exception as exc:  # no datagram may end the daemon (logged below)
                     self._refuse(peer, Refusal("internal_error", type(exc).__name__))
                     if self._log_limit.allow("internal_error"):
                         log.exception("passthrough_internal_error", airframe=self.airframe)
 
-    async def _datagram(self, peer: Peer, data: bytes) -> None:
+    async def receive(self, peer: Peer, data: bytes) -> None:
+        """Handle one datagram from a ground station at ``peer`` (``run`` does, for each)."""
         if len(data) > MAX_DATAGRAM_BYTES:
             self._refuse(peer, Refusal("oversize", f"{len(data)} bytes in one datagram"))
             return
@@ -260,7 +261,10 @@ class Passthrough:
         frame = bytes(answer.pack(packer))
         if self._signer is not None:
             frame = self._signer.sign(frame)
-        await self.link.send_to(peer, frame)
+        try:
+            await self.link.send_to(peer, frame)
+        except GatewayError:
+            return  # the endpoint is closing: nobody to answer
         self.answers += 1
 
     def _refuse(self, peer: Peer, refusal: Refusal, msg: Any = None) -> None:
