@@ -62,7 +62,8 @@ class Commits:
         self.failures: Counter[str] = Counter()
         #: True while the latest write failed (cleared by the next one that commits).
         self.failing = False
-        self._failing_since = 0
+        self._in_a_row = 0
+        self._failing_at = ""
         self._last: dict[str, Any] | None = None
         self._log = RateLimit(interval_s=_LOG_INTERVAL_S)
 
@@ -75,13 +76,12 @@ class Commits:
         """A write did not commit: count it, remember it, log it (rate-limited)."""
         reason = failure_reason(exc)
         self.failures[reason] += 1
-        self._failing_since += 1
+        at = datetime.now(UTC).isoformat(timespec="seconds")
+        if not self.failing:
+            self._failing_at = at
+        self._in_a_row += 1
         self.failing = True
-        self._last = {
-            "reason": reason,
-            "error": str(exc)[:300],
-            "at": datetime.now(UTC).isoformat(timespec="seconds"),
-        }
+        self._last = {"reason": reason, "error": str(exc)[:300], "at": at}
         if self._log.allow(reason):
             log.error(
                 "spool_commit_failed",
@@ -100,10 +100,20 @@ class Commits:
             log.warning(
                 "spool_commits_recovered",
                 spool=self.where,
-                failed_in_a_row=self._failing_since,
+                failed_in_a_row=self._in_a_row,
                 failures=self.total,
             )
-            self._failing_since = 0
+            self._in_a_row = 0
+
+    @property
+    def reason(self) -> str:
+        """Why the spool takes nothing in now, "" while its writes commit."""
+        if not self.failing or self._last is None:
+            return ""
+        return (
+            f"writes fail to commit ({self._last['reason']}: {self._last['error']}), "
+            f"{self._in_a_row} in a row since {self._failing_at}"
+        )
 
     def status(self) -> dict[str, Any]:
         """For /status: whether writes fail now, the counts by reason, and the last failure."""
