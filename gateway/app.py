@@ -42,6 +42,7 @@ from gateway.ops.instruments import Instruments
 from gateway.ops.logsetup import RateLimit
 from gateway.ops.sdnotify import SystemdNotifier
 from gateway.ops.supervise import Supervised, supervise
+from gateway.spool.commits import COMMIT_FAILURE_REASONS
 from gateway.spool.store import Spool
 
 __all__ = ["Gateway", "utc_now"]
@@ -288,8 +289,9 @@ class Gateway:
         )
         inst.spool_dead_letters.set_function(lambda: [((), float(spool.dead_letter_count()))])
         commits, check = spool.commits, spool.start_check
+        # Every reason from the start, at 0: increase() then sees the first failure too.
         inst.spool_commit_failures.set_function(
-            lambda: [((reason,), float(n)) for reason, n in commits.failures.items()]
+            lambda: [((r,), float(commits.failures[r])) for r in COMMIT_FAILURE_REASONS]
         )
         inst.spool_wal_lost_frames.set_function(lambda: [((), float(check.lost_frames))])
         inst.spool_wal_lost_commits.set_function(lambda: [((), float(check.lost_commits))])
