@@ -8,15 +8,16 @@
    (``INTEGRITY_BUDGET_S``). The check reads every page, so its cost is reading the file
    (measured: 4 s for a 220 MB spool from a cold disk, 0.4 s from the page cache). Over the
    budget it is cut short and the spool starts "unchecked", with a warning, rather than hold
-   up the start of a field node: the whole start has to fit in the unit's ``WatchdogSec``
-   (30 s). ``integrity_check`` rather than ``quick_check``: for about the same reading
-   (0.3-0.45 s against 0.26 s for 220 MB in the page cache) it also finds an index that no
-   longer matches its table (a lost write), which would hide owed events from a sink.
+   up the start of a field node: the whole start has to fit in systemd's start timeout
+   (``TimeoutStartSec``, 90 s by default). ``integrity_check`` rather than ``quick_check``:
+   for about the same reading (0.3-0.45 s against 0.26 s for 220 MB in the page cache) it
+   also finds an index that no longer matches its table (a lost write), which would hide
+   owed events from a sink.
 3. **A damaged database** is moved aside with its ``-wal`` and ``-shm`` files to
    ``<path>.corrupt-<UTC time>`` and the gateway starts on an empty spool, logged at error.
    A field node has no operator at hand, and refusing to start would stop every airframe's
    picture to save a backlog the gateway could not read anyway; the moved file is left as
-   it was, for ``sqlite3 FILE .recover``.
+   it was, for salvage (``sqlite3 FILE .dump``).
 
 Everything found is kept in ``StartCheck`` for /status and the metrics.
 """
@@ -84,6 +85,7 @@ class StartCheck:
             "moved_to": None if self.moved_to is None else str(self.moved_to),
             "wal_frames": 0 if wal is None else wal.frames,
             "wal_replayed_frames": 0 if wal is None else wal.replayed,
+            "wal_uncommitted_frames": 0 if wal is None else wal.uncommitted,
             "wal_lost_frames": self.lost_frames,
             "wal_lost_commits": self.lost_commits,
             "wal_problem": "" if wal is None else wal.problem,
@@ -235,7 +237,7 @@ def _replace_damaged(path: Path, check: StartCheck) -> None:
         moved_to=str(check.moved_to),
         problems=check.problems[:5],
         note="the spool was damaged: the events it owed to sinks are not delivered; the "
-        "gateway starts on an empty spool; salvage them with 'sqlite3 MOVED .recover' "
+        f"gateway starts on an empty spool; salvage them from 'sqlite3 {check.moved_to} .dump' "
         "(docs/durability.md, 'Checked at start')",
     )
     create_private(path)

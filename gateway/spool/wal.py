@@ -140,7 +140,7 @@ def _scan_frames(
     first_bad = 0  # 1-based index of the first current frame that fails; 0: none
     problem = ""
     last_current = 0  # 1-based index of the last frame carrying the header's salts
-    commit_frames: list[int] = []  # current-generation commit frames past the first failure
+    commit_frames: list[int] = []  # 1-based indexes of the commit frames carrying the salts
     for index in range(1, frames + 1):
         if first_bad:  # past the failure only headers are read: which frames are current
             handle.seek(_HEADER + (index - 1) * (_FRAME_HEADER + page))
