@@ -3,7 +3,8 @@
 1. **The WAL**, read before SQLite opens the database (``gateway.spool.wal``): SQLite replays
    the log only up to the first damaged frame and then overwrites the rest without a word. If
    it would drop frames of committed transactions, the ``-wal`` file is first copied to
-   ``<path>-wal.corrupt-<UTC time>`` and the loss is logged at error with its counts.
+   ``<path>-wal.corrupt-<UTC time>`` and the loss is logged at error with its counts; once
+   SQLite has replayed what it could, the log is checkpointed and emptied.
 2. **The database**, with ``PRAGMA integrity_check`` under a time budget
    (``INTEGRITY_BUDGET_S``). The check reads every page, so its cost is reading the file
    (measured: 4 s for a 220 MB spool from a cold disk, 0.4 s from the page cache). Over the
@@ -220,6 +221,10 @@ def open_checked(
             f"'sqlite3 {path} \"PRAGMA integrity_check\"' beside the gateway",
         )
     if db is not None and check.integrity != "corrupt":
+        if check.wal_copy is not None:
+            # What SQLite replayed goes into the database and the log is emptied, so the
+            # frames it ignored (kept in the copy) cannot be counted again after a next crash.
+            db.execute("PRAGMA wal_checkpoint(TRUNCATE)")
         return db, check
     if db is not None:
         with contextlib.suppress(sqlite3.Error):

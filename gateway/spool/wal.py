@@ -16,10 +16,11 @@ sum 32-bit words in the byte order the magic number names.
 
 Frames carrying other salts are left over from an earlier generation of the log (SQLite
 rewinds the file after a checkpoint and changes the salts): they were copied into the
-database already and are no loss. A frame of the current generation that fails is loss
-when another frame of the current generation follows it; when it is the last one it is a
-write cut off by the crash (SQLite writes a frame's header and its page separately), whose
-transaction had not committed when the process died, and is counted as uncommitted.
+database already and are no loss. Past a frame of the current generation that fails, what
+counts is whether a *commit* frame of the current generation follows: then committed
+transactions are lost. Without one it is no loss: a last frame cut off by the crash (SQLite
+writes a frame's header and its page separately) or the frames a rolled-back transaction
+left behind, whose transactions never committed; they are counted as uncommitted.
 """
 
 from __future__ import annotations
@@ -49,19 +50,19 @@ class WalScan:
     replayed: int
     #: Committed transactions among them.
     commits: int
-    #: Frames of the current generation SQLite will not replay because one before them fails.
+    #: Frames SQLite will not replay up to the last commit frame past a failing frame.
     lost_frames: int
     #: Commit frames among the lost ones: committed transactions that are gone.
     lost_commits: int
-    #: Frames of a transaction that had not committed when the writer stopped (no loss).
+    #: Frames of the current generation past the last commit (replayed or lost): no loss.
     uncommitted: int
     #: Why frames are lost ("" when none are): which frame fails and how.
     problem: str
 
     @property
     def lost(self) -> bool:
-        """True when SQLite will drop frames of committed transactions (or may have)."""
-        return self.lost_frames > 0
+        """True when SQLite will drop committed transactions."""
+        return self.lost_commits > 0
 
 
 def _checksum(data: bytes, s0: int, s1: int, *, big: bool) -> tuple[int, int]:
@@ -94,9 +95,9 @@ def db_page_size(database: Path) -> int | None:
 def scan_wal(wal: Path, *, page_size: int | None = None) -> WalScan:
     """Read ``wal`` as SQLite's recovery would; ``page_size`` is the database's, if known.
 
-    A header SQLite does not accept makes it ignore the whole file: every frame is then
-    counted as lost (some may be from an earlier generation: an upper bound). Raises
-    ``OSError`` if the file cannot be read.
+    A header SQLite does not accept makes it ignore the whole file: every frame up to the
+    last commit frame is then counted as lost (some may be from an earlier generation: an
+    upper bound). Raises ``OSError`` if the file cannot be read.
     """
     with wal.open("rb") as handle:
         size = handle.seek(0, 2)
@@ -118,12 +119,16 @@ def scan_wal(wal: Path, *, page_size: int | None = None) -> WalScan:
         frame_bytes = _FRAME_HEADER + page
         frames = (size - _HEADER) // frame_bytes
         if not header_ok:
-            commits = 0
-            for index in range(frames):
-                handle.seek(_HEADER + index * frame_bytes)
-                commits += struct.unpack(">2I", handle.read(8))[1] != 0
-            problem = "the header is damaged: SQLite ignores the whole file" if frames else ""
-            return WalScan(frames, 0, 0, frames, commits, 0, problem)
+            commit_frames = []
+            for index in range(1, frames + 1):
+                handle.seek(_HEADER + (index - 1) * frame_bytes)
+                if struct.unpack(">2I", handle.read(8))[1]:
+                    commit_frames.append(index)
+            if not commit_frames:
+                return WalScan(frames, 0, 0, 0, 0, frames, "")
+            last = commit_frames[-1]
+            problem = "the header is damaged: SQLite ignores the whole file"
+            return WalScan(frames, 0, 0, last, len(commit_frames), frames - last, problem)
         return _scan_frames(handle, frames, page, (salt1, salt2), (c1, c2), big=big)
 
 
@@ -168,9 +173,20 @@ def _scan_frames(
         if size_after:
             replayed = index
             commits += 1
-    if not first_bad or first_bad >= last_current:
-        # Nothing current follows the failure: the end of this generation, or the last
-        # frame cut off mid-write. Whatever follows the last commit had not committed.
-        return WalScan(frames, replayed, commits, 0, 0, last_current - replayed, "")
     lost_commits = sum(1 for index in commit_frames if index > replayed)
-    return WalScan(frames, replayed, commits, last_current - replayed, lost_commits, 0, problem)
+    if not first_bad or first_bad >= last_current or not lost_commits:
+        # No commit follows the failure: the end of this generation, the last frame cut off
+        # mid-write, or what a rolled-back transaction left (SQLite writes pages to the log
+        # before the commit when its cache is full; after a rollback a shorter transaction
+        # overwrites only the start of them). None of it had committed.
+        return WalScan(frames, replayed, commits, 0, 0, last_current - replayed, "")
+    last_commit = commit_frames[-1]
+    return WalScan(
+        frames,
+        replayed,
+        commits,
+        last_commit - replayed,
+        lost_commits,
+        last_current - last_commit,
+        problem,
+    )
