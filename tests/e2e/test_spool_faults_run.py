@@ -6,7 +6,8 @@ loopback UDP and a ``null`` sink; detections are pymavlink frames from a test so
 1. The file-size limit of the running daemon is lowered to what its WAL holds
    (``prlimit`` RLIMIT_FSIZE: writes past it fail with EFBIG, for root too; Python ignores
    SIGXFSZ): the next detection is not acknowledged, and /metrics, /status and /readyz say
-   why; once the limit is lifted the airframe's re-send is taken and acknowledged.
+   why; once the limit is lifted the airframe's re-send is taken and acknowledged, and after
+   a SIGKILL the next start counts no loss.
 2. The gateway killed with SIGKILL, a byte of its WAL damaged: the next start says at error,
    on /status and on /metrics how many frames and commits SQLite could not replay, and keeps
    a copy of the log.
@@ -76,9 +77,11 @@ def test_a_failed_commit_is_counted_shown_and_acknowledges_nothing(
     config = write_node(tmp_path, port)
     airframe = Airframe(3)
     wal = tmp_path / "spool.db-wal"
-    with running(config) as daemon:
+    daemon = Daemon(config)
+    try:
         send_detections(daemon, airframe_socket, airframe, port, 1)
         wait_until(lambda: daemon.get("/readyz")[0] == 200, 10, "ready")
+        assert daemon.metric("fg_spool_commit_failures_total") == 0
         _, hard = resource.prlimit(daemon.proc.pid, resource.RLIMIT_FSIZE)
         resource.prlimit(daemon.proc.pid, resource.RLIMIT_FSIZE, (wal.stat().st_size, hard))
         again = airframe.heartbeat() + airframe.detection()
@@ -107,6 +110,15 @@ def test_a_failed_commit_is_counted_shown_and_acknowledges_nothing(
         assert (spool["state"], spool["reason"]) == ("ok", "")
         assert daemon.get("/readyz")[0] == 200
         assert daemon.events("spool_commits_recovered")
+    finally:
+        daemon.kill9()
+    # What the failed commit wrote to the log before it failed never committed: after a
+    # crash, the next start counts no loss.
+    with running(config) as restarted:
+        start = restarted.status()["spool"]["start_check"]
+    assert start["wal_frames"] > 0
+    assert (start["wal_lost_frames"], start["wal_lost_commits"]) == (0, 0)
+    assert not restarted.events("spool_wal_frames_lost")
 
 
 def test_a_damaged_wal_at_start_is_reported_with_counts_and_kept(
