@@ -19,12 +19,15 @@ from typing import Annotated, Any, Literal
 
 from pydantic import AwareDatetime, BaseModel, ConfigDict, Field, TypeAdapter, model_validator
 
+from gateway.domain.peertext import Provenance
+
 __all__ = [
     "BOOT_ID",
     "DURABLE_KINDS",
     "LATEST_WINS_KINDS",
     "Attitude",
     "BlueForce",
+    "BlueSourceCount",
     "Deconfliction",
     "Detection",
     "EffectorOption",
@@ -265,6 +268,11 @@ class BlueForce(BaseModel):
     speed_mps: float | None = Field(default=None, ge=0.0)
     sidc: str | None = Field(default=None, pattern=r"^[A-Z0-9*-]{15}$")
     """The unit's 15-character letter SIDC (APP-6A / 2525B/C) when the report gave one."""
+    source_name: str = ""
+    """The configured name of the source (or processor) that produced the report."""
+    provenance: Provenance = Provenance.UNAUTHENTICATED
+    """How far its sender was checked (``gateway.domain.peertext.Provenance``); a report that
+    does not say (an archive from before provenance existed) is unauthenticated."""
 
 
 class EffectorOption(BaseModel):
@@ -277,6 +285,16 @@ class EffectorOption(BaseModel):
     danger_close_m: float = Field(ge=0.0)
 
 
+class BlueSourceCount(BaseModel):
+    """How many current friendly units one source gave deconfliction, and how far it is trusted."""
+
+    model_config = _FROZEN
+
+    source: str
+    provenance: Provenance
+    units: int = Field(ge=0)
+
+
 class Deconfliction(BaseModel):
     """The blue-force check of a cued track: the nearest current friendly unit, if any.
 
@@ -284,7 +302,14 @@ class Deconfliction(BaseModel):
     offered and the blue-force picture is complete. ``blue_picture_complete`` is False when
     no friendly position is current at all (nothing known is not "clear") or the gateway had
     to drop friendly reports for room lately; ``clear`` is then always False.
-    ``blue_units_considered`` says how many units the check saw.
+    ``blue_units_considered`` says how many units the check saw, ``blue_sources`` how many of
+    them came from each source, with what provenance.
+
+    The nearest unit's uid and callsign are peer text made safe (``peertext.safe_text``);
+    ``nearest_blue_callsign_provenance`` says in words what the callsign is ("unauthenticated
+    CoT callsign"), ``nearest_blue_source`` and ``nearest_blue_provenance`` which source
+    reported the unit and how far its sender was checked. Whatever shows the callsign shows
+    its provenance with it.
     """
 
     model_config = _FROZEN
@@ -295,6 +320,10 @@ class Deconfliction(BaseModel):
     nearest_blue_m: float | None = Field(default=None, ge=0.0)
     blue_units_considered: int = Field(ge=0)
     blue_picture_complete: bool = True
+    nearest_blue_callsign_provenance: str | None = None
+    nearest_blue_source: str | None = None
+    nearest_blue_provenance: Provenance | None = None
+    blue_sources: tuple[BlueSourceCount, ...] = ()
 
 
 class Handoff(BaseModel):
