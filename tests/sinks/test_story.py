@@ -86,7 +86,11 @@ def test_a_cue_says_deconfliction_and_recommendation_and_leaves_the_decision_to_
         }
     )
     not_clear, cue = story.tell(held)
-    assert not_clear.startswith("deconfliction NOT clear for track T1: nearest blue 2. pluton")
+    # A record without provenance (archived before it was kept) is never shown bare.
+    assert not_clear.startswith(
+        'deconfliction NOT clear for track T1: nearest blue "2. pluton"'
+        " (callsign of unknown provenance) at 250 m"
+    )
     assert "recommended effector none (deconfliction not clear)" in cue
     for line in (clear, not_clear, cue):
         assert "authorised" not in line
@@ -98,6 +102,7 @@ def test_friendly_units_are_registered_once() -> None:
     unit = BlueForce(event_id="b", uid="PLT-1", time=T, callsign="1. pluton", position=WHERE,
                      source="cot")  # fmt: skip
     assert story.tell(unit) == [
-        "blue force registered: 1. pluton (PLT-1) at 34W EU 3146 0059 via cot"
+        'blue force registered: "1. pluton" (unauthenticated CoT callsign), uid PLT-1,'
+        " at 34W EU 3146 0059 via cot"
     ]
     assert story.tell(unit.model_copy(update={"event_id": "b2"})) == []
