@@ -19,8 +19,6 @@ from typing import Annotated, Any, Literal
 
 from pydantic import AwareDatetime, BaseModel, ConfigDict, Field, TypeAdapter, model_validator
 
-from gateway.domain.peertext import Provenance
-
 __all__ = [
     "BOOT_ID",
     "DURABLE_KINDS",
@@ -44,6 +42,7 @@ __all__ = [
     "OrderStatus",
     "OrderTask",
     "Position",
+    "Provenance",
     "Sensor",
     "Telemetry",
     "Track",
@@ -252,6 +251,27 @@ class Track(BaseModel):
     late_by_s: float | None = Field(default=None, ge=0.0)
 
 
+class Provenance(StrEnum):
+    """How far the sender of a friendly report (and its text) was checked.
+
+    - ``configured``: fixed in the gateway's own config (the ``counter_uas`` processor's
+      ``blue_forces``): the operator wrote it; no peer can send or move it.
+    - ``authenticated``: received over TLS from a peer whose client certificate chains to the
+      CA the source names (NFFI ``tls://``). The *transport* is authenticated: the peer holds a
+      key that CA vouched for. What it relays (another system's callsign) is still its word.
+    - ``address_only``: received over plain TCP from an address on the source's allow-list
+      (NFFI ``tcp://``). An address check, not authentication: any process on an allowed host,
+      or anyone able to use its address, can send.
+    - ``unauthenticated``: anyone who can reach the port (CoT over UDP, multicast or TCP). The
+      default for a report that does not say.
+    """
+
+    CONFIGURED = "configured"
+    AUTHENTICATED = "authenticated"
+    ADDRESS_ONLY = "address_only"
+    UNAUTHENTICATED = "unauthenticated"
+
+
 class BlueForce(BaseModel):
     """A friendly unit's reported position (from CoT, NFFI ...), used for deconfliction."""
 
@@ -271,7 +291,7 @@ class BlueForce(BaseModel):
     source_name: str = ""
     """The configured name of the source (or processor) that produced the report."""
     provenance: Provenance = Provenance.UNAUTHENTICATED
-    """How far its sender was checked (``gateway.domain.peertext.Provenance``); a report that
+    """How far its sender was checked (``Provenance``); a report that
     does not say (an archive from before provenance existed) is unauthenticated."""
 
 

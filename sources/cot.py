@@ -42,8 +42,8 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 from gateway.c2.newest import NewestTimes
 from gateway.clock import utc_now
 from gateway.codecs.cot.validate import CotError, ParsedCot, is_unknown, parse_cot
-from gateway.domain.peertext import Provenance, safe_text
-from gateway.events import BlueForce, Event, Position, event_id
+from gateway.domain.peertext import safe_text
+from gateway.events import BlueForce, Event, Position, Provenance, event_id
 from gateway.ops.logsetup import RateLimit
 from gateway.transports.udp import is_multicast
 from sources._cot_stream import CotStreamServer

@@ -55,8 +55,8 @@ from gateway.c2.newest import NewestTimes
 from gateway.clock import utc_now
 from gateway.codecs.nffi import MAX_MESSAGE_BYTES, NffiError, NffiTrack, parse_message
 from gateway.codecs.nffi_stream import MessageSplitter
-from gateway.domain.peertext import Provenance, safe_text
-from gateway.events import BlueForce, Event, Position, event_id
+from gateway.domain.peertext import safe_text
+from gateway.events import BlueForce, Event, Position, Provenance, event_id
 from gateway.ops.logsetup import RateLimit
 from gateway.transports.listener import Connection, TcpListener
 from gateway.transports.tls import TlsFiles, unreadable_file

@@ -17,17 +17,18 @@ unchanged by the second pass.
 
 An alphabet does not stop ``WEAPONS FREE - ENGAGE AUTHORISED BY BDE``: that is all letters.
 So text from a peer is never shown bare: every display says what kind of text it is and how
-far its sender was checked (``Provenance``), e.g. ``"WEAPONS FREE - ENGAGE AUTHORISED"
-(unauthenticated CoT callsign, source atak-mesh)``. ``callsign_provenance`` gives that
-label, ``shown`` (or ``marked``, given the label) the whole quoted, marked form (quotes are
-outside the alphabet, so the text cannot close them itself).
+far its sender was checked (``Provenance``, kept with the events in ``gateway.events``),
+e.g. ``"WEAPONS FREE - ENGAGE AUTHORISED" (unauthenticated CoT callsign, source atak-mesh)``.
+``callsign_provenance`` gives that label, ``shown`` (or ``marked``, given the label) the
+whole quoted, marked form (quotes are outside the alphabet, so the text cannot close them).
 """
 
 from __future__ import annotations
 
 import string
 import unicodedata
-from enum import StrEnum
+
+from gateway.events import Provenance
 
 __all__ = [
     "ALPHABET",
@@ -49,27 +50,6 @@ MAX_CHARS = 32
 MAX_INPUT_CHARS = 1024
 _CUT = "..."
 _REPLACEMENT = "?"
-
-
-class Provenance(StrEnum):
-    """How far the sender of a friendly report (and its text) was checked.
-
-    - ``configured``: fixed in the gateway's own config (the ``counter_uas`` processor's
-      ``blue_forces``): the operator wrote it; no peer can send or move it.
-    - ``authenticated``: received over TLS from a peer whose client certificate chains to the
-      CA the source names (NFFI ``tls://``). The *transport* is authenticated: the peer holds a
-      key that CA vouched for. What it relays (another system's callsign) is still its word.
-    - ``address_only``: received over plain TCP from an address on the source's allow-list
-      (NFFI ``tcp://``). An address check, not authentication: any process on an allowed host,
-      or anyone able to use its address, can send.
-    - ``unauthenticated``: anyone who can reach the port (CoT over UDP, multicast or TCP). The
-      default for a report that does not say.
-    """
-
-    CONFIGURED = "configured"
-    AUTHENTICATED = "authenticated"
-    ADDRESS_ONLY = "address_only"
-    UNAUTHENTICATED = "unauthenticated"
 
 
 _QUALIFIER = {

@@ -24,8 +24,7 @@ from datetime import datetime, timedelta
 
 from gateway.clock import Clock
 from gateway.domain.geodesy import distance_bearing
-from gateway.domain.peertext import Provenance
-from gateway.events import BlueForce
+from gateway.events import BlueForce, Provenance
 
 __all__ = ["BlueForceRegistry", "NearestBlue"]
 
