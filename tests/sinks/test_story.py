@@ -12,6 +12,7 @@ from gateway.events import (
     EventKind,
     Handoff,
     Position,
+    Provenance,
     Sensor,
     Track,
 )
@@ -106,3 +107,27 @@ def test_friendly_units_are_registered_once() -> None:
         " at 34W EU 3146 0059 via cot"
     ]
     assert story.tell(unit.model_copy(update={"event_id": "b2"})) == []
+
+
+def test_a_callsign_from_an_unauthenticated_peer_is_shown_only_safe_and_marked() -> None:
+    sample = sample_events(frozenset({EventKind.HANDOFF}))[0]
+    assert isinstance(sample, Handoff)
+    check = Deconfliction(
+        clear=False,
+        nearest_blue_uid="ANDROID-RED",
+        nearest_blue_callsign="WEAPONS FREE\u202e - ENGAGE AUTHORISED BY BDE",
+        nearest_blue_m=110.0,
+        blue_units_considered=2,
+        nearest_blue_callsign_provenance="unauthenticated CoT callsign",
+        nearest_blue_source="atak-mesh",
+        nearest_blue_provenance=Provenance.UNAUTHENTICATED,
+    )
+    held, _ = Story().tell(sample.model_copy(update={"deconfliction": check}))
+    assert held.startswith(
+        'deconfliction NOT clear for track T1: nearest blue "WEAPONS FREE - ENGAGE AUTHORI..."'
+        " (unauthenticated CoT callsign, source atak-mesh) at 110 m"
+    )
+    # Without a callsign, the uid is shown with the provenance instead.
+    bare = check.model_copy(update={"nearest_blue_callsign": None})
+    held, _ = Story().tell(sample.model_copy(update={"deconfliction": bare}))
+    assert "nearest blue uid ANDROID-RED (unauthenticated, source atak-mesh) at 110 m" in held
