@@ -25,6 +25,7 @@ __all__ = [
     "LATEST_WINS_KINDS",
     "Attitude",
     "BlueForce",
+    "BlueSourceCount",
     "Deconfliction",
     "Detection",
     "EffectorOption",
@@ -41,6 +42,7 @@ __all__ = [
     "OrderStatus",
     "OrderTask",
     "Position",
+    "Provenance",
     "Sensor",
     "Telemetry",
     "Track",
@@ -249,6 +251,27 @@ class Track(BaseModel):
     late_by_s: float | None = Field(default=None, ge=0.0)
 
 
+class Provenance(StrEnum):
+    """How far the sender of a friendly report (and its text) was checked.
+
+    - ``configured``: fixed in the gateway's own config (the ``counter_uas`` processor's
+      ``blue_forces``): the operator wrote it; no peer can send or move it.
+    - ``authenticated``: received over TLS from a peer whose client certificate chains to the
+      CA the source names (NFFI ``tls://``). The *transport* is authenticated: the peer holds a
+      key that CA vouched for. What it relays (another system's callsign) is still its word.
+    - ``address_only``: received over plain TCP from an address on the source's allow-list
+      (NFFI ``tcp://``). An address check, not authentication: any process on an allowed host,
+      or anyone able to use its address, can send.
+    - ``unauthenticated``: anyone who can reach the port (CoT over UDP, multicast or TCP). The
+      default for a report that does not say.
+    """
+
+    CONFIGURED = "configured"
+    AUTHENTICATED = "authenticated"
+    ADDRESS_ONLY = "address_only"
+    UNAUTHENTICATED = "unauthenticated"
+
+
 class BlueForce(BaseModel):
     """A friendly unit's reported position (from CoT, NFFI ...), used for deconfliction."""
 
@@ -265,6 +288,11 @@ class BlueForce(BaseModel):
     speed_mps: float | None = Field(default=None, ge=0.0)
     sidc: str | None = Field(default=None, pattern=r"^[A-Z0-9*-]{15}$")
     """The unit's 15-character letter SIDC (APP-6A / 2525B/C) when the report gave one."""
+    source_name: str = ""
+    """The configured name of the source (or processor) that produced the report."""
+    provenance: Provenance = Provenance.UNAUTHENTICATED
+    """How far its sender was checked (``Provenance``); a report that
+    does not say (an archive from before provenance existed) is unauthenticated."""
 
 
 class EffectorOption(BaseModel):
@@ -277,6 +305,16 @@ class EffectorOption(BaseModel):
     danger_close_m: float = Field(ge=0.0)
 
 
+class BlueSourceCount(BaseModel):
+    """How many current friendly units one source gave deconfliction, and how far it is trusted."""
+
+    model_config = _FROZEN
+
+    source: str
+    provenance: Provenance
+    units: int = Field(ge=0)
+
+
 class Deconfliction(BaseModel):
     """The blue-force check of a cued track: the nearest current friendly unit, if any.
 
@@ -284,7 +322,14 @@ class Deconfliction(BaseModel):
     offered and the blue-force picture is complete. ``blue_picture_complete`` is False when
     no friendly position is current at all (nothing known is not "clear") or the gateway had
     to drop friendly reports for room lately; ``clear`` is then always False.
-    ``blue_units_considered`` says how many units the check saw.
+    ``blue_units_considered`` says how many units the check saw, ``blue_sources`` how many of
+    them came from each source, with what provenance.
+
+    The nearest unit's uid and callsign are peer text made safe (``peertext.safe_text``);
+    ``nearest_blue_callsign_provenance`` says in words what the callsign is ("unauthenticated
+    CoT callsign"), ``nearest_blue_source`` and ``nearest_blue_provenance`` which source
+    reported the unit and how far its sender was checked. Whatever shows the callsign shows
+    its provenance with it.
     """
 
     model_config = _FROZEN
@@ -295,6 +340,10 @@ class Deconfliction(BaseModel):
     nearest_blue_m: float | None = Field(default=None, ge=0.0)
     blue_units_considered: int = Field(ge=0)
     blue_picture_complete: bool = True
+    nearest_blue_callsign_provenance: str | None = None
+    nearest_blue_source: str | None = None
+    nearest_blue_provenance: Provenance | None = None
+    blue_sources: tuple[BlueSourceCount, ...] = ()
 
 
 class Handoff(BaseModel):

@@ -10,6 +10,12 @@ stays with the battery's human operator.
 The schema ships as package data (``gateway/data/schemas/gute2-handoff.schema.json``, JSON
 Schema draft 2020-12); ``load_schema`` reads it. ``SCHEMA_ID`` versions the document: a change
 of shape is a new version, never a silent edit.
+
+Version 2 adds where the blue-force picture came from: the nearest unit's source, provenance
+and what its callsign is ("unauthenticated CoT callsign"), and the current units counted per
+source and provenance (``blue_sources``). Version 1's schema still ships
+(``gute2-handoff-1.schema.json``, ``load_schema(1)``), so documents archived or received
+before the change stay readable and checkable.
 """
 
 from __future__ import annotations
@@ -21,16 +27,26 @@ from typing import Any
 
 from gateway.events import Deconfliction, EffectorOption, Handoff, Position, Track
 
-__all__ = ["SCHEMA_ID", "encode_handoff", "handoff_payload", "load_schema"]
+__all__ = ["SCHEMA_ID", "SCHEMA_VERSION", "encode_handoff", "handoff_payload", "load_schema"]
 
 #: The ``schema`` member of every document; its last part is the version.
-SCHEMA_ID = "fischer-gateway/gute2-handoff/1"
-_SCHEMA_RESOURCE = "data/schemas/gute2-handoff.schema.json"
+SCHEMA_ID = "fischer-gateway/gute2-handoff/2"
+SCHEMA_VERSION = 2
+_SCHEMA_RESOURCES = {
+    1: "data/schemas/gute2-handoff-1.schema.json",
+    2: "data/schemas/gute2-handoff.schema.json",
+}
 
 
-def load_schema() -> dict[str, Any]:
-    """The handoff document's JSON Schema (draft 2020-12), read from package data."""
-    text = files("gateway").joinpath(_SCHEMA_RESOURCE).read_text(encoding="utf-8")
+def load_schema(version: int = SCHEMA_VERSION) -> dict[str, Any]:
+    """The handoff document's JSON Schema (draft 2020-12) of ``version``, from package data.
+
+    The current version by default; 1 for documents written before provenance was added.
+    """
+    resource = _SCHEMA_RESOURCES.get(version)
+    if resource is None:
+        raise ValueError(f"no GUTE II handoff schema version {version}; known: 1, 2")
+    text = files("gateway").joinpath(resource).read_text(encoding="utf-8")
     schema: dict[str, Any] = json.loads(text)
     return schema
 
@@ -84,6 +100,15 @@ def _deconfliction(result: Deconfliction) -> dict[str, Any]:
         "nearest_blue_m": result.nearest_blue_m,
         "blue_units_considered": result.blue_units_considered,
         "blue_picture_complete": result.blue_picture_complete,
+        "nearest_blue_callsign_provenance": result.nearest_blue_callsign_provenance,
+        "nearest_blue_source": result.nearest_blue_source,
+        "nearest_blue_provenance": (
+            None if result.nearest_blue_provenance is None else result.nearest_blue_provenance.value
+        ),
+        "blue_sources": [
+            {"source": s.source, "provenance": s.provenance.value, "units": s.units}
+            for s in result.blue_sources
+        ],
     }
 
 

@@ -14,6 +14,10 @@
    Nor is it clear while the blue-force picture is incomplete (friendly reports dropped for
    room lately: a flood may have pushed a real unit out).
 
+The deconfliction says where the blue-force picture came from: the nearest unit's source and
+provenance, its callsign made safe and marked with what it is ("unauthenticated CoT
+callsign", ``gateway.domain.peertext``), and how many current units each source gave.
+
 Once cued, a track stays with its battery. On each later update the check is made again for
 that battery; when the deconfliction or the recommendation changes, the cue goes out again as
 the next *revision* of the same handoff: at once when it stops being clear (a friendly unit
@@ -33,7 +37,9 @@ from datetime import datetime
 
 from gateway.domain.effectors import EffectorTable, recommend
 from gateway.domain.geodesy import distance_bearing
+from gateway.domain.peertext import callsign_provenance, safe_text
 from gateway.events import (
+    BlueSourceCount,
     Deconfliction,
     EffectorOption,
     Handoff,
@@ -224,14 +230,40 @@ class CueDesk:
             bearing_deg=bearing,
             recommended_effector=offered[0].effector if clear else None,
             options=tuple(offered),
-            deconfliction=Deconfliction(
+            deconfliction=self._deconfliction(clear, nearest, complete=complete),
+        )
+
+    def _deconfliction(
+        self, clear: bool, nearest: NearestBlue | None, *, complete: bool
+    ) -> Deconfliction:
+        """The blue-force check, its peer text made safe and marked by provenance."""
+        sources = tuple(
+            BlueSourceCount(source=safe_text(name, 64), provenance=provenance, units=units)
+            for name, provenance, units in self.blue.by_source()
+        )
+        if nearest is None:
+            return Deconfliction(
                 clear=clear,
-                nearest_blue_uid=None if nearest is None else nearest.uid,
-                nearest_blue_callsign=None if nearest is None else nearest.callsign or None,
-                nearest_blue_m=None if nearest is None else nearest.distance_m,
                 blue_units_considered=len(self.blue),
                 blue_picture_complete=complete,
+                blue_sources=sources,
+            )
+        callsign = safe_text(nearest.callsign) or None
+        return Deconfliction(
+            clear=clear,
+            nearest_blue_uid=safe_text(nearest.uid, 64),
+            nearest_blue_callsign=callsign,
+            nearest_blue_m=nearest.distance_m,
+            blue_units_considered=len(self.blue),
+            blue_picture_complete=complete,
+            nearest_blue_callsign_provenance=(
+                None
+                if callsign is None
+                else callsign_provenance(nearest.provenance, nearest.source)
             ),
+            nearest_blue_source=safe_text(nearest.source_name, 64),
+            nearest_blue_provenance=nearest.provenance,
+            blue_sources=sources,
         )
 
     def _remember(self, track_id: str, cue: _Cue) -> None:

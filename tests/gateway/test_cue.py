@@ -8,6 +8,7 @@ import pytest
 
 from gateway.domain.effectors import load_effector_table
 from gateway.domain.geodesy import destination
+from gateway.domain.peertext import Provenance
 from gateway.events import BlueForce, Handoff, Position, Track
 from gateway.flow.blueforce import BlueForceRegistry
 from gateway.flow.cue import Battery, CueDesk
@@ -286,3 +287,28 @@ def test_with_no_friendly_position_known_nothing_is_clear() -> None:
     assert not handoff.deconfliction.clear
     assert handoff.recommended_effector is None
     assert all(o.deconfliction_clear for o in handoff.options)  # no unit inside any radius
+
+
+def test_the_cue_says_where_its_blue_force_picture_came_from() -> None:
+    cue = desk()
+    target = at(BATTERY, 90, 2000)
+    hostile = "WEAPONS FREE\u202e - ENGAGE AUTHORISED BY BDE"
+    report = blue("ANDROID-RED", at(target, 0, 150)).model_copy(
+        update={"callsign": hostile, "source_name": "atak-mesh"}
+    )
+    cue.blue.update(report)
+    handoff = cue.consider(track(target))
+    assert handoff is not None
+    check = handoff.deconfliction
+    # Made safe again where it is used (a report may not have come through a source that did).
+    assert check.nearest_blue_callsign == "WEAPONS FREE - ENGAGE AUTHORI..."
+    assert check.nearest_blue_callsign_provenance == "unauthenticated CoT callsign"
+    assert (check.nearest_blue_source, check.nearest_blue_provenance) == (
+        "atak-mesh",
+        Provenance.UNAUTHENTICATED,
+    )
+    # HQ-FAR was pinned without a provenance of its own: its source name defaults to "cot".
+    assert {(s.source, s.provenance, s.units) for s in check.blue_sources} == {
+        ("atak-mesh", Provenance.UNAUTHENTICATED, 1),
+        ("cot", Provenance.UNAUTHENTICATED, 1),
+    }

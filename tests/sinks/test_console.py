@@ -151,6 +151,22 @@ class TestText:
             "12:00:01.234Z blue_force ANDROID-1 - at 65.82520,21.68860 alt 250.0 m MSL via cot"
         )
 
+    def test_a_callsign_is_shown_safe_and_marked_by_provenance(self) -> None:
+        blue = BlueForce(
+            event_id="2",
+            uid="ANDROID-RED",
+            time=T0,
+            position=HERE,
+            source="cot",
+            source_name="atak-mesh",
+            callsign="WEAPONS FREE\u202e - ENGAGE AUTHORISED BY BDE",
+        )
+        assert describe(blue) == (
+            '12:00:01.234Z blue_force ANDROID-RED "WEAPONS FREE - ENGAGE AUTHORI..."'
+            " (unauthenticated CoT callsign, source atak-mesh)"
+            " at 65.82520,21.68860 alt 250.0 m MSL via cot"
+        )
+
     def test_describe_is_the_text_format(self) -> None:
         event = Telemetry(event_id="1", airframe="A", time=T0)
         assert describe(event) == "12:00:01.234Z telemetry  A no fix hdg - gs - batt - link -"

@@ -16,7 +16,9 @@ from pydantic import ValidationError
 
 from gateway.codecs.gute import SCHEMA_ID, encode_handoff, handoff_payload, load_schema
 from gateway.contract import sample_events
+from gateway.domain.peertext import Provenance
 from gateway.events import (
+    BlueSourceCount,
     Deconfliction,
     EffectorOption,
     EventKind,
@@ -84,6 +86,18 @@ deconflictions = st.builds(
     nearest_blue_callsign=st.none() | texts,
     nearest_blue_m=st.none() | st.floats(0, 1e6),
     blue_units_considered=st.integers(0, 10_000),
+    nearest_blue_callsign_provenance=st.none() | texts,
+    nearest_blue_source=st.none() | ids,
+    nearest_blue_provenance=st.none() | st.sampled_from(list(Provenance)),
+    blue_sources=st.lists(
+        st.builds(
+            BlueSourceCount,
+            source=ids,
+            provenance=st.sampled_from(list(Provenance)),
+            units=st.integers(0, 10_000),
+        ),
+        max_size=3,
+    ).map(tuple),
 )
 handoffs = st.builds(
     Handoff,
@@ -218,6 +232,54 @@ class TestPayload:
         assert document["revision"] == handoff.revision
         assert document["idempotency_key"] == handoff.event_id
         assert document["time"].endswith("Z")
+
+    def test_the_blue_force_picture_says_where_it_came_from(self) -> None:
+        check = Deconfliction(
+            clear=False,
+            nearest_blue_uid="ANDROID-RED",
+            nearest_blue_callsign="WEAPONS FREE - ENGAGE AUTHORI...",
+            nearest_blue_m=110.0,
+            blue_units_considered=2,
+            nearest_blue_callsign_provenance="unauthenticated CoT callsign",
+            nearest_blue_source="atak-mesh",
+            nearest_blue_provenance=Provenance.UNAUTHENTICATED,
+            blue_sources=(
+                BlueSourceCount(source="atak-mesh", provenance=Provenance.UNAUTHENTICATED, units=1),
+                BlueSourceCount(source="cuas", provenance=Provenance.CONFIGURED, units=1),
+            ),
+        )
+        document = handoff_payload(SAMPLE.model_copy(update={"deconfliction": check}))
+        VALIDATOR.validate(document)
+        blue = document["deconfliction"]
+        assert blue["nearest_blue_callsign_provenance"] == "unauthenticated CoT callsign"
+        assert (blue["nearest_blue_source"], blue["nearest_blue_provenance"]) == (
+            "atak-mesh",
+            "unauthenticated",
+        )
+        assert blue["blue_sources"] == [
+            {"source": "atak-mesh", "provenance": "unauthenticated", "units": 1},
+            {"source": "cuas", "provenance": "configured", "units": 1},
+        ]
+
+    def test_version_1_documents_stay_readable(self) -> None:
+        """Schema 1 still ships: a document written before provenance validates against it."""
+        old = load_schema(1)
+        Draft202012Validator.check_schema(old)
+        document = handoff_payload(SAMPLE)
+        document["schema"] = "fischer-gateway/gute2-handoff/1"
+        for key in (
+            "nearest_blue_callsign_provenance",
+            "nearest_blue_source",
+            "nearest_blue_provenance",
+            "blue_sources",
+        ):
+            del document["deconfliction"][key]
+        Draft202012Validator(old, format_checker=Draft202012Validator.FORMAT_CHECKER).validate(
+            document
+        )
+        assert not VALIDATOR.is_valid(document)  # and version 2 tells the two apart
+        with pytest.raises(ValueError, match="no GUTE II handoff schema version 3"):
+            load_schema(3)
 
     def test_times_are_utc_whatever_the_events_zone(self) -> None:
         cet = datetime(2026, 11, 22, 13, 0, tzinfo=timezone(timedelta(hours=1)))

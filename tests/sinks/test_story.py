@@ -12,6 +12,7 @@ from gateway.events import (
     EventKind,
     Handoff,
     Position,
+    Provenance,
     Sensor,
     Track,
 )
@@ -86,7 +87,11 @@ def test_a_cue_says_deconfliction_and_recommendation_and_leaves_the_decision_to_
         }
     )
     not_clear, cue = story.tell(held)
-    assert not_clear.startswith("deconfliction NOT clear for track T1: nearest blue 2. pluton")
+    # A record without provenance (archived before it was kept) is never shown bare.
+    assert not_clear.startswith(
+        'deconfliction NOT clear for track T1: nearest blue "2. pluton"'
+        " (callsign of unknown provenance) at 250 m"
+    )
     assert "recommended effector none (deconfliction not clear)" in cue
     for line in (clear, not_clear, cue):
         assert "authorised" not in line
@@ -98,6 +103,31 @@ def test_friendly_units_are_registered_once() -> None:
     unit = BlueForce(event_id="b", uid="PLT-1", time=T, callsign="1. pluton", position=WHERE,
                      source="cot")  # fmt: skip
     assert story.tell(unit) == [
-        "blue force registered: 1. pluton (PLT-1) at 34W EU 3146 0059 via cot"
+        'blue force registered: "1. pluton" (unauthenticated CoT callsign), uid PLT-1,'
+        " at 34W EU 3146 0059 via cot"
     ]
     assert story.tell(unit.model_copy(update={"event_id": "b2"})) == []
+
+
+def test_a_callsign_from_an_unauthenticated_peer_is_shown_only_safe_and_marked() -> None:
+    sample = sample_events(frozenset({EventKind.HANDOFF}))[0]
+    assert isinstance(sample, Handoff)
+    check = Deconfliction(
+        clear=False,
+        nearest_blue_uid="ANDROID-RED",
+        nearest_blue_callsign="WEAPONS FREE\u202e - ENGAGE AUTHORISED BY BDE",
+        nearest_blue_m=110.0,
+        blue_units_considered=2,
+        nearest_blue_callsign_provenance="unauthenticated CoT callsign",
+        nearest_blue_source="atak-mesh",
+        nearest_blue_provenance=Provenance.UNAUTHENTICATED,
+    )
+    held, _ = Story().tell(sample.model_copy(update={"deconfliction": check}))
+    assert held.startswith(
+        'deconfliction NOT clear for track T1: nearest blue "WEAPONS FREE - ENGAGE AUTHORI..."'
+        " (unauthenticated CoT callsign, source atak-mesh) at 110 m"
+    )
+    # Without a callsign, the uid is shown with the provenance instead.
+    bare = check.model_copy(update={"nearest_blue_callsign": None})
+    held, _ = Story().tell(sample.model_copy(update={"deconfliction": bare}))
+    assert "nearest blue uid ANDROID-RED (unauthenticated, source atak-mesh) at 110 m" in held

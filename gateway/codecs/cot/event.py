@@ -305,7 +305,11 @@ def _blue_force(event: BlueForce, opts: CotOptions) -> CotEvent:
         cot_type = cot_type[:2] + "f" + cot_type[3:]
     hae, _ = _hae(event.position, opts.geoid)
     callsign = xml_safe(event.callsign or event.uid)
-    detail = _element("remarks", f"Blue force relay ({event.source.upper()})")
+    # The callsign shown on ATAK is the relayed unit's; the remarks say how far its sender
+    # was checked ("Blue force relay (NFFI, address_only)"), so nobody takes it for ours.
+    detail = _element(
+        "remarks", f"Blue force relay ({event.source.upper()}, {event.provenance.value})"
+    )
     if event.sidc:
         affiliation = cot_type[2]
         detail = (
