@@ -155,7 +155,8 @@ def route_exit(fence: Sequence[LatLon], points: Sequence[LatLon]) -> Excursion |
     First every point (the first outside is named), then every leg, flown as the geodesic
     and as the rhumb line (``gateway.domain.paths``: what PX4 and ArduPilot fly): the
     geodesic is a straight line in the fence's plane, the rhumb line a chain of chords each
-    within ``RHUMB_TOLERANCE_M`` / 2 of it.
+    within ``RHUMB_TOLERANCE_M`` / 2 of it. Of a leg that leaves, the farthest point
+    outside on either path is named.
     """
     plane = fence_of(tuple(fence))
     xy: list[tuple[float, float, float]] = []
@@ -165,23 +166,40 @@ def route_exit(fence: Sequence[LatLon], points: Sequence[LatLon]) -> Excursion |
             return Excursion(point, plane.outside_m(point))
         xy.append(got)
     for (a, b), (pa, pb) in zip(pairwise(points), pairwise(xy), strict=True):
-        if plane.segment_leaves(pa[:2], pb[:2]):
-            return _worst(plane, (a, b), "geodesic")
+        leaves = ["geodesic"] if plane.segment_leaves(pa[:2], pb[:2]) else []
         length_m = math.hypot(pb[0] - pa[0], pb[1] - pa[1]) * min(pa[2], pb[2])
-        bow_m = rhumb_bow_m(a, b, length_m)
-        if bow_m <= RHUMB_TOLERANCE_M:
-            continue
-        pieces = math.ceil(math.sqrt(2.0 * bow_m / RHUMB_TOLERANCE_M))
-        chain: list[tuple[float, float]] = []
-        for sample in rhumb_points(a, b, pieces)[1:-1]:
-            got = plane.project(sample)
-            if got is None or not plane.contains_xy((got[0], got[1])):
-                return _worst(plane, (a, b), "rhumb line")
-            chain.append((got[0], got[1]))
-        chain = [pa[:2], *chain, pb[:2]]
-        if any(plane.segment_leaves(p, q) for p, q in pairwise(chain)):
-            return _worst(plane, (a, b), "rhumb line")
+        if _rhumb_leaves(plane, (a, b), (pa[:2], pb[:2]), length_m):
+            leaves.append("rhumb line")
+        if leaves:  # the farther of the two paths that leave
+            return max((_worst(plane, (a, b), path) for path in leaves), key=_outside)
     return None
+
+
+def _outside(excursion: Excursion) -> float:
+    return excursion.outside_m
+
+
+def _rhumb_leaves(
+    plane: Fence,
+    leg: tuple[LatLon, LatLon],
+    ends: tuple[tuple[float, float], tuple[float, float]],
+    length_m: float,
+) -> bool:
+    """True if the rhumb line of ``leg`` (both ends inside) leaves the fence, checked along
+    chords that are within ``RHUMB_TOLERANCE_M`` / 2 of it; False where it is within
+    ``RHUMB_TOLERANCE_M`` of the geodesic (checked already)."""
+    bow_m = rhumb_bow_m(*leg, length_m)
+    if bow_m <= RHUMB_TOLERANCE_M:
+        return False
+    pieces = math.ceil(math.sqrt(2.0 * bow_m / RHUMB_TOLERANCE_M))
+    chain = [ends[0]]
+    for sample in rhumb_points(*leg, pieces)[1:-1]:
+        got = plane.project(sample)
+        if got is None or not plane.contains_xy((got[0], got[1])):
+            return True
+        chain.append((got[0], got[1]))
+    chain.append(ends[1])
+    return any(plane.segment_leaves(p, q) for p, q in pairwise(chain))
 
 
 def route_inside(fence: Sequence[LatLon], points: Sequence[LatLon]) -> LatLon | None:

@@ -70,7 +70,7 @@ def rhumb_bow_m(a: LatLon, b: LatLon, length_m: float) -> float:
     """About how far apart (m) the rhumb line and the geodesic from ``a`` to ``b`` are, at
     most: a rhumb line at bearing α bends away from the geodesic with curvature
     |sin α|·tan φ / N, so over a leg of length L they part by up to that times L²/8 (taken
-    at the leg's highest |latitude|, so an upper estimate)."""
+    at the leg's highest |latitude|, and 1 % added, so an upper estimate)."""
     dpsi = _psi(b[0]) - _psi(a[0])
     dlam = math.radians(_wrap(b[1] - a[1]))
     hyp = math.hypot(dpsi, dlam)
@@ -79,7 +79,7 @@ def rhumb_bow_m(a: LatLon, b: LatLon, length_m: float) -> float:
     phi = math.radians(min(_MAX_LAT, max(abs(a[0]), abs(b[0]))))
     prime_vertical = _A / math.sqrt(1 - _E2 * math.sin(phi) ** 2)
     curvature = abs(dlam) / hyp * math.tan(phi) / prime_vertical
-    return curvature * length_m * length_m / 8.0
+    return 1.01 * curvature * length_m * length_m / 8.0
 
 
 def linear_bow_m(a: LatLon, b: LatLon) -> float:
