@@ -29,6 +29,7 @@ import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from itertools import pairwise
 
 from geographiclib.geodesic import Geodesic  # type: ignore[import-untyped]
 
@@ -179,7 +180,9 @@ class Fence:
         """How far ``point`` is outside the fence (m), 0 inside or on an edge."""
         got = self.project(point)
         if got is None:  # beyond the horizon: the nearest corner is a fair measure
-            return min(_GEOD.Inverse(*point, *c, Geodesic.DISTANCE)["s12"] for c in self.corners)
+            return min(
+                float(_GEOD.Inverse(*point, *c, Geodesic.DISTANCE)["s12"]) for c in self.corners
+            )
         p = (got[0], got[1])
         return 0.0 if self.contains_xy(p) else self.boundary_xy(p) * got[2]
 
@@ -196,7 +199,7 @@ class Fence:
         """True if the plane segment ``p``→``q`` (both ends inside) goes outside between them:
         it is cut where it meets an edge, and each piece's middle must be inside."""
         cuts = sorted({0.0, 1.0, *(t for a, b in self.edges for t in _hits(p, q, a, b))})
-        for t0, t1 in zip(cuts, cuts[1:], strict=False):
+        for t0, t1 in pairwise(cuts):
             t = (t0 + t1) / 2
             mid = (p[0] + t * (q[0] - p[0]), p[1] + t * (q[1] - p[1]))
             if not self.contains_xy(mid):

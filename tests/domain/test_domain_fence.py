@@ -261,3 +261,20 @@ def test_the_verdict_and_distance_agree_with_dense_geodesic_sampling(
             assert 0.995 * worst - 1.0 <= got.outside_m <= 1.01 * worst + 51.0
     elif worst < -1.0:
         assert got is None
+
+
+def test_a_chord_between_two_edge_points_across_a_notch_leaves() -> None:
+    """Both ends on the fence's edge (inside), the chord between them only outside."""
+    u_fence = [
+        (65.0, 20.0),
+        (65.0, 22.0),
+        (66.0, 22.0),
+        (66.0, 21.3),
+        (65.3, 21.3),
+        (65.3, 20.7),
+        (66.0, 20.7),
+        (66.0, 20.0),
+    ]
+    got = route_exit(u_fence, [(65.6, 20.7), (65.6, 21.3)])
+    assert got is not None
+    assert got.leg is not None
