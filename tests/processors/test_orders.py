@@ -224,7 +224,8 @@ class TestChecks:
         assert isinstance(got, Plan)
         refusal = check(got, telemetry(), None, limits())
         assert refusal == Refusal(
-            "geofence", "the route leaves the geofence at 64.50000, 21.00000 (lat, lon)"
+            "geofence",
+            "the route leaves the geofence at 64.50000, 21.00000 (lat, lon), 56.9 km outside",
         )
 
     def test_below_the_terrain_floor_names_floor_ground_and_sigma(self, tmp_path: Path) -> None:
