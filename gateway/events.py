@@ -216,7 +216,9 @@ class Track(BaseModel):
     """A fused track built from one or more detections (``gateway.flow.tracker``).
 
     One ``track_id`` for the track's whole life; each create, update and loss is its own
-    event (``status``). ``confidence`` is the Dempster-Shafer belief in ``object_class``;
+    event (``status``). A track found to be a second track of another's object ends as
+    ``merged``, naming the surviving track in ``merged_into``; each event of one track has a
+    strictly newer ``time`` than the one before it. ``confidence`` is the Dempster-Shafer belief in ``object_class``;
     ``class_conflict`` the conflict K of the latest combination (0: the sensors agreed).
     ``detection_ids`` holds the newest contributing detections (at most 32).
     """
@@ -227,7 +229,9 @@ class Track(BaseModel):
     event_id: str
     track_id: str
     time: AwareDatetime
-    status: Literal["created", "updated", "lost"] = "updated"
+    status: Literal["created", "updated", "lost", "merged"] = "updated"
+    merged_into: str | None = None
+    """For ``merged``: the id of the track this one was folded into (it lives on)."""
     object_class: str
     subtype: str = ""
     confidence: float = Field(ge=0.0, le=1.0)
