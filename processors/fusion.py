@@ -56,13 +56,13 @@ class FusionConfig(ProcessorConfig):
         default=4.0, gt=0, le=10, description="Association gate: Mahalanobis distance, in σ."
     )
     max_gap_s: float = Field(
-        default=10.0, gt=0, le=600, description="A track older than this is not associated."
+        default=60.0, gt=0, le=600, description="A track silent this long takes no detection."
     )
     coast_after_s: float = Field(
         default=3.0, gt=0, le=600, description="A track without detections this long coasts."
     )
     lost_after_s: float = Field(
-        default=30.0, gt=0, le=3600, description="A track without detections this long is lost."
+        default=60.0, gt=0, le=3600, description="A track without detections this long is lost."
     )
     confirm_hits: int = Field(
         default=3, ge=1, le=20, description="Detections (M) that confirm a tentative track..."

@@ -30,9 +30,9 @@ class TrackerSettings:
     classes: tuple[str, ...] = DEFAULT_CLASSES
     hostile_classes: frozenset[str] = frozenset({"tank", "armour", "loitering_munition"})
     gate_sigma: float = 4.0
-    max_gap_s: float = 10.0
+    max_gap_s: float = 60.0
     coast_after_s: float = 3.0
-    lost_after_s: float = 30.0
+    lost_after_s: float = 60.0
     confirm_hits: int = 3
     confirm_window: int = 5
     max_tracks: int = 5000

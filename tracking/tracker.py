@@ -220,20 +220,25 @@ class Tracker:
         fused = {(i, remap[j]): ev for (i, j), ev in fused.items()}
         matched = assign(pairs)
         out: list[Track] = []
-        hit: set[str] = set()
+        hit: dict[str, bool] = {}  # track id → it was coasting before this frame
         for i, d in enumerate(detections):
             j = matched.get(i)
             if j is None:
                 out += self._start(d, at_s, source, masses[i])
                 continue
             state = self._tracks[ids[j]]
-            hit.add(state.track_id)
             evidence = fused[(i, j)]
             if evidence is not None:
                 state.set_classes({**state.sources, source: masses[i]}, *evidence)
             self.counts.associated += 1
-            out += self._hit(state, d, at_s, source, predicted[state.track_id])
-        for track_id in sorted(near - hit):
+            hit[state.track_id] = self._hit(state, d, at_s, source, predicted[state.track_id])
+        for track_id, was_coasting in sorted(hit.items()):
+            still = self._tracks.get(track_id)
+            if still is None:
+                continue  # folded into a track handled before it
+            survivor, merged = self._merge(still, at_s, set(hit), was_coasting=was_coasting)
+            out += merged + self._settled(survivor, at_s)
+        for track_id in sorted(near - set(hit)):
             missed = self._tracks.get(track_id)
             if missed is not None and missed.stage == "tentative" and source in missed.seen_by:
                 missed.chances += 1
@@ -261,7 +266,8 @@ class Tracker:
 
     def _hit(
         self, state: TrackState, d: Detection, at_s: float, source: Source, estimate: Estimate
-    ) -> list[Track]:
+    ) -> bool:
+        """Fold ``d`` into ``state``; whether the track was coasting before it."""
         s = self.settings
         was_coasting = state.stage == "coasting" or at_s - state.updated_s > s.coast_after_s
         estimate = estimate.copy()
@@ -274,19 +280,21 @@ class Tracker:
         self._record(state, d, source)
         state.hits += 1
         state.chances += 1
-        out: list[Track] = []
         if state.stage == "coasting":
             state.stage = "confirmed"
         self._file(state)
-        survivor, merged = self._merge(state, at_s, d.time, was_coasting=was_coasting)
-        out += merged
-        if survivor.stage == "tentative" and survivor.hits >= s.confirm_hits:
-            survivor.stage = "confirmed"
+        return was_coasting
+
+    def _settled(self, state: TrackState, at_s: float) -> list[Track]:
+        """After a frame: confirm a tentative track that has enough hits, or send an update."""
+        s = self.settings
+        if state.stage == "tentative" and state.hits >= s.confirm_hits:
+            state.stage = "confirmed"
             self.counts.confirmed += 1
-            out.append(self._emit(survivor, "created", at_s))
-        elif survivor.stage != "tentative":
-            out += self._updated(survivor, at_s)
-        return out
+            return [self._emit(state, "created", at_s)]
+        if state.stage != "tentative":
+            return self._updated(state, at_s)
+        return []
 
     def _speed_prior(self, state: TrackState, estimate: Estimate) -> None:
         limit = self._limit(state.object_class)
@@ -359,9 +367,13 @@ class Tracker:
     # -- merge -----------------------------------------------------------------------------
 
     def _merge(
-        self, state: TrackState, at_s: float, time: datetime, *, was_coasting: bool
+        self, state: TrackState, at_s: float, hit: set[str], *, was_coasting: bool
     ) -> tuple[TrackState, list[Track]]:
-        """Fold ``state`` and a twin together once they have agreed ``merge_after`` times."""
+        """Fold ``state`` and a twin together once they have agreed ``merge_after`` times.
+
+        Two tracks that each took a detection of one frame are two objects (a frame sees an
+        object once): never merged then.
+        """
         s = self.settings
         if self._plane is None:
             return state, []
@@ -374,9 +386,12 @@ class Tracker:
             other = self._tracks[other_id]
             if other is state or other.stage == "coasting" or was_coasting:
                 continue  # a coasting estimate is too wide to tell two objects apart
+            key = (min(state.track_id, other_id), max(state.track_id, other_id))
+            if other_id in hit:
+                self._streaks.pop(key, None)
+                continue
             if abs(at_s - other.updated_s) > s.coast_after_s:
                 continue
-            key = (min(state.track_id, other_id), max(state.track_id, other_id))
             theirs = other.predicted(at_s, self._q(other))
             position = other.innovation(theirs, state.lat_deg, state.lon_deg, 0.0)
             close = position.s00 + mine.p[0], position.s01 + mine.p[1], position.s11 + mine.p[5]
@@ -406,7 +421,7 @@ class Tracker:
             old.emitted_class = ""  # its picture changed: the next update goes out at once
             if young.stage == "tentative":
                 return old, []
-            return old, [self._event(young, "merged", time, merged_into=old.track_id)]
+            return old, [self._event(young, "merged", old.last_seen, merged_into=old.track_id)]
         return state, []
 
     @staticmethod

@@ -9,7 +9,10 @@ stays with the battery's human operator.
 
 The schema ships as package data (``gateway/data/schemas/gute2-handoff.schema.json``, JSON
 Schema draft 2020-12); ``load_schema`` reads it. ``SCHEMA_ID`` versions the document: a change
-of shape is a new version, never a silent edit.
+of shape is a new version, never a silent edit. Version 2 added ``status``, ``superseded_by``
+and ``note`` (a cue superseded when its track merged into another); version 1's schema still
+ships (``gute2-handoff-1.schema.json``) so a peer can read a document written before, and
+``schema_for`` picks a document's own.
 """
 
 from __future__ import annotations
@@ -21,18 +24,37 @@ from typing import Any
 
 from gateway.events import Deconfliction, EffectorOption, Handoff, Position, Track
 
-__all__ = ["SCHEMA_ID", "encode_handoff", "handoff_payload", "load_schema"]
+__all__ = ["SCHEMA_ID", "SCHEMA_VERSIONS", "encode_handoff", "handoff_payload", "load_schema",
+           "schema_for"]  # fmt: skip
 
-#: The ``schema`` member of every document; its last part is the version.
-SCHEMA_ID = "fischer-gateway/gute2-handoff/1"
-_SCHEMA_RESOURCE = "data/schemas/gute2-handoff.schema.json"
+#: The ``schema`` member of every document written now; its last part is the version.
+SCHEMA_ID = "fischer-gateway/gute2-handoff/2"
+#: Every version a reader understands, by ``schema`` member, and its schema resource.
+SCHEMA_VERSIONS = {
+    "fischer-gateway/gute2-handoff/1": "data/schemas/gute2-handoff-1.schema.json",
+    SCHEMA_ID: "data/schemas/gute2-handoff.schema.json",
+}
 
 
-def load_schema() -> dict[str, Any]:
-    """The handoff document's JSON Schema (draft 2020-12), read from package data."""
-    text = files("gateway").joinpath(_SCHEMA_RESOURCE).read_text(encoding="utf-8")
+def load_schema(schema_id: str = SCHEMA_ID) -> dict[str, Any]:
+    """The JSON Schema (draft 2020-12) of version ``schema_id``, read from package data.
+
+    Raises ``KeyError`` naming the version when it is not one of ``SCHEMA_VERSIONS``.
+    """
+    try:
+        resource = SCHEMA_VERSIONS[schema_id]
+    except KeyError:
+        raise KeyError(f"unknown GUTE II handoff schema {schema_id!r}") from None
+    text = files("gateway").joinpath(resource).read_text(encoding="utf-8")
     schema: dict[str, Any] = json.loads(text)
     return schema
+
+
+def schema_for(document: object) -> dict[str, Any]:
+    """The schema of ``document``'s own version (its ``schema`` member); the current one
+    when it names none we know, so validation then reports the mismatch."""
+    named = document.get("schema") if isinstance(document, dict) else None
+    return load_schema(named if isinstance(named, str) and named in SCHEMA_VERSIONS else SCHEMA_ID)
 
 
 def _time(value: datetime) -> str:
@@ -98,6 +120,9 @@ def handoff_payload(handoff: Handoff) -> dict[str, Any]:
         "handoff_id": handoff.handoff_id,
         "revision": handoff.revision,
         "idempotency_key": handoff.event_id,
+        "status": handoff.status,
+        "superseded_by": handoff.superseded_by,
+        "note": handoff.note,
         "time": _time(handoff.time),
         "battery": {"id": handoff.battery, "position": _position(handoff.battery_position)},
         "track": _track(handoff.track),
