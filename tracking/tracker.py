@@ -13,16 +13,18 @@ put in a canonical order first, so the order they arrived in never changes the t
 detection left unmatched starts a tentative track.
 
 **Candidates** come from a ``GridIndex`` of the tracks' filed positions, queried with a
-radius certain to hold every track the gate could pass (its reach: how far its prediction
-could move and how wide its gate could be within ``max_gap_s``); ``index="all_pairs"`` scans
+radius certain to hold every *fresh* track the gate could pass (its reach: how far its
+prediction could move and how wide its gate could be within ``coast_after_s`` of its last
+update); tracks silent longer (coasting, few) are scanned whole. ``index="all_pairs"`` scans
 every track and exists so tests and the benchmark can compare. Both give the same tracks.
 
 **Life.** Tentative until ``confirm_hits`` detections within its first ``confirm_window``
-chances (``tracking.track``); only then published ("created"). Confirmed tracks publish
-"updated" at most every ``update_interval_s`` (a class change at once); without a detection
-for ``coast_after_s`` a track coasts (kept, predicted, not published) and is published "lost"
-after ``lost_after_s``. A tentative track that can no longer be confirmed, or has had no
-detection for ``max_gap_s``, is dropped without a word.
+chances (``tracking.track``); only then published ("created"). A chance missed is a frame
+from a source that has seen the track with a detection inside its gate that went elsewhere.
+Confirmed tracks publish "updated" at most every ``update_interval_s`` (a class change at
+once); without a detection for ``coast_after_s`` a track coasts (kept, predicted, not
+published) and is published "lost" after ``lost_after_s``. A tentative track that can no
+longer be confirmed, or has had no detection for ``coast_after_s``, is dropped unpublished.
 
 **Merge.** Two tracks whose estimates agree in position and velocity (within ``merge_sigma``
 on both) for ``merge_after`` updates in a row, with class evidence that does not exclude each
@@ -37,6 +39,7 @@ penalises, never clamps.
 
 from __future__ import annotations
 
+import heapq
 import math
 from collections.abc import Iterable
 from datetime import datetime
@@ -83,6 +86,9 @@ class Tracker:
         self._grid: GridIndex[str] = GridIndex(s.cell_m)
         self._plane: GridPlane | None = None
         self._reach_m = 0.0
+        self._horizon_s = min(s.coast_after_s, s.max_gap_s)
+        self._wide: set[str] = set()
+        self._expiry: list[tuple[float, str, float]] = []
         self._gate2 = s.gate_sigma**2
         self._merge2 = s.merge_sigma**2
 
@@ -148,7 +154,7 @@ class Tracker:
         reach = 0.0
         for track_id, state in list(self._tracks.items()):
             silent = now_s - state.updated_s
-            if state.stage == "tentative" and silent > s.max_gap_s:
+            if state.stage == "tentative" and silent > s.coast_after_s:
                 self._drop(state)
                 self.counts.discarded += 1
             elif state.stage != "tentative" and silent >= s.lost_after_s:
@@ -159,7 +165,8 @@ class Tracker:
                 if state.stage == "confirmed" and silent >= s.coast_after_s:
                     state.stage = "coasting"
                     self.counts.coasting += 1
-                reach = max(reach, self._reach_of(state))
+                if track_id not in self._wide:
+                    reach = max(reach, self._reach_of(state))
                 continue
             self._pending.discard(track_id)
         self._reach_m = reach
@@ -179,6 +186,7 @@ class Tracker:
         first = detections[0]
         source: Source = (first.airframe, first.sensor)
         at_s = first.time.timestamp()
+        self._expire(at_s)
         predicted: dict[str, Estimate] = {}
         near: set[str] = set()
         pairs: dict[tuple[int, int], float] = {}
@@ -194,7 +202,6 @@ class Tracker:
             conflicted = False
             for track_id in self._candidates(lat, lon, sigma):
                 state = self._tracks[track_id]
-                near.add(track_id)
                 if abs(at_s - state.updated_s) > s.max_gap_s:
                     continue
                 estimate = predicted.get(track_id)
@@ -203,6 +210,7 @@ class Tracker:
                 innovation = state.innovation(estimate, lat, lon, sigma)
                 if innovation.d2 > self._gate2:
                     continue
+                near.add(track_id)
                 try:
                     evidence = self._evidence(state, source, mass)
                 except TotalConflict:
@@ -361,6 +369,7 @@ class Tracker:
         self._pending.discard(state.track_id)
         if state.track_id in self._grid:
             self._grid.remove(state.track_id)
+        self._wide.discard(state.track_id)
         for key in [k for k in self._streaks if state.track_id in k]:
             del self._streaks[key]
 
@@ -378,14 +387,18 @@ class Tracker:
         if self._plane is None:
             return state, []
         here = self._plane.forward(state.lat_deg, state.lon_deg)
-        radius = self._plane.grid_radius_m(
-            state.lat_deg, self._reach_m + s.merge_sigma * state.sigma_m
-        )
+        # A twin is a fresh track (updated within the horizon): within its reach, scaled
+        # from the gate to the merge gate, plus this track's own spread.
+        scale = max(1.0, s.merge_sigma / s.gate_sigma)
+        own = s.merge_sigma * (math.sqrt(max(state.estimate.position_var_max, 0.0)) + 1.0)
+        radius = self._plane.grid_radius_m(state.lat_deg, self._reach_m * scale + own)
         mine = state.estimate
         for other_id in sorted(self._grid.within(*here, radius)):
             other = self._tracks[other_id]
             if other is state or other.stage == "coasting" or was_coasting:
                 continue  # a coasting estimate is too wide to tell two objects apart
+            if min(state.hits, other.hits) < 2:
+                continue  # nor is one fix with no velocity yet
             key = (min(state.track_id, other_id), max(state.track_id, other_id))
             if other_id in hit:
                 self._streaks.pop(key, None)
@@ -461,13 +474,14 @@ class Tracker:
     # -- index -----------------------------------------------------------------------------
 
     def _reach_of(self, state: TrackState) -> float:
-        """How far from its filed position a detection the gate passes could lie, over
-        ``max_gap_s`` (the gate's width is convex in Δt, so its ends bound it), less the
-        detection's own σ (added by the query)."""
+        """How far from its filed position a detection the gate passes could lie while the
+        track is fresh (within ``coast_after_s`` of its update; the gate's width is convex
+        in Δt, so the horizon's ends bound it), less the detection's own σ (the query adds
+        it)."""
         s = self.settings
-        later = state.estimate.predicted(s.max_gap_s, self._q(state))
+        later = state.estimate.predicted(self._horizon_s, self._q(state))
         widest = max(state.estimate.position_var_max, later.position_var_max)
-        return s.gate_sigma * math.sqrt(max(widest, 0.0)) + state.speed_mps * s.max_gap_s
+        return s.gate_sigma * math.sqrt(max(widest, 0.0)) + state.speed_mps * self._horizon_s
 
     def _file(self, state: TrackState) -> None:
         if self._plane is None:
@@ -478,6 +492,25 @@ class Tracker:
             self._grid.move(state.track_id, x, y)
         else:
             self._grid.insert(state.track_id, x, y)
+        self._wide.discard(state.track_id)
+        heapq.heappush(
+            self._expiry, (state.updated_s + self._horizon_s, state.track_id, state.updated_s)
+        )
+        if len(self._expiry) > 4 * len(self._tracks) + 64:  # stale entries stay bounded
+            self._expiry = [
+                (st.updated_s + self._horizon_s, track_id, st.updated_s)
+                for track_id, st in self._tracks.items()
+                if track_id not in self._wide
+            ]
+            heapq.heapify(self._expiry)
+
+    def _expire(self, at_s: float) -> None:
+        """Tracks silent beyond the horizon at ``at_s`` leave the grid's reach: scanned whole."""
+        while self._expiry and self._expiry[0][0] < at_s:
+            _, track_id, stamp = heapq.heappop(self._expiry)
+            state = self._tracks.get(track_id)
+            if state is not None and state.updated_s == stamp:
+                self._wide.add(track_id)
 
     def _candidates(self, lat: float, lon: float, sigma_m: float) -> list[str]:
         s = self.settings
@@ -485,7 +518,10 @@ class Tracker:
             return list(self._tracks)
         reach = self._reach_m + s.gate_sigma * sigma_m + 1.0
         x, y = self._plane.forward(lat, lon)
-        return self._grid.within(x, y, self._plane.grid_radius_m(lat, reach))
+        near = self._grid.within(x, y, self._plane.grid_radius_m(lat, reach))
+        if not self._wide:
+            return near
+        return near + [t for t in self._wide if t not in set(near)]
 
     # -- emission --------------------------------------------------------------------------
 

@@ -92,10 +92,10 @@ class TestTrackLife:
     """Tentative, confirmed (M of N), coasting, deleted; only confirmed tracks published."""
 
     def test_one_detection_is_never_published_and_is_dropped_quietly(self) -> None:
-        tracker = Tracker(TrackerSettings(max_gap_s=10.0))
+        tracker = Tracker(TrackerSettings(coast_after_s=3.0))
         assert tracker.update_frame([detection()]) == []
         assert tracker.stage(tracker.track_ids[0]) == "tentative"
-        assert tracker.tick(at(10.5)) == []
+        assert tracker.tick(at(3.5)) == []
         assert len(tracker) == 0
         assert tracker.counts.discarded == 1
 
@@ -110,14 +110,24 @@ class TestTrackLife:
         assert tracker.confirmed_ids == [created.track_id]
 
     def test_a_tentative_track_missed_too_often_is_dropped(self) -> None:
-        """M=3 of N=5: three misses (frames of a source that saw it, without it) end it."""
+        """M=3 of N=5: three misses (a frame of a source that saw it, with a detection in its
+        gate that went to another track) end it, before it could be confirmed."""
         tracker = Tracker()
-        tracker.update_frame([detection(t_s=0.0), detection(t_s=0.0, east_m=3000.0)])
-        for i in range(1, 4):  # the source keeps seeing the far object only
-            tracker.update_frame([detection(t_s=float(i), east_m=3000.0)])
+        tracker.update_frame([detection(sigma_m=5.0), detection(sigma_m=5.0, east_m=40.0)])
+        for i in range(1, 3):  # only the east object is seen again, inside both gates
+            tracker.update_frame([detection(t_s=0.2 * i, sigma_m=5.0, east_m=40.0)])
+        assert len(tracker) == 2
+        tracker.update_frame([detection(t_s=0.6, sigma_m=5.0, east_m=40.0)])
         assert tracker.counts.discarded == 1
         assert len(tracker) == 1
         assert tracker.confirmed_ids == tracker.track_ids
+
+    def test_a_tentative_track_not_seen_again_is_dropped_quietly(self) -> None:
+        tracker = Tracker(TrackerSettings(coast_after_s=3.0))
+        tracker.update_frame([detection(), detection(t_s=1.0)])
+        assert tracker.tick(at(4.5)) == []
+        assert len(tracker) == 0
+        assert tracker.counts.discarded == 1
 
     def test_silence_coasts_then_loses_once(self) -> None:
         tracker = Tracker(TrackerSettings(coast_after_s=3.0, lost_after_s=30.0))
