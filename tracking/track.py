@@ -85,7 +85,7 @@ class TrackState:
     emitted_s: float = -math.inf
     emitted_class: str = ""
     published: datetime | None = None
-    pending: bool = False
+    reach_m: float = math.inf
 
     def predicted(self, at_s: float, q: float) -> Estimate:
         """The filter carried to ``at_s`` (never backwards)."""
@@ -94,6 +94,13 @@ class TrackState:
     def innovation(self, predicted: Estimate, lat: float, lon: float, sigma_m: float) -> Innovation:
         """A measured position (σ per axis ``sigma_m``) against ``predicted``."""
         east, north = offset_m(self.lat_deg, self.lon_deg, lat, lon)
+        return self.offset_innovation(predicted, east, north, sigma_m)
+
+    @staticmethod
+    def offset_innovation(
+        predicted: Estimate, east: float, north: float, sigma_m: float
+    ) -> Innovation:
+        """As ``innovation``, the position given as (east, north) m from the anchor."""
         r = max(sigma_m, MIN_SIGMA_M) ** 2
         return predicted.innovation(east, north, r, 0.0, r, POSITION)
 

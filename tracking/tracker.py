@@ -87,6 +87,8 @@ class Tracker:
         self._plane: GridPlane | None = None
         self._reach_m = 0.0
         self._horizon_s = min(s.coast_after_s, s.max_gap_s)
+        self._qs: dict[str, float] = {}
+        self._stretch: dict[int, float] = {}
         self._wide: set[str] = set()
         self._expiry: list[tuple[float, str, float]] = []
         self._gate2 = s.gate_sigma**2
@@ -200,14 +202,21 @@ class Tracker:
             sigma = max(d.sigma_h_m, MIN_SIGMA_M)
             lat, lon = d.position.lat_deg, d.position.lon_deg
             conflicted = False
+            widen = s.gate_sigma * sigma
             for track_id in self._candidates(lat, lon, sigma):
                 state = self._tracks[track_id]
-                if abs(at_s - state.updated_s) > s.max_gap_s:
+                dt = at_s - state.updated_s
+                if abs(dt) > s.max_gap_s:
                     continue
+                east, north = offset_m(state.lat_deg, state.lon_deg, lat, lon)
+                if math.hypot(east, north) > state.reach_m + widen and (
+                    dt <= self._horizon_s or track_id in self._wide
+                ):
+                    continue  # beyond this track's own reach: its gate cannot pass it
                 estimate = predicted.get(track_id)
                 if estimate is None:
                     estimate = predicted[track_id] = state.predicted(at_s, self._q(state))
-                innovation = state.innovation(estimate, lat, lon, sigma)
+                innovation = state.offset_innovation(estimate, east, north, sigma)
                 if innovation.d2 > self._gate2:
                     continue
                 near.add(track_id)
@@ -265,7 +274,31 @@ class Tracker:
         return fuse_sources({**state.sources, source: mass})
 
     def _q(self, state: TrackState) -> float:
-        return self.settings.priors[state.object_class].q
+        q = self._qs.get(state.object_class)
+        if q is None:
+            q = self._qs[state.object_class] = self.settings.priors[state.object_class].q
+        return q
+
+    def _plane_radius(self, plane: GridPlane, lat: float, radius_m: float) -> float:
+        """``plane.grid_radius_m``, its stretch cached per 0.01° of latitude (taken over a
+        50 km band, so it bounds every smaller radius there)."""
+        if radius_m > 50_000.0:
+            return plane.grid_radius_m(lat, radius_m)
+        band = math.floor(lat * 100.0)
+        stretch = self._stretch.get(band)
+        if stretch is None:
+            top = max(abs(band), abs(band + 1)) / 100.0
+            edge = math.copysign(top, lat)
+            stretch = (
+                max(
+                    plane.grid_radius_m(edge, 50_000.0),
+                    plane.grid_radius_m(band / 100.0, 50_000.0),
+                    plane.grid_radius_m((band + 1) / 100.0, 50_000.0),
+                )
+                / 50_000.0
+            )
+            self._stretch[band] = stretch
+        return radius_m * stretch + 1.0
 
     def _limit(self, name: str) -> float:
         return self.settings.priors[name].max_speed_mps * self.settings.speed_scale
@@ -391,7 +424,7 @@ class Tracker:
         # from the gate to the merge gate, plus this track's own spread.
         scale = max(1.0, s.merge_sigma / s.gate_sigma)
         own = s.merge_sigma * (math.sqrt(max(state.estimate.position_var_max, 0.0)) + 1.0)
-        radius = self._plane.grid_radius_m(state.lat_deg, self._reach_m * scale + own)
+        radius = self._plane_radius(self._plane, state.lat_deg, self._reach_m * scale + own)
         mine = state.estimate
         for other_id in sorted(self._grid.within(*here, radius)):
             other = self._tracks[other_id]
@@ -473,20 +506,22 @@ class Tracker:
 
     # -- index -----------------------------------------------------------------------------
 
-    def _reach_of(self, state: TrackState) -> float:
-        """How far from its filed position a detection the gate passes could lie while the
-        track is fresh (within ``coast_after_s`` of its update; the gate's width is convex
-        in Δt, so the horizon's ends bound it), less the detection's own σ (the query adds
-        it)."""
+    def _reach_of(self, state: TrackState, horizon_s: float | None = None) -> float:
+        """How far from its filed position a detection the gate passes could lie within
+        ``horizon_s`` of its update (the fresh horizon, ``coast_after_s``, by default; the
+        gate's width is convex in Δt, so the horizon's ends bound it), less the detection's
+        own σ (the query adds it)."""
         s = self.settings
-        later = state.estimate.predicted(self._horizon_s, self._q(state))
+        horizon = self._horizon_s if horizon_s is None else horizon_s
+        later = state.estimate.predicted(horizon, self._q(state))
         widest = max(state.estimate.position_var_max, later.position_var_max)
-        return s.gate_sigma * math.sqrt(max(widest, 0.0)) + state.speed_mps * self._horizon_s
+        return s.gate_sigma * math.sqrt(max(widest, 0.0)) + state.speed_mps * horizon
 
     def _file(self, state: TrackState) -> None:
         if self._plane is None:
             return
-        self._reach_m = max(self._reach_m, self._reach_of(state))
+        state.reach_m = self._reach_of(state)
+        self._reach_m = max(self._reach_m, state.reach_m)
         x, y = self._plane.forward(state.lat_deg, state.lon_deg)
         if state.track_id in self._grid:
             self._grid.move(state.track_id, x, y)
@@ -505,12 +540,23 @@ class Tracker:
             heapq.heapify(self._expiry)
 
     def _expire(self, at_s: float) -> None:
-        """Tracks silent beyond the horizon at ``at_s`` leave the grid's reach: scanned whole."""
+        """Tracks silent beyond the horizon at ``at_s``: a tentative one is dropped, a
+        confirmed one coasts and leaves the grid's reach (scanned whole from now on)."""
         while self._expiry and self._expiry[0][0] < at_s:
             _, track_id, stamp = heapq.heappop(self._expiry)
             state = self._tracks.get(track_id)
-            if state is not None and state.updated_s == stamp:
-                self._wide.add(track_id)
+            if state is None or state.updated_s != stamp:
+                continue
+            if state.stage == "tentative":
+                self._drop(state)
+                self.counts.discarded += 1
+                continue
+            if state.stage == "confirmed" and at_s - stamp >= self.settings.coast_after_s:
+                state.stage = "coasting"
+                self.counts.coasting += 1
+            # Its reach now spans all the time it may still take a detection.
+            state.reach_m = self._reach_of(state, self.settings.max_gap_s)
+            self._wide.add(track_id)
 
     def _candidates(self, lat: float, lon: float, sigma_m: float) -> list[str]:
         s = self.settings
@@ -518,7 +564,7 @@ class Tracker:
             return list(self._tracks)
         reach = self._reach_m + s.gate_sigma * sigma_m + 1.0
         x, y = self._plane.forward(lat, lon)
-        near = self._grid.within(x, y, self._plane.grid_radius_m(lat, reach))
+        near = self._grid.within(x, y, self._plane_radius(self._plane, lat, reach))
         if not self._wide:
             return near
         return near + [t for t in self._wide if t not in set(near)]
