@@ -184,7 +184,8 @@ class Tracker:
     def _frame(self, detections: list[Detection]) -> list[Track]:
         s = self.settings
         self.counts.frames += 1
-        detections = sorted(detections, key=_canonical)
+        if len(detections) > 1:
+            detections = sorted(detections, key=_canonical)
         first = detections[0]
         source: Source = (first.airframe, first.sensor)
         at_s = first.time.timestamp()
@@ -231,11 +232,15 @@ class Tracker:
             if conflicted:
                 self.counts.total_conflict += 1
         ids = sorted(columns)  # canonical column order: the same whatever came first
-        order = {track_id: n for n, track_id in enumerate(ids)}
-        remap = {columns[t]: order[t] for t in ids}
-        pairs = {(i, remap[j]): cost for (i, j), cost in pairs.items()}
-        fused = {(i, remap[j]): ev for (i, j), ev in fused.items()}
-        matched = assign(pairs)
+        if len(ids) > 1:
+            order = {track_id: n for n, track_id in enumerate(ids)}
+            remap = {columns[t]: order[t] for t in ids}
+            pairs = {(i, remap[j]): cost for (i, j), cost in pairs.items()}
+            fused = {(i, remap[j]): ev for (i, j), ev in fused.items()}
+        if len(detections) == 1:  # one row: the cheapest pair is the whole answer
+            matched = {0: min(pairs, key=lambda ij: (pairs[ij], ij))[1]} if pairs else {}
+        else:
+            matched = assign(pairs)
         out: list[Track] = []
         hit: dict[str, bool] = {}  # track id → it was coasting before this frame
         for i, d in enumerate(detections):
@@ -253,7 +258,9 @@ class Tracker:
             still = self._tracks.get(track_id)
             if still is None:
                 continue  # folded into a track handled before it
-            survivor, merged = self._merge(still, at_s, set(hit), was_coasting=was_coasting)
+            survivor, merged = self._merge(
+                still, at_s, set(hit), near, predicted, was_coasting=was_coasting
+            )
             out += merged + self._settled(survivor, at_s)
         for track_id in sorted(near - set(hit)):
             missed = self._tracks.get(track_id)
@@ -409,27 +416,30 @@ class Tracker:
     # -- merge -----------------------------------------------------------------------------
 
     def _merge(
-        self, state: TrackState, at_s: float, hit: set[str], *, was_coasting: bool
+        self,
+        state: TrackState,
+        at_s: float,
+        hit: set[str],
+        near: set[str],
+        predicted: dict[str, Estimate],
+        *,
+        was_coasting: bool,
     ) -> tuple[TrackState, list[Track]]:
         """Fold ``state`` and a twin together once they have agreed ``merge_after`` times.
 
-        Two tracks that each took a detection of one frame are two objects (a frame sees an
-        object once): never merged then.
+        A twin is looked for among the tracks this frame's detections gated with (``near``,
+        predicted to ``at_s`` in ``predicted``): a second track of the object the detection
+        is of has it in its gate too. Two tracks that each took a detection of one frame are
+        two objects (a frame sees an object once): never merged then.
         """
         s = self.settings
-        if self._plane is None:
-            return state, []
-        here = self._plane.forward(state.lat_deg, state.lon_deg)
-        # A twin is a fresh track (updated within the horizon): within its reach, scaled
-        # from the gate to the merge gate, plus this track's own spread.
-        scale = max(1.0, s.merge_sigma / s.gate_sigma)
-        own = s.merge_sigma * (math.sqrt(max(state.estimate.position_var_max, 0.0)) + 1.0)
-        radius = self._plane_radius(self._plane, state.lat_deg, self._reach_m * scale + own)
+        if was_coasting:
+            return state, []  # a coasting estimate is too wide to tell two objects apart
         mine = state.estimate
-        for other_id in sorted(self._grid.within(*here, radius)):
-            other = self._tracks[other_id]
-            if other is state or other.stage == "coasting" or was_coasting:
-                continue  # a coasting estimate is too wide to tell two objects apart
+        for other_id in sorted(near):
+            other = self._tracks.get(other_id)
+            if other is None or other is state or other.stage == "coasting":
+                continue
             if min(state.hits, other.hits) < 2:
                 continue  # nor is one fix with no velocity yet
             key = (min(state.track_id, other_id), max(state.track_id, other_id))
@@ -438,7 +448,7 @@ class Tracker:
                 continue
             if abs(at_s - other.updated_s) > s.coast_after_s:
                 continue
-            theirs = other.predicted(at_s, self._q(other))
+            theirs = predicted.get(other_id) or other.predicted(at_s, self._q(other))
             position = other.innovation(theirs, state.lat_deg, state.lon_deg, 0.0)
             close = position.s00 + mine.p[0], position.s01 + mine.p[1], position.s11 + mine.p[5]
             d2_pos = _d2(position.ye, position.yn, *close)
