@@ -39,7 +39,6 @@ penalises, never clamps.
 
 from __future__ import annotations
 
-import heapq
 import math
 from collections.abc import Iterable
 from datetime import datetime
@@ -47,11 +46,12 @@ from functools import lru_cache
 
 from gateway.domain.evidence import MassFunction, TotalConflict, simple_support
 from gateway.events import BOOT_ID, Detection, Track
-from gateway.flow.gridindex import GridIndex
-from gateway.flow.localplane import GridPlane, displace, offset_m
+from gateway.flow.localplane import offset_m
 from tracking.assign import assign
 from tracking.emit import Status, track_event
+from tracking.index import TrackIndex
 from tracking.kalman import POSITION, VELOCITY, Estimate
+from tracking.merge import agree, elder, fold
 from tracking.settings import OTHER, TrackerCounts, TrackerSettings
 from tracking.track import MIN_SIGMA_M, Source, TrackState, fuse_sources
 
@@ -83,14 +83,11 @@ class Tracker:
         self._pending: set[str] = set()
         self._streaks: dict[tuple[str, str], int] = {}
         self._next = 0
-        self._grid: GridIndex[str] = GridIndex(s.cell_m)
-        self._plane: GridPlane | None = None
-        self._reach_m = 0.0
         self._horizon_s = min(s.coast_after_s, s.max_gap_s)
+        self._index = TrackIndex(
+            self._tracks, s.cell_m, self._horizon_s, exhaustive=s.index == "all_pairs"
+        )
         self._qs: dict[str, float] = {}
-        self._stretch: dict[int, float] = {}
-        self._wide: set[str] = set()
-        self._expiry: list[tuple[float, str, float]] = []
         self._gate2 = s.gate_sigma**2
         self._merge2 = s.merge_sigma**2
 
@@ -167,11 +164,11 @@ class Tracker:
                 if state.stage == "confirmed" and silent >= s.coast_after_s:
                     state.stage = "coasting"
                     self.counts.coasting += 1
-                if track_id not in self._wide:
+                if not self._index.is_wide(track_id):
                     reach = max(reach, self._reach_of(state))
                 continue
             self._pending.discard(track_id)
-        self._reach_m = reach
+        self._index.reach_m = reach
         for track_id in sorted(self._pending):
             state = self._tracks[track_id]
             if now_s - state.emitted_s >= s.update_interval_s:
@@ -211,7 +208,7 @@ class Tracker:
                     continue
                 east, north = offset_m(state.lat_deg, state.lon_deg, lat, lon)
                 if math.hypot(east, north) > state.reach_m + widen and (
-                    dt <= self._horizon_s or track_id in self._wide
+                    dt <= self._horizon_s or self._index.is_wide(track_id)
                 ):
                     continue  # beyond this track's own reach: its gate cannot pass it
                 estimate = predicted.get(track_id)
@@ -285,27 +282,6 @@ class Tracker:
         if q is None:
             q = self._qs[state.object_class] = self.settings.priors[state.object_class].q
         return q
-
-    def _plane_radius(self, plane: GridPlane, lat: float, radius_m: float) -> float:
-        """``plane.grid_radius_m``, its stretch cached per 0.01° of latitude (taken over a
-        50 km band, so it bounds every smaller radius there)."""
-        if radius_m > 50_000.0:
-            return plane.grid_radius_m(lat, radius_m)
-        band = math.floor(lat * 100.0)
-        stretch = self._stretch.get(band)
-        if stretch is None:
-            top = max(abs(band), abs(band + 1)) / 100.0
-            edge = math.copysign(top, lat)
-            stretch = (
-                max(
-                    plane.grid_radius_m(edge, 50_000.0),
-                    plane.grid_radius_m(band / 100.0, 50_000.0),
-                    plane.grid_radius_m((band + 1) / 100.0, 50_000.0),
-                )
-                / 50_000.0
-            )
-            self._stretch[band] = stretch
-        return radius_m * stretch + 1.0
 
     def _limit(self, name: str) -> float:
         return self.settings.priors[name].max_speed_mps * self.settings.speed_scale
@@ -395,8 +371,6 @@ class Tracker:
         )
         self._record(state, d, source)
         self._tracks[state.track_id] = state
-        if self._plane is None:
-            self._plane = GridPlane(state.lat_deg, state.lon_deg)
         self._file(state)
         if s.confirm_hits <= 1:
             state.stage = "confirmed"
@@ -407,9 +381,7 @@ class Tracker:
     def _drop(self, state: TrackState) -> None:
         del self._tracks[state.track_id]
         self._pending.discard(state.track_id)
-        if state.track_id in self._grid:
-            self._grid.remove(state.track_id)
-        self._wide.discard(state.track_id)
+        self._index.remove(state.track_id)
         for key in [k for k in self._streaks if state.track_id in k]:
             del self._streaks[key]
 
@@ -449,12 +421,7 @@ class Tracker:
             if abs(at_s - other.updated_s) > s.coast_after_s:
                 continue
             theirs = predicted.get(other_id) or other.predicted(at_s, self._q(other))
-            position = other.innovation(theirs, state.lat_deg, state.lon_deg, 0.0)
-            close = position.s00 + mine.p[0], position.s01 + mine.p[1], position.s11 + mine.p[5]
-            d2_pos = _d2(position.ye, position.yn, *close)
-            ve, vn = mine.x[2] - theirs.x[2], mine.x[3] - theirs.x[3]
-            vel = (mine.p[10] + theirs.p[10], mine.p[11] + theirs.p[11], mine.p[15] + theirs.p[15])
-            if d2_pos > self._merge2 or _d2(ve, vn, *vel) > self._merge2:
+            if not agree(state, other, theirs, self._merge2):
                 self._streaks.pop(key, None)
                 continue
             evidence = {**other.sources, **state.sources}  # state holds the newest report
@@ -466,11 +433,11 @@ class Tracker:
             if streak < s.merge_after:
                 continue
             del self._streaks[key]
-            old, young = self._elder(state, other)
+            old, young = elder(state, other)
             old.set_classes(evidence, combined, k)
             young_estimate = theirs if young is other else mine.copy()
             base = old.estimate if old is state else theirs.copy()
-            self._fold(old, base, young, young_estimate, at_s)
+            fold(old, base, young, young_estimate, at_s)
             self._drop(young)
             self._file(old)
             self.counts.merged += 1
@@ -479,40 +446,6 @@ class Tracker:
                 return old, []
             return old, [self._event(young, "merged", old.last_seen, merged_into=old.track_id)]
         return state, []
-
-    @staticmethod
-    def _elder(a: TrackState, b: TrackState) -> tuple[TrackState, TrackState]:
-        """(survivor, folded): a published track outlives a tentative one, else the older."""
-        a_rank = (a.stage == "tentative", a.serial)
-        b_rank = (b.stage == "tentative", b.serial)
-        return (a, b) if a_rank < b_rank else (b, a)
-
-    def _fold(
-        self,
-        old: TrackState,
-        base: Estimate,
-        young: TrackState,
-        young_estimate: Estimate,
-        at_s: float,
-    ) -> None:
-        """The young estimate's position taken into the old's as one more measurement."""
-        lat, lon = displace(young.lat_deg, young.lon_deg, *young_estimate.x[:2])
-        east, north = offset_m(old.lat_deg, old.lon_deg, lat, lon)
-        p = young_estimate.p
-        base.update(base.innovation(east, north, p[0], p[1], p[5], POSITION), POSITION)
-        old.adopt(base, at_s)
-        for name, subtype in young.subtypes.items():
-            old.subtypes.setdefault(name, subtype)
-        old.detection_ids.extend(young.detection_ids)
-        old.detection_count += young.detection_count
-        old.airframes |= young.airframes
-        old.sensors |= young.sensors
-        old.seen_by |= young.seen_by
-        old.hits += young.hits
-        old.first_seen = min(old.first_seen, young.first_seen)
-        if young.last_seen > old.last_seen:
-            old.last_seen = young.last_seen
-            old.alt_msl_m = young.alt_msl_m if young.alt_msl_m is not None else old.alt_msl_m
 
     # -- index -----------------------------------------------------------------------------
 
@@ -528,56 +461,26 @@ class Tracker:
         return s.gate_sigma * math.sqrt(max(widest, 0.0)) + state.speed_mps * horizon
 
     def _file(self, state: TrackState) -> None:
-        if self._plane is None:
-            return
         state.reach_m = self._reach_of(state)
-        self._reach_m = max(self._reach_m, state.reach_m)
-        x, y = self._plane.forward(state.lat_deg, state.lon_deg)
-        if state.track_id in self._grid:
-            self._grid.move(state.track_id, x, y)
-        else:
-            self._grid.insert(state.track_id, x, y)
-        self._wide.discard(state.track_id)
-        heapq.heappush(
-            self._expiry, (state.updated_s + self._horizon_s, state.track_id, state.updated_s)
-        )
-        if len(self._expiry) > 4 * len(self._tracks) + 64:  # stale entries stay bounded
-            self._expiry = [
-                (st.updated_s + self._horizon_s, track_id, st.updated_s)
-                for track_id, st in self._tracks.items()
-                if track_id not in self._wide
-            ]
-            heapq.heapify(self._expiry)
+        self._index.file(state)
 
     def _expire(self, at_s: float) -> None:
         """Tracks silent beyond the horizon at ``at_s``: a tentative one is dropped, a
-        confirmed one coasts and leaves the grid's reach (scanned whole from now on)."""
-        while self._expiry and self._expiry[0][0] < at_s:
-            _, track_id, stamp = heapq.heappop(self._expiry)
-            state = self._tracks.get(track_id)
-            if state is None or state.updated_s != stamp:
-                continue
+        confirmed one coasts, its reach now spanning all the time it may still take a
+        detection."""
+        for track_id in self._index.expire(at_s):
+            state = self._tracks[track_id]
             if state.stage == "tentative":
                 self._drop(state)
                 self.counts.discarded += 1
                 continue
-            if state.stage == "confirmed" and at_s - stamp >= self.settings.coast_after_s:
+            if state.stage == "confirmed" and at_s - state.updated_s >= self.settings.coast_after_s:
                 state.stage = "coasting"
                 self.counts.coasting += 1
-            # Its reach now spans all the time it may still take a detection.
             state.reach_m = self._reach_of(state, self.settings.max_gap_s)
-            self._wide.add(track_id)
 
     def _candidates(self, lat: float, lon: float, sigma_m: float) -> list[str]:
-        s = self.settings
-        if s.index == "all_pairs" or self._plane is None:
-            return list(self._tracks)
-        reach = self._reach_m + s.gate_sigma * sigma_m + 1.0
-        x, y = self._plane.forward(lat, lon)
-        near = self._grid.within(x, y, self._plane_radius(self._plane, lat, reach))
-        if not self._wide:
-            return near
-        return near + [t for t in self._wide if t not in set(near)]
+        return self._index.candidates(lat, lon, self.settings.gate_sigma * sigma_m)
 
     # -- emission --------------------------------------------------------------------------
 
@@ -607,10 +510,3 @@ class Tracker:
             report_velocity_sigma_mps=s.report_velocity_sigma_mps,
             merged_into=merged_into,
         )
-
-
-def _d2(ye: float, yn: float, s00: float, s01: float, s11: float) -> float:
-    det = s00 * s11 - s01 * s01
-    if not det > 0.0:
-        return math.inf
-    return (s11 * ye * ye - 2.0 * s01 * ye * yn + s00 * yn * yn) / det
