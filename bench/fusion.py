@@ -2,9 +2,12 @@
 
 Reproducible: ``python bench/fusion.py`` (``--help`` for options). Prints a Markdown table.
 
-For each count in ``--tracks`` (10, 100, 1,000, 10,000 by default), a theatre of
-``--area-km`` square around 65.8° N 21.7° E holds that many moving targets (random positions,
-headings, speeds up to their class's limit or 40 m/s, the dialect's classes). Four airframes
+For each count in ``--tracks`` (10, 100, 1,000, 10,000 by default), a square theatre around
+65.8° N 21.7° E holds that many moving targets (random positions, headings, speeds up to their
+class's limit or 40 m/s, the dialect's classes). Its side is ``--area-km`` for 1,000 targets
+and grows with √count, so the density (0.1 per km² by default) stays the same and the table
+shows how the cost grows with the number of tracks alone; ``--fixed-area`` keeps the side
+fixed instead (crowding as well: more tracks near each detection). Four airframes
 report them round-robin so each target is seen about once a second (σ 8 m, Gaussian noise),
 each detection its own sensor frame. Four rounds first create and confirm every track (M of
 N); then ``--detections`` reports are timed through a fresh ``Tracker``:
@@ -137,7 +140,10 @@ def main() -> None:
         "--tracks", default="10,100,1000,10000", help="live target counts (10,100,1000,10000)"
     )
     parser.add_argument("--detections", type=int, default=20_000, help="reports timed (20000)")
-    parser.add_argument("--area-km", type=float, default=100.0, help="theatre side, km (100)")
+    parser.add_argument(
+        "--area-km", type=float, default=100.0, help="theatre side for 1,000 targets, km (100)"
+    )
+    parser.add_argument("--fixed-area", action="store_true", help="the same side for every count")
     parser.add_argument("--seed", type=int, default=1, help="random seed (1)")
     parser.add_argument("--all-pairs", action="store_true", help="also scan all pairs (<= 1000)")
     args = parser.parse_args()
@@ -147,17 +153,17 @@ def main() -> None:
     print(f"machine: {cpu_model()}, {os.cpu_count()} cores (one used), "
           f"Python {platform.python_version()}, {platform.platform()}")  # fmt: skip
     print(
-        f"\ntargets over {args.area_km:g} km x {args.area_km:g} km, each seen about once a "
-        f"second by 4 airframes; {args.detections} detections timed after 4 rounds of warm-up, "
-        f"seed {args.seed}\n"
+        f"\neach target seen about once a second by 4 airframes; {args.detections} detections "
+        f"timed after 4 rounds of warm-up, seed {args.seed}\n"
     )
     print(
-        "| live targets | index | detections/s | µs/detection | p50 µs | p99 µs | p99.9 µs "
-        "| live tracks | confirmed | merged |"
+        "| live targets | theatre km | index | detections/s | µs/detection | p50 µs | p99 µs "
+        "| p99.9 µs | live tracks | confirmed | merged |"
     )
-    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     for tracks in counts:
-        stream = make_stream(tracks, args.detections + 3 * tracks, args.area_km, args.seed)
+        side = args.area_km if args.fixed_area else args.area_km * math.sqrt(tracks / 1000)
+        stream = make_stream(tracks, args.detections + 3 * tracks, side, args.seed)
         warm = 4 * tracks
         results = {}
         modes = ["grid"] + (["all_pairs"] if args.all_pairs and tracks <= 1000 else [])
@@ -167,7 +173,7 @@ def main() -> None:
             results[index] = tracker
             c = tracker.counts
             print(
-                f"| {tracks:,} | {index} | {rate:,.0f} | {1e6 / rate:.1f} | "
+                f"| {tracks:,} | {side:g} | {index} | {rate:,.0f} | {1e6 / rate:.1f} | "
                 f"{quantile(lat, 0.5):.1f} | {quantile(lat, 0.99):.1f} | "
                 f"{quantile(lat, 0.999):.1f} | {len(tracker)} | {len(tracker.confirmed_ids)} | "
                 f"{c.merged} |",

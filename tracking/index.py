@@ -8,8 +8,10 @@ fresh track the gate could pass. A track silent beyond the horizon (``expire``) 
 small set checked whole: a coasting track's gate keeps widening. With ``exhaustive`` every
 track is a candidate (for tests and the benchmark to compare).
 
-The largest reach only grows between ``set_reach`` calls (the tracker recomputes it on its
-tick). Expiry is a heap of (deadline, id, update time), its stale entries bounded.
+The largest reach is kept without a scan: each fresh track's reach is counted in a bucket of
+a geometric ladder (10 % steps), and the query uses the top of the highest bucket in use, so
+one wide track raises it only while it is fresh. Expiry is a heap of (deadline, id, update
+time), its stale entries bounded. Every operation costs O(log n) or less in live tracks.
 """
 
 from __future__ import annotations
@@ -26,6 +28,9 @@ __all__ = ["TrackIndex"]
 
 #: Radii up to this (m) use a cached stretch of the plane; larger ones are computed.
 _CACHED_RADIUS_M = 50_000.0
+#: The reach ladder's step: each bucket's top is 10 % above the one below.
+_STEP = 1.1
+_LOG_STEP = math.log(_STEP)
 
 
 class TrackIndex:
@@ -35,7 +40,6 @@ class TrackIndex:
         self, tracks: Mapping[str, TrackState], cell_m: float, horizon_s: float, *, exhaustive: bool
     ) -> None:
         self.horizon_s = horizon_s
-        self.reach_m = 0.0
         self._tracks = tracks
         self._exhaustive = exhaustive
         self._grid: GridIndex[str] = GridIndex(cell_m)
@@ -43,6 +47,31 @@ class TrackIndex:
         self._stretch: dict[int, float] = {}
         self._wide: set[str] = set()
         self._expiry: list[tuple[float, str, float]] = []
+        self._bucket_of: dict[str, int] = {}  # fresh track → its reach's bucket
+        self._buckets: dict[int, int] = {}  # bucket → fresh tracks in it
+        self._top = -1  # the highest bucket in use, -1 when none
+
+    @property
+    def reach_m(self) -> float:
+        """At least the largest reach of any fresh track (m)."""
+        return 0.0 if self._top < 0 else _STEP ** (self._top + 1)
+
+    def _count(self, track_id: str, reach_m: float | None) -> None:
+        """Move the track's reach to the bucket of ``reach_m`` (None: out of the ladder)."""
+        old = self._bucket_of.pop(track_id, None)
+        if old is not None:
+            left = self._buckets[old] - 1
+            if left:
+                self._buckets[old] = left
+            else:
+                del self._buckets[old]
+        if reach_m is not None:
+            bucket = max(0, math.ceil(math.log(max(reach_m, 1.0)) / _LOG_STEP))
+            self._bucket_of[track_id] = bucket
+            self._buckets[bucket] = self._buckets.get(bucket, 0) + 1
+            self._top = max(self._top, bucket)
+        while self._top >= 0 and self._top not in self._buckets:
+            self._top -= 1
 
     def is_wide(self, track_id: str) -> bool:
         """Whether the track is silent beyond the horizon (checked whole)."""
@@ -52,7 +81,7 @@ class TrackIndex:
         """(Re)file ``state`` at its position, fresh from its update, with ``state.reach_m``."""
         if self._plane is None:
             self._plane = GridPlane(state.lat_deg, state.lon_deg)
-        self.reach_m = max(self.reach_m, state.reach_m)
+        self._count(state.track_id, state.reach_m)
         x, y = self._plane.forward(state.lat_deg, state.lon_deg)
         if state.track_id in self._grid:
             self._grid.move(state.track_id, x, y)
@@ -75,15 +104,22 @@ class TrackIndex:
         if track_id in self._grid:
             self._grid.remove(track_id)
         self._wide.discard(track_id)
+        self._count(track_id, None)
+
+    @property
+    def wide(self) -> list[str]:
+        """The tracks silent beyond the horizon, sorted."""
+        return sorted(self._wide)
 
     def expire(self, at_s: float) -> list[str]:
         """The tracks that went silent beyond the horizon by ``at_s``, now checked whole."""
         out: list[str] = []
-        while self._expiry and self._expiry[0][0] < at_s:
+        while self._expiry and self._expiry[0][0] <= at_s:
             _, track_id, stamp = heapq.heappop(self._expiry)
             state = self._tracks.get(track_id)
             if state is not None and state.updated_s == stamp and track_id not in self._wide:
                 self._wide.add(track_id)
+                self._count(track_id, None)
                 out.append(track_id)
         return out
 

@@ -83,7 +83,7 @@ class Tracker:
         self._pending: set[str] = set()
         self._streaks: dict[tuple[str, str], int] = {}
         self._next = 0
-        self._horizon_s = min(s.coast_after_s, s.max_gap_s)
+        self._horizon_s = min(s.coast_after_s, s.max_gap_s, s.lost_after_s)
         self._index = TrackIndex(
             self._tracks, s.cell_m, self._horizon_s, exhaustive=s.index == "all_pairs"
         )
@@ -146,29 +146,25 @@ class Tracker:
         return out
 
     def tick(self, now: datetime) -> list[Track]:
-        """Flush frames, age tracks and send held-back updates at ``now``."""
+        """Flush frames, age tracks and send held-back updates at ``now``.
+
+        Only tracks silent beyond the horizon are looked at (``tracking.index``): the cost
+        does not grow with the tracks that are being seen.
+        """
         s = self.settings
         out = self.flush()
         now_s = now.timestamp()
-        reach = 0.0
-        for track_id, state in list(self._tracks.items()):
+        self._expire(now_s)
+        for track_id in self._index.wide:
+            state = self._tracks[track_id]
             silent = now_s - state.updated_s
-            if state.stage == "tentative" and silent > s.coast_after_s:
-                self._drop(state)
-                self.counts.discarded += 1
-            elif state.stage != "tentative" and silent >= s.lost_after_s:
+            if silent >= s.lost_after_s:
                 self._drop(state)
                 self.counts.lost += 1
                 out.append(self._event(state, "lost", now))
-            else:
-                if state.stage == "confirmed" and silent >= s.coast_after_s:
-                    state.stage = "coasting"
-                    self.counts.coasting += 1
-                if not self._index.is_wide(track_id):
-                    reach = max(reach, self._reach_of(state))
-                continue
-            self._pending.discard(track_id)
-        self._index.reach_m = reach
+            elif state.stage == "confirmed" and silent >= s.coast_after_s:
+                state.stage = "coasting"
+                self.counts.coasting += 1
         for track_id in sorted(self._pending):
             state = self._tracks[track_id]
             if now_s - state.emitted_s >= s.update_interval_s:
