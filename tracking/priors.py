@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
+from functools import cache
 from importlib.resources import files
 
 import yaml
@@ -64,11 +65,16 @@ def _row(name: str, value: object) -> ClassPrior:
     return ClassPrior(speed, accel)
 
 
-def load_priors(overrides: Mapping[str, object] | None = None) -> Priors:
-    """The shipped table, with ``overrides`` (class → {max_speed_mps, accel_mps2}) on top."""
+@cache
+def _shipped() -> dict[str, ClassPrior]:
     text = files("tracking").joinpath("classes.yaml").read_text(encoding="utf-8")
     raw = yaml.safe_load(text)
-    table = {str(name): _row(str(name), value) for name, value in raw.items()}
+    return {str(name): _row(str(name), value) for name, value in raw.items()}
+
+
+def load_priors(overrides: Mapping[str, object] | None = None) -> Priors:
+    """The shipped table, with ``overrides`` (class → {max_speed_mps, accel_mps2}) on top."""
+    table = dict(_shipped())
     for name, value in (overrides or {}).items():
         table[name] = _row(name, value)
     return Priors(table)
