@@ -215,11 +215,14 @@ class Detection(BaseModel):
 
 
 class Track(BaseModel):
-    """A fused track built from one or more detections (``gateway.flow.tracker``).
+    """A fused track built from one or more detections (``tracking``).
 
     One ``track_id`` for the track's whole life; each create, update and loss is its own
-    event (``status``). ``confidence`` is the Dempster-Shafer belief in ``object_class``;
-    ``class_conflict`` the conflict K of the latest combination (0: the sensors agreed).
+    event (``status``). A track found to be a second track of another's object ends as
+    ``merged``, naming the surviving track in ``merged_into``; each event of one track has a
+    strictly newer ``time`` than the one before it. ``confidence`` is the Dempster-Shafer
+    belief in ``object_class``; ``class_conflict`` the conflict K of the latest combination
+    (0: the sensors agreed).
     ``detection_ids`` holds the newest contributing detections (at most 32).
     """
 
@@ -229,7 +232,9 @@ class Track(BaseModel):
     event_id: str
     track_id: str
     time: AwareDatetime
-    status: Literal["created", "updated", "lost"] = "updated"
+    status: Literal["created", "updated", "lost", "merged"] = "updated"
+    merged_into: str | None = None
+    """For ``merged``: the id of the track this one was folded into (it lives on)."""
     object_class: str
     subtype: str = ""
     confidence: float = Field(ge=0.0, le=1.0)
@@ -359,6 +364,10 @@ class Handoff(BaseModel):
     the cue is sent again as the next ``revision``. Each revision is its own delivery:
     ``event_id`` (the idempotency key) is ``handoff_id`` for revision 0 and
     ``<handoff_id>-r<revision>`` after it.
+
+    ``status`` says what the battery should do with the cue: ``active`` (it stands),
+    ``superseded`` (its track merged into another that has its own cue, ``superseded_by``;
+    drop this one) or ``withdrawn``. ``note`` says in words why a revision was sent.
     """
 
     model_config = _FROZEN
@@ -367,6 +376,9 @@ class Handoff(BaseModel):
     event_id: str
     handoff_id: str
     revision: int = Field(default=0, ge=0)
+    status: Literal["active", "superseded", "withdrawn"] = "active"
+    superseded_by: str | None = None
+    note: str = ""
     time: AwareDatetime
     battery: str
     battery_position: Position

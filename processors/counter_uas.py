@@ -220,6 +220,7 @@ class CounterUasProcessor:
                             processor=self.name,
                             handoff=handoff.event_id,
                             revision=handoff.revision,
+                            status=handoff.status,
                             battery=handoff.battery,
                             deconfliction_clear=handoff.deconfliction.clear,
                             recommended=handoff.recommended_effector,
@@ -250,4 +251,6 @@ class CounterUasProcessor:
             "not_clear": counts.not_clear,
             "out_of_reach": counts.out_of_reach,
             "below_confidence": counts.below_confidence,
+            "superseded": counts.superseded,
+            "carried_on": counts.carried_on,
         }

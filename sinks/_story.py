@@ -99,6 +99,11 @@ class Story:
     def _track(self, track: Track) -> list[str]:
         if track.status == "lost":
             return [f"track {track.track_id} lost: no detection since {track.last_seen:%H:%M:%SZ}"]
+        if track.status == "merged":
+            return [
+                f"track {track.track_id} merged into {track.merged_into}:"
+                " a second track of the same object"
+            ]
         sensors = "+".join(sorted({s.value.upper() for s in track.sensors})) or "-"
         summary = f"{track.object_class}|{track.confidence:.2f}|{sensors}"
         if not self._tracks.changed(track.track_id, summary):
@@ -116,6 +121,13 @@ class Story:
 
     @staticmethod
     def _handoff(handoff: Handoff) -> list[str]:
+        if handoff.status != "active":
+            return [
+                f"GUTE II cue {handoff.handoff_id} revision {handoff.revision}"
+                f" {handoff.status} at battery {handoff.battery}"
+                + (f" by {handoff.superseded_by}" if handoff.superseded_by else "")
+                + (f": {handoff.note}" if handoff.note else "")
+            ]
         check = handoff.deconfliction
         if check.nearest_blue_m is None:
             nearest = f"no friendly unit known ({check.blue_units_considered} considered)"

@@ -39,6 +39,7 @@ LAYERS: dict[str, tuple[int, str]] = {
     "sinks": (3, "sinks"),
     "sources": (3, "sources"),
     "processors": (3, "processors"),
+    "tracking": (3, "tracking"),
     "gateway.app": (4, "assembly"),
     "gateway.configcheck": (4, "assembly"),
     "gateway.configschema": (4, "assembly"),
@@ -64,6 +65,8 @@ ALLOWED_ACROSS: set[tuple[str, str]] = {
     ("sinks", "public"),
     ("sources", "public"),
     ("processors", "flow"),
+    ("processors", "tracking"),
+    ("tracking", "flow"),
     ("processors", "public"),
 }
 
@@ -84,7 +87,7 @@ def _layer(module: str) -> tuple[int, str] | None:
 
 def _modules() -> dict[str, Path]:
     found = {}
-    for package in ("gateway", "sinks", "sources", "processors"):
+    for package in ("gateway", "sinks", "sources", "processors", "tracking"):
         for path in (ROOT / package).rglob("*.py"):
             parts = list(path.relative_to(ROOT).with_suffix("").parts)
             if parts[-1] == "__init__":
@@ -105,7 +108,8 @@ def _imports(module: str, path: Path) -> set[str]:
             names.add(node.module)
         elif isinstance(node, ast.Import):
             names.update(alias.name for alias in node.names)
-    return {n for n in names if n.split(".")[0] in ("gateway", "sinks", "sources", "processors")}
+    ours = ("gateway", "sinks", "sources", "processors", "tracking")
+    return {n for n in names if n.split(".")[0] in ours}
 
 
 def test_every_module_has_a_layer() -> None:
@@ -140,6 +144,6 @@ def test_the_core_never_imports_a_plugin() -> None:
         for module, path in _modules().items()
         if module.split(".")[0] == "gateway"
         for imported in _imports(module, path)
-        if imported.split(".")[0] in ("sinks", "sources", "processors")
+        if imported.split(".")[0] in ("sinks", "sources", "processors", "tracking")
     ]
     assert offenders == []

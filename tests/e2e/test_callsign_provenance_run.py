@@ -112,7 +112,9 @@ def test_an_unauthenticated_callsign_reaches_the_cue_and_story_only_safe_and_mar
 
             wait_until(registered, 15, "the CoT unit and the fixed one registered")
             sock.sendto(airframe.heartbeat(), ("127.0.0.1", link))
-            sock.sendto(munition(airframe), ("127.0.0.1", link))
+            for _ in range(3):  # a track is published once confirmed (3 of 5 detections)
+                sock.sendto(munition(airframe), ("127.0.0.1", link))
+                time.sleep(0.3)
             wait_until(lambda: bool(peer.accepted), 20, "the cue accepted by the battery")
             wait_until(
                 lambda: "GUTE II cue" in story.read_text(encoding="utf-8"), 10, "the story told"

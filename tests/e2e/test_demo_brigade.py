@@ -48,7 +48,9 @@ def test_the_steps_come_in_the_operations_order(story: list[str]) -> None:
         r'blue force registered: "VIDAR \d" \(unauthenticated CoT callsign, source atak\),'
         r" uid BLUE-\dPLUT, at 34W E",
         r"detection ingested: F26E-00\d (EO|IR) sees loitering_munition LANCET-3",
-        r"track T-\w+-\d+ fused: loitering_munition LANCET-3 confidence 0\.95 .* from EO\+IR",
+        # Confirmed after M of N detections, a track may be published fused from the start.
+        r"track T-\w+-\d+ (created|fused): loitering_munition LANCET-3 confidence 0\.95 .*"
+        r" from EO\+IR",
         r'deconfliction clear for track T-\S+: nearest blue "VIDAR \d"'
         r" \(unauthenticated CoT callsign, source atak\) at \d+ m",
         r"GUTE II cue: track T-\S+ to battery GUTE-1 \(\d+ m from it, bearing \d{3}°\), recommended"

@@ -65,6 +65,24 @@ def test_tracks_are_told_when_their_fused_picture_changes_and_when_lost() -> Non
     assert line.startswith("track T1 lost")
 
 
+def test_a_merged_track_is_told_as_merged_and_its_superseded_cue_as_such() -> None:
+    story = Story()
+    base = sample_events(frozenset({EventKind.TRACK}))[0]
+    assert isinstance(base, Track)
+    (line,) = story.tell(base.model_copy(update={"status": "merged", "merged_into": "T0"}))
+    assert line == "track T1 merged into T0: a second track of the same object"
+    assert "lost" not in line
+    sample = sample_events(frozenset({EventKind.HANDOFF}))[0]
+    assert isinstance(sample, Handoff)
+    superseded = sample.model_copy(
+        update={"revision": 1, "status": "superseded", "superseded_by": "HO-T0-GUTE-1",
+                "note": "track T1 merged into T0", "recommended_effector": None}
+    )  # fmt: skip
+    (line,) = story.tell(superseded)
+    assert line.startswith(f"GUTE II cue {sample.handoff_id} revision 1 superseded at battery")
+    assert line.endswith("by HO-T0-GUTE-1: track T1 merged into T0")
+
+
 def test_a_cue_says_deconfliction_and_recommendation_and_leaves_the_decision_to_the_operator() -> (
     None
 ):

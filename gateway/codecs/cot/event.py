@@ -277,13 +277,18 @@ def _track(event: Track, opts: CotOptions, own_types: Mapping[str, str]) -> CotE
     if event.velocity is not None:
         north, east = event.velocity.north_mps, event.velocity.east_mps
         course, speed = _course(north, east), math.hypot(north, east)
+    stale = event.time + timedelta(seconds=opts.stale.track_s)
+    if event.status == "merged":
+        # A second track of an object another uid shows: stale at once, so the map drops it.
+        remarks += f"; merged into T-{event.merged_into}"
+        stale = event.time + timedelta(seconds=1)
     return CotEvent(
         uid=_uid(opts.uid_prefix, "trk-", event.track_id),
         type=symbol.cot_type,
         how="m-f",
         time=event.time,
         start=event.time,
-        stale=event.time + timedelta(seconds=opts.stale.track_s),
+        stale=stale,
         lat=event.position.lat_deg,
         lon=event.position.lon_deg,
         hae=_num(hae),
