@@ -159,7 +159,8 @@ class Passthrough:
                     await self.receive(peer, data)
                 except Exception as exc:  # no datagram may end the daemon (logged below)
                     self._refuse(peer, Refusal("internal_error", type(exc).__name__))
-                    if self._log_limit.allow("internal_error"):
+                    # Its own key: the refusal above already took the "internal_error" one.
+                    if self._log_limit.allow("internal_error_traceback"):
                         log.exception("passthrough_internal_error", airframe=self.airframe)
 
     async def receive(self, peer: Peer, data: bytes) -> None:

@@ -24,6 +24,7 @@ rule refused it. docs/security.md shows this table; a test keeps the two the sam
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from fnmatch import fnmatchcase
@@ -47,6 +48,7 @@ __all__ = [
     "Refusal",
     "Uplink",
     "check",
+    "may_arm",
 ]
 
 Uplink = Literal["none", "signed", "open"]
@@ -270,11 +272,21 @@ def _message_name(msgid: int) -> str:
     return str(cls.msgname) if cls is not None else str(msgid)
 
 
+def may_arm(base_mode: float) -> bool:
+    """Whether DO_SET_MODE's ``base_mode`` (param1, a float) may carry the armed flag.
+
+    An autopilot casts param1 to a uint8_t in C: a value outside 0..255 (1e10), NaN or an
+    infinity has no defined cast (an ARM core saturates 1e10 to 0xFF, armed flag set), so
+    only a finite value in range whose integer part lacks the flag is taken as not arming.
+    """
+    if not math.isfinite(base_mode) or not 0 <= base_mode < 256:
+        return True
+    return bool(int(base_mode) & _ARMED_FLAG)
+
+
 def _command(command: int, base_mode: float, uplink: Uplink) -> Refusal | None:
     name = _command_name(command)
-    if command in SIGNED_ONLY_COMMANDS or (
-        command == _DO_SET_MODE and int(base_mode) & _ARMED_FLAG
-    ):
+    if command in SIGNED_ONLY_COMMANDS or (command == _DO_SET_MODE and may_arm(base_mode)):
         if uplink == "signed":
             return None
         return Refusal(
@@ -327,7 +339,8 @@ def check(
         return Refusal(reason, f"{name} {_command_name(command)} is not an allowed mission item")
     if msgid in _PARAM_SET_MSGS:
         param = _param_name(msg)
-        if any(fnmatchcase(param, pattern) for pattern in OUTPUT_PARAMS):
+        # ArduPilot finds some parameters whatever their case: the never-list ignores it.
+        if any(fnmatchcase(param.upper(), pattern) for pattern in OUTPUT_PARAMS):
             return Refusal("parameter", f"{param} maps outputs: never set through the passthrough")
         if any(fnmatchcase(param, pattern) for pattern in param_set_allow):
             return None

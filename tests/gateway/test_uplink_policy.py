@@ -105,6 +105,22 @@ class TestPolicy:
         assert check(armed_mode, sysid=1, uplink="open") is not None
         assert check(armed_mode, sysid=1, uplink="signed") is None
 
+    def test_a_base_mode_outside_a_byte_counts_as_armed(self) -> None:
+        """1e10 has no armed bit in Python but an ARM core saturates it to 0xFF in C."""
+        gcs = station()
+        for base_mode in (1e10, 2.0**32 + 1, 1.5e9, -128.0, 256.0, float("nan"), float("inf")):
+            for msg in (
+                gcs.command_long_encode(1, 1, 176, 0, base_mode, 4, 0, 0, 0, 0, 0),
+                gcs.command_int_encode(1, 1, 0, 176, 0, 0, base_mode, 4, 0, 0, 0, 0, 0),
+            ):
+                frame = parsed(bytes(msg.pack(gcs)))
+                refusal = check(frame, sysid=1, uplink="open")
+                assert refusal is not None, base_mode
+                assert refusal.reason == "signed_only"
+                assert check(frame, sysid=1, uplink="signed") is None
+        plain = gcs.command_long_encode(1, 1, 176, 0, 1.0, 4, 0, 0, 0, 0, 0)
+        assert check(parsed(bytes(plain.pack(gcs))), sysid=1, uplink="open") is None
+
     def test_flight_and_read_commands_pass_and_the_lists_do_not_overlap(self) -> None:
         gcs = station()
         for command in COMMANDS:
@@ -125,7 +141,14 @@ class TestPolicy:
 
         allow = ("MPC_*", "SERVO*")
         assert check(param(b"MPC_XY_CRUISE"), sysid=1, uplink="open", param_set_allow=allow) is None
-        for name in (b"SERVO9_FUNCTION", b"RELAY_PIN", b"RC9_OPTION", b"NAV_RCL_ACT"):
+        names = (b"SERVO9_FUNCTION", b"RELAY_PIN", b"RC9_OPTION", b"NAV_RCL_ACT")
+        # ArduPilot finds some names whatever their case: so does the never-list.
+        lower = (b"servo9_function", b"Relay_Pin", b"rc9_option")
+        for name in names[:3] + lower:
+            refusal = check(param(name), sysid=1, uplink="signed", param_set_allow=("*",))
+            assert refusal is not None, name
+            assert refusal.reason == "parameter"
+        for name in names:
             refusal = check(param(name), sysid=1, uplink="signed", param_set_allow=allow)
             assert refusal is not None
             assert refusal.reason == "parameter"
