@@ -9,7 +9,9 @@ endpoint's downlink is signed with that key too) or ``open`` (any local process)
 
 Whatever the mode, every datagram is parsed into whole MAVLink 2 frames with a good CRC;
 everything else (garbage, MAVLink 1, unknown ids, cut frames, bad or replayed signatures) is
-dropped and counted. Each frame then meets the command policy (``uplinkpolicy``), an
+dropped and counted, and so is a frame that claims the airframe's own system id (the
+airframe's frames go out signed with the station's key: sent back, they would verify). Each
+frame then meets the command policy (``uplinkpolicy``), an
 allowlist that never lets an effector command through, and only a frame the gateway
 re-serialises from its parsed fields goes to the airframe: bytes a ground station sent never
 reach it as they were. A refused command or mission item is answered (COMMAND_ACK or
@@ -197,6 +199,15 @@ class Passthrough:
             except FrameError as exc:
                 self._refuse(peer, Refusal(f"signature_{exc.reason}", str(exc)))
                 return
+        if msg.get_srcSystem() == self.sysid:
+            # The airframe's own frames, signed with the station's key on their way out,
+            # would verify if a squatter on the station's port sent them back.
+            self._refuse(
+                peer,
+                Refusal("airframe_source", f"a ground station cannot be system {self.sysid}"),
+                msg,
+            )
+            return
         self.link.learn_peer(peer)
         refusal = check(
             msg, sysid=self.sysid, uplink=self.uplink, param_set_allow=self.config.param_set_allow

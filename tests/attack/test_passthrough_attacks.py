@@ -412,6 +412,14 @@ def test_a_squatter_on_a_connect_mode_port_is_refused_and_harmless(
     assert got[2] & 0x01
     for datagram in [*bad_inputs(10), *effector_frames(ground_station(None), 10)]:
         squatter.sendto(datagram, ("127.0.0.1", _gateway_side_port(daemon, connect.id)))
+    # The airframe's own frame, signed with the station's key on its way out, sent back in:
+    # the signature is good, but a ground station never speaks as the airframe.
+    squatter.sendto(got, ("127.0.0.1", _gateway_side_port(daemon, connect.id)))
+    wait_until(
+        lambda: passthrough(daemon, connect.id)["refused"].get("airframe_source", 0) >= 1,
+        15,
+        "the reflected frame refused",
+    )
     wait_until(
         lambda: passthrough(daemon, connect.id)["uplink_refused"] >= 20, 15, "refusals counted"
     )
