@@ -7,9 +7,10 @@ policy is deny by default: a message or command not listed here is refused.
 
 - Messages in ``RELAYED`` go on; those with a ``target_system`` must name the airframe
   (0, broadcast, only for the read-only requests in ``BROADCAST_OK``).
-- COMMAND_LONG and COMMAND_INT go on if their command is in ``COMMANDS``; arming (400, and
-  DO_SET_MODE or SET_MODE with the armed flag), flight termination (185) and reboot (246) only
-  on a ``signed`` uplink (``SIGNED_ONLY_COMMANDS``).
+- COMMAND_LONG and COMMAND_INT go on if their command is in ``COMMANDS``; arming (400,
+  MISSION_START 300, which PX4 arms on, and DO_SET_MODE or SET_MODE with the armed flag),
+  flight termination (185) and reboot (246) only on a ``signed`` uplink
+  (``SIGNED_ONLY_COMMANDS``).
 - MISSION_ITEM and MISSION_ITEM_INT go on if their command is in ``MISSION_ITEMS``.
 - PARAM_SET and PARAM_EXT_SET go on only for names the passthrough's ``param_set_allow``
   lists, and never for a name that maps outputs (``OUTPUT_PARAMS``).
@@ -121,7 +122,6 @@ COMMANDS: Final = _ids(
     "NAV_LAND",
     "NAV_TAKEOFF",
     "NAV_LOITER_UNLIM",
-    "MISSION_START",
     "DO_SET_MISSION_CURRENT",
     "DO_PAUSE_CONTINUE",
     "DO_CHANGE_SPEED",
@@ -159,9 +159,14 @@ COMMANDS: Final = _ids(
     "GET_HOME_POSITION",
     prefix="MAV_CMD_",
 )
-#: Commands relayed only from a ground station that signed them.
+#: Commands relayed only from a ground station that signed them. PX4 arms on MISSION_START
+#: ("switch to AUTO_MISSION and ARM" in its commander), so it is arming too.
 SIGNED_ONLY_COMMANDS: Final = _ids(
-    "COMPONENT_ARM_DISARM", "DO_FLIGHTTERMINATION", "PREFLIGHT_REBOOT_SHUTDOWN", prefix="MAV_CMD_"
+    "COMPONENT_ARM_DISARM",
+    "DO_FLIGHTTERMINATION",
+    "PREFLIGHT_REBOOT_SHUTDOWN",
+    "MISSION_START",
+    prefix="MAV_CMD_",
 )
 #: Commands that move an effector or a payload: named in refusals (refused as any unlisted).
 EFFECTOR_COMMANDS: Final = _ids(

@@ -12,6 +12,9 @@ operator may write. A local process without a key sends:
 - PARAM_SET ``servo9_function`` and PARAM_EXT_SET ``relay1_function``: ArduPilot finds some
   parameters whatever their case, and the never-list was matched case-sensitively.
 
+- MISSION_START: PX4's commander arms to start a mission ("switch to AUTO_MISSION and ARM"),
+  so it was an arming command any local process could send. Signed uplink only now.
+
 A parameter the allow-list does take (MPC_XY_CRUISE) goes last: once the airframe has it,
 everything before it was handled.
 """
@@ -71,6 +74,7 @@ def test_out_of_range_modes_and_parameter_case_are_refused(tmp_path: Path) -> No
                 gcs.command_long_encode(SYSID, 1, 176, 0, 1e10, 4, 0, 0, 0, 0, 0),
                 gcs.command_int_encode(SYSID, 1, 0, 176, 0, 0, 1e10, 4, 0, 0, 0, 0, 0),
                 gcs.command_long_encode(SYSID, 1, 176, 0, nan, 4, 0, 0, 0, 0, 0),
+                gcs.command_long_encode(SYSID, 1, 300, 0, 0, 0, 0, 0, 0, 0, 0),  # PX4 arms
                 gcs.param_set_encode(SYSID, 1, b"servo9_function", 1, 9),
                 gcs.param_ext_set_encode(SYSID, 1, b"relay1_function", b"1", 6),
             ]
@@ -87,15 +91,15 @@ def test_out_of_range_modes_and_parameter_case_are_refused(tmp_path: Path) -> No
             got = [m for m in drain() if m.get_type() != "HEARTBEAT"]
             assert [(m.get_type(), m.param_id) for m in got] == [("PARAM_SET", "MPC_XY_CRUISE")]
             status = daemon.status()["passthroughs"][0]
-            assert status["refused"] == {"parameter": 2, "signed_only": 3}
+            assert status["refused"] == {"parameter": 2, "signed_only": 4}
             denied = []
             answers = mav.MAVLink(None)
-            while len(denied) < 3:
+            while len(denied) < 4:
                 for msg in answers.parse_buffer(stranger.recv(4096)) or ():
                     if msg.get_type() == "COMMAND_ACK":
                         assert msg.result == mav.MAV_RESULT_DENIED
                         denied.append(msg.command)
-            assert denied == [176, 176, 176]
+            assert denied == [176, 176, 176, 300]
             assert not daemon.events("passthrough_internal_error")
             assert daemon.get("/healthz")[0] == 200
     finally:

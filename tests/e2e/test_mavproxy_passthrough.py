@@ -64,7 +64,8 @@ class MavProxy:
             text=True,
         )
         self.lines: list[str] = []
-        threading.Thread(target=self._read, daemon=True).start()
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
 
     def _read(self) -> None:
         assert self.proc.stdout is not None
@@ -82,6 +83,10 @@ class MavProxy:
     def stop(self) -> None:
         self.proc.kill()
         self.proc.wait(10)
+        self._reader.join(timeout=5)  # it ends at the pipe's end of file
+        for pipe in (self.proc.stdin, self.proc.stdout):
+            if pipe is not None:
+                pipe.close()
 
 
 @pytest.fixture
