@@ -197,7 +197,12 @@ class Passthrough:
             try:
                 self._verifier.verify(raw)
             except FrameError as exc:
-                self._refuse(peer, Refusal(f"signature_{exc.reason}", str(exc)))
+                hint = (
+                    "; a ground station signs with the passthrough's key_file (docs/security.md)"
+                    if exc.reason == "auth"
+                    else ""
+                )
+                self._refuse(peer, Refusal(f"signature_{exc.reason}", f"{exc}{hint}"))
                 return
         if msg.get_srcSystem() == self.sysid:
             # The airframe's own frames, signed with the station's key on their way out,
