@@ -47,6 +47,10 @@ __all__ = ["MAX_DATAGRAM_BYTES", "MAX_GCS_PEERS", "Passthrough"]
 log = structlog.get_logger(__name__)
 
 _UPLINK_QUEUE = 256
+#: Datagrams from senders that have not proved themselves may fill only this much of the
+#: queue: the rest is kept for the ground stations the passthrough answers, so a local
+#: flood without the key cannot crowd out a signed station's commands.
+_STRANGER_QUEUE = 192
 #: Ground stations the passthrough answers at once (the most recent that proved themselves).
 MAX_GCS_PEERS = 4
 #: A ground station's datagram holds a few frames at most; anything longer is refused.
@@ -129,6 +133,11 @@ class Passthrough:
         if self._send is None or not isinstance(peer, tuple):
             return
         try:
+            if (
+                peer not in self.link.peers
+                and self._send.statistics().current_buffer_used >= _STRANGER_QUEUE
+            ):
+                raise anyio.WouldBlock
             self._send.send_nowait((peer, data))
         except (anyio.WouldBlock, anyio.BrokenResourceError, anyio.ClosedResourceError):
             self.uplink_dropped += 1

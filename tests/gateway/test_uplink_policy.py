@@ -250,3 +250,21 @@ def test_a_signed_heartbeat_is_rebuilt_unsigned_for_the_link_to_sign() -> None:
     feed(passthrough, bytes(wrong.heartbeat_encode(6, 8, 0, 0, 4).pack(wrong)))
     assert passthrough.refused["signature_auth"] == 1
     assert len(sent) == 1
+
+
+def test_a_flood_from_strangers_leaves_room_for_a_proven_station() -> None:
+    """Senders that proved nothing fill at most 192 of the 256 queued datagrams: a local
+    flood without the key cannot crowd out the signed station's commands."""
+    passthrough = make("signed", [])
+    station, stranger = ("127.0.0.1", 40001), ("127.0.0.1", 40002)
+    passthrough.link.learn_peer(station)
+    send, receive = anyio.create_memory_object_stream[tuple[tuple[str, int], bytes]](256)
+    passthrough._send = send  # the queue run() makes, without its consumer
+    with send, receive:
+        for _ in range(1000):
+            passthrough._from_gcs("gcs", stranger, b"junk")
+        assert send.statistics().current_buffer_used == 192
+        for _ in range(10):
+            passthrough._from_gcs("gcs", station, b"command")
+        assert send.statistics().current_buffer_used == 202
+        assert passthrough.uplink_dropped == 1000 - 192
