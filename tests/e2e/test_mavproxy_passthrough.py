@@ -83,7 +83,7 @@ class MavProxy:
     def stop(self) -> None:
         self.proc.kill()
         self.proc.wait(10)
-        self._reader.join(timeout=5)  # it ends at the pipe's end of file
+        self._reader.join(5)
         for pipe in (self.proc.stdin, self.proc.stdout):
             if pipe is not None:
                 pipe.close()
