@@ -9,7 +9,9 @@ endpoint's downlink is signed with that key too) or ``open`` (any local process)
 
 Whatever the mode, every datagram is parsed into whole MAVLink 2 frames with a good CRC;
 everything else (garbage, MAVLink 1, unknown ids, cut frames, bad or replayed signatures) is
-dropped and counted. Each frame then meets the command policy (``uplinkpolicy``), an
+dropped and counted, and so is a frame that claims the airframe's own system id (the
+airframe's frames go out signed with the station's key: sent back, they would verify). Each
+frame then meets the command policy (``uplinkpolicy``), an
 allowlist that never lets an effector command through, and only a frame the gateway
 re-serialises from its parsed fields goes to the airframe: bytes a ground station sent never
 reach it as they were. A refused command or mission item is answered (COMMAND_ACK or
@@ -45,6 +47,10 @@ __all__ = ["MAX_DATAGRAM_BYTES", "MAX_GCS_PEERS", "Passthrough"]
 log = structlog.get_logger(__name__)
 
 _UPLINK_QUEUE = 256
+#: Datagrams from senders that have not proved themselves may fill only this much of the
+#: queue: the rest is kept for the ground stations the passthrough answers, so a local
+#: flood without the key cannot crowd out a signed station's commands.
+_STRANGER_QUEUE = 192
 #: Ground stations the passthrough answers at once (the most recent that proved themselves).
 MAX_GCS_PEERS = 4
 #: A ground station's datagram holds a few frames at most; anything longer is refused.
@@ -127,6 +133,11 @@ class Passthrough:
         if self._send is None or not isinstance(peer, tuple):
             return
         try:
+            if (
+                peer not in self.link.peers
+                and self._send.statistics().current_buffer_used >= _STRANGER_QUEUE
+            ):
+                raise anyio.WouldBlock
             self._send.send_nowait((peer, data))
         except (anyio.WouldBlock, anyio.BrokenResourceError, anyio.ClosedResourceError):
             self.uplink_dropped += 1
@@ -159,7 +170,8 @@ class Passthrough:
                     await self.receive(peer, data)
                 except Exception as exc:  # no datagram may end the daemon (logged below)
                     self._refuse(peer, Refusal("internal_error", type(exc).__name__))
-                    if self._log_limit.allow("internal_error"):
+                    # Its own key: the refusal above already took the "internal_error" one.
+                    if self._log_limit.allow("internal_error_traceback"):
                         log.exception("passthrough_internal_error", airframe=self.airframe)
 
     async def receive(self, peer: Peer, data: bytes) -> None:
@@ -194,8 +206,22 @@ class Passthrough:
             try:
                 self._verifier.verify(raw)
             except FrameError as exc:
-                self._refuse(peer, Refusal(f"signature_{exc.reason}", str(exc)))
+                hint = (
+                    "; a ground station signs with the passthrough's key_file (docs/security.md)"
+                    if exc.reason == "auth"
+                    else ""
+                )
+                self._refuse(peer, Refusal(f"signature_{exc.reason}", f"{exc}{hint}"))
                 return
+        if msg.get_srcSystem() == self.sysid:
+            # The airframe's own frames, signed with the station's key on their way out,
+            # would verify if a squatter on the station's port sent them back.
+            self._refuse(
+                peer,
+                Refusal("airframe_source", f"a ground station cannot be system {self.sysid}"),
+                msg,
+            )
+            return
         self.link.learn_peer(peer)
         refusal = check(
             msg, sysid=self.sysid, uplink=self.uplink, param_set_allow=self.config.param_set_allow

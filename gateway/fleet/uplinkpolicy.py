@@ -7,9 +7,10 @@ policy is deny by default: a message or command not listed here is refused.
 
 - Messages in ``RELAYED`` go on; those with a ``target_system`` must name the airframe
   (0, broadcast, only for the read-only requests in ``BROADCAST_OK``).
-- COMMAND_LONG and COMMAND_INT go on if their command is in ``COMMANDS``; arming (400, and
-  DO_SET_MODE or SET_MODE with the armed flag), flight termination (185) and reboot (246) only
-  on a ``signed`` uplink (``SIGNED_ONLY_COMMANDS``).
+- COMMAND_LONG and COMMAND_INT go on if their command is in ``COMMANDS``; arming (400,
+  MISSION_START 300, which PX4 arms on, and DO_SET_MODE or SET_MODE with the armed flag),
+  flight termination (185) and reboot (246) only on a ``signed`` uplink
+  (``SIGNED_ONLY_COMMANDS``).
 - MISSION_ITEM and MISSION_ITEM_INT go on if their command is in ``MISSION_ITEMS``.
 - PARAM_SET and PARAM_EXT_SET go on only for names the passthrough's ``param_set_allow``
   lists, and never for a name that maps outputs (``OUTPUT_PARAMS``).
@@ -24,6 +25,7 @@ rule refused it. docs/security.md shows this table; a test keeps the two the sam
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from fnmatch import fnmatchcase
@@ -47,6 +49,7 @@ __all__ = [
     "Refusal",
     "Uplink",
     "check",
+    "may_arm",
 ]
 
 Uplink = Literal["none", "signed", "open"]
@@ -119,7 +122,6 @@ COMMANDS: Final = _ids(
     "NAV_LAND",
     "NAV_TAKEOFF",
     "NAV_LOITER_UNLIM",
-    "MISSION_START",
     "DO_SET_MISSION_CURRENT",
     "DO_PAUSE_CONTINUE",
     "DO_CHANGE_SPEED",
@@ -157,9 +159,14 @@ COMMANDS: Final = _ids(
     "GET_HOME_POSITION",
     prefix="MAV_CMD_",
 )
-#: Commands relayed only from a ground station that signed them.
+#: Commands relayed only from a ground station that signed them. PX4 arms on MISSION_START
+#: ("switch to AUTO_MISSION and ARM" in its commander), so it is arming too.
 SIGNED_ONLY_COMMANDS: Final = _ids(
-    "COMPONENT_ARM_DISARM", "DO_FLIGHTTERMINATION", "PREFLIGHT_REBOOT_SHUTDOWN", prefix="MAV_CMD_"
+    "COMPONENT_ARM_DISARM",
+    "DO_FLIGHTTERMINATION",
+    "PREFLIGHT_REBOOT_SHUTDOWN",
+    "MISSION_START",
+    prefix="MAV_CMD_",
 )
 #: Commands that move an effector or a payload: named in refusals (refused as any unlisted).
 EFFECTOR_COMMANDS: Final = _ids(
@@ -270,11 +277,21 @@ def _message_name(msgid: int) -> str:
     return str(cls.msgname) if cls is not None else str(msgid)
 
 
+def may_arm(base_mode: float) -> bool:
+    """Whether DO_SET_MODE's ``base_mode`` (param1, a float) may carry the armed flag.
+
+    An autopilot casts param1 to a uint8_t in C: a value outside 0..255 (1e10), NaN or an
+    infinity has no defined cast (an ARM core saturates 1e10 to 0xFF, armed flag set), so
+    only a finite value in range whose integer part lacks the flag is taken as not arming.
+    """
+    if not math.isfinite(base_mode) or not 0 <= base_mode < 256:
+        return True
+    return bool(int(base_mode) & _ARMED_FLAG)
+
+
 def _command(command: int, base_mode: float, uplink: Uplink) -> Refusal | None:
     name = _command_name(command)
-    if command in SIGNED_ONLY_COMMANDS or (
-        command == _DO_SET_MODE and int(base_mode) & _ARMED_FLAG
-    ):
+    if command in SIGNED_ONLY_COMMANDS or (command == _DO_SET_MODE and may_arm(base_mode)):
         if uplink == "signed":
             return None
         return Refusal(
@@ -327,7 +344,8 @@ def check(
         return Refusal(reason, f"{name} {_command_name(command)} is not an allowed mission item")
     if msgid in _PARAM_SET_MSGS:
         param = _param_name(msg)
-        if any(fnmatchcase(param, pattern) for pattern in OUTPUT_PARAMS):
+        # ArduPilot finds some parameters whatever their case: the never-list ignores it.
+        if any(fnmatchcase(param.upper(), pattern) for pattern in OUTPUT_PARAMS):
             return Refusal("parameter", f"{param} maps outputs: never set through the passthrough")
         if any(fnmatchcase(param, pattern) for pattern in param_set_allow):
             return None

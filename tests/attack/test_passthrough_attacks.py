@@ -40,7 +40,7 @@ from gateway.errors import FrameError
 from gateway.fleet.dialect import MAVLINK_MSG_ID_FISCHER_DETECTION_ACK, fischer_detection_ack
 from gateway.fleet.hopdialect import MAVLINK_MSG_ID_FISCHER_HOP_SCHEDULE, FischerHopSchedule
 from gateway.fleet.security.signing import mavlink_timestamp_now
-from gateway.fleet.uplinkpolicy import EFFECTOR_COMMANDS, SIGNED_ONLY_COMMANDS
+from gateway.fleet.uplinkpolicy import EFFECTOR_COMMANDS, SIGNED_ONLY_COMMANDS, may_arm
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -122,6 +122,9 @@ def effector_frames(gcs: Any, target: int) -> list[bytes]:
     frames += [
         gcs.command_long_encode(target, 1, 400, 0, 1, 21196, 0, 0, 0, 0, 0),  # forced arm
         gcs.command_long_encode(target, 1, 176, 0, 128 | 1, 4, 0, 0, 0, 0, 0),  # armed flag
+        # No armed bit in Python, 0xFF after an ARM core's saturating cast to a byte.
+        gcs.command_long_encode(target, 1, 176, 0, 1e10, 4, 0, 0, 0, 0, 0),
+        gcs.command_int_encode(target, 1, 0, 176, 0, 0, float("nan"), 4, 0, 0, 0, 0, 0),
         gcs.set_mode_encode(target, 128 | 1, 4),
         gcs.command_int_encode(target, 1, 0, 183, 0, 0, 9, 1900, 0, 0, 0, 0, 0),
         gcs.mission_item_int_encode(target, 1, 0, 0, 183, 0, 1, 9, 1900, 0, 0, 0, 0, 0, 0),
@@ -262,7 +265,7 @@ def assert_no_effector(n: Node, *, arming_ok: bool) -> None:
         command = getattr(msg, "command", None)
         if msg.get_type() in ("COMMAND_LONG", "COMMAND_INT"):
             assert command not in EFFECTOR_COMMANDS, f"{n.id}: effector {command} relayed"
-            if command in SIGNED_ONLY_COMMANDS or (command == 176 and int(msg.param1) & 128):
+            if command in SIGNED_ONLY_COMMANDS or (command == 176 and may_arm(msg.param1)):
                 assert arming_ok, f"{n.id}: {command} relayed from an unsigned ground station"
             assert msg.target_system == n.sysid
         if msg.get_type() in ("MISSION_ITEM", "MISSION_ITEM_INT"):
@@ -409,6 +412,14 @@ def test_a_squatter_on_a_connect_mode_port_is_refused_and_harmless(
     assert got[2] & 0x01
     for datagram in [*bad_inputs(10), *effector_frames(ground_station(None), 10)]:
         squatter.sendto(datagram, ("127.0.0.1", _gateway_side_port(daemon, connect.id)))
+    # The airframe's own frame, signed with the station's key on its way out, sent back in:
+    # the signature is good, but a ground station never speaks as the airframe.
+    squatter.sendto(got, ("127.0.0.1", _gateway_side_port(daemon, connect.id)))
+    wait_until(
+        lambda: passthrough(daemon, connect.id)["refused"].get("airframe_source", 0) >= 1,
+        15,
+        "the reflected frame refused",
+    )
     wait_until(
         lambda: passthrough(daemon, connect.id)["uplink_refused"] >= 20, 15, "refusals counted"
     )

@@ -316,6 +316,11 @@ def test_a_passthrough_must_state_its_uplink_and_keep_its_own_key(tmp_path: Path
         "  - id: D\n    sysid: 4\n"
         "    passthrough: {uri: 'udp://0.0.0.0:14563', uplink: none}\n"
         "    links: [{uri: 'udp://127.0.0.1:14553', security: unsecured}]\n"
+        # Nor another airframe's: it could sign straight to C around the policy.
+        "  - id: E\n    sysid: 5\n"
+        "    passthrough: {uri: 'udp://127.0.0.1:14564', uplink: signed,\n"
+        f"                  key_file: '{airframe_key}'}}\n"
+        "    links: [{uri: 'udp://127.0.0.1:14554', security: unsecured}]\n"
     )
     result = cli("check-config", "--no-environment", str(config))
     assert result.returncode == 2
@@ -342,3 +347,5 @@ def test_a_passthrough_must_state_its_uplink_and_keep_its_own_key(tmp_path: Path
         assert result.returncode == 2, result.stderr
         assert f"{config}:14 airframes[2].passthrough.key_file:" in result.stderr
         assert "is the airframe's signing key" in result.stderr
+        assert f"{config}:23 airframes[4].passthrough.key_file:" in result.stderr
+        assert "is airframe C's signing key" in result.stderr

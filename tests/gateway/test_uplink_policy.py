@@ -105,6 +105,22 @@ class TestPolicy:
         assert check(armed_mode, sysid=1, uplink="open") is not None
         assert check(armed_mode, sysid=1, uplink="signed") is None
 
+    def test_a_base_mode_outside_a_byte_counts_as_armed(self) -> None:
+        """1e10 has no armed bit in Python but an ARM core saturates it to 0xFF in C."""
+        gcs = station()
+        for base_mode in (1e10, 2.0**32 + 1, 1.5e9, -128.0, 256.0, float("nan"), float("inf")):
+            for msg in (
+                gcs.command_long_encode(1, 1, 176, 0, base_mode, 4, 0, 0, 0, 0, 0),
+                gcs.command_int_encode(1, 1, 0, 176, 0, 0, base_mode, 4, 0, 0, 0, 0, 0),
+            ):
+                frame = parsed(bytes(msg.pack(gcs)))
+                refusal = check(frame, sysid=1, uplink="open")
+                assert refusal is not None, base_mode
+                assert refusal.reason == "signed_only"
+                assert check(frame, sysid=1, uplink="signed") is None
+        plain = gcs.command_long_encode(1, 1, 176, 0, 1.0, 4, 0, 0, 0, 0, 0)
+        assert check(parsed(bytes(plain.pack(gcs))), sysid=1, uplink="open") is None
+
     def test_flight_and_read_commands_pass_and_the_lists_do_not_overlap(self) -> None:
         gcs = station()
         for command in COMMANDS:
@@ -125,7 +141,14 @@ class TestPolicy:
 
         allow = ("MPC_*", "SERVO*")
         assert check(param(b"MPC_XY_CRUISE"), sysid=1, uplink="open", param_set_allow=allow) is None
-        for name in (b"SERVO9_FUNCTION", b"RELAY_PIN", b"RC9_OPTION", b"NAV_RCL_ACT"):
+        names = (b"SERVO9_FUNCTION", b"RELAY_PIN", b"RC9_OPTION", b"NAV_RCL_ACT")
+        # ArduPilot finds some names whatever their case: so does the never-list.
+        lower = (b"servo9_function", b"Relay_Pin", b"rc9_option")
+        for name in names[:3] + lower:
+            refusal = check(param(name), sysid=1, uplink="signed", param_set_allow=("*",))
+            assert refusal is not None, name
+            assert refusal.reason == "parameter"
+        for name in names:
             refusal = check(param(name), sysid=1, uplink="signed", param_set_allow=allow)
             assert refusal is not None
             assert refusal.reason == "parameter"
@@ -227,3 +250,21 @@ def test_a_signed_heartbeat_is_rebuilt_unsigned_for_the_link_to_sign() -> None:
     feed(passthrough, bytes(wrong.heartbeat_encode(6, 8, 0, 0, 4).pack(wrong)))
     assert passthrough.refused["signature_auth"] == 1
     assert len(sent) == 1
+
+
+def test_a_flood_from_strangers_leaves_room_for_a_proven_station() -> None:
+    """Senders that proved nothing fill at most 192 of the 256 queued datagrams: a local
+    flood without the key cannot crowd out the signed station's commands."""
+    passthrough = make("signed", [])
+    station, stranger = ("127.0.0.1", 40001), ("127.0.0.1", 40002)
+    passthrough.link.learn_peer(station)
+    send, receive = anyio.create_memory_object_stream[tuple[tuple[str, int], bytes]](256)
+    passthrough._send = send  # the queue run() makes, without its consumer
+    with send, receive:
+        for _ in range(1000):
+            passthrough._from_gcs("gcs", stranger, b"junk")
+        assert send.statistics().current_buffer_used == 192
+        for _ in range(10):
+            passthrough._from_gcs("gcs", station, b"command")
+        assert send.statistics().current_buffer_used == 202
+        assert passthrough.uplink_dropped == 1000 - 192
