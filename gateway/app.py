@@ -503,8 +503,16 @@ class Gateway:
             "unknown_sysids": sorted(self.ingest.unknown_sysids),
             "sinks": [runner.status() for runner in self.runners.values()],
             "spool": {
-                "state": "failing" if self.spool.commits.failing else "ok",
-                "reason": self.spool.commits.reason,
+                # failing: writes do not commit now; recovered_with_loss: this start could
+                # not recover everything (start_check says what), until the next restart.
+                "state": (
+                    "failing"
+                    if self.spool.commits.failing
+                    else "recovered_with_loss"
+                    if self.spool.start_check.loss
+                    else "ok"
+                ),
+                "reason": self.spool.commits.reason or self.spool.start_check.loss,
                 "path": None if self.spool.path is None else str(self.spool.path),
                 "size_bytes": self.spool.size_bytes,
                 "max_bytes": self.spool.max_bytes,

@@ -40,7 +40,7 @@ def nearest_blue(check: Deconfliction) -> str:
         )
     provenance = check.nearest_blue_provenance
     return (
-        f"uid {safe_text(check.nearest_blue_uid or '?', 64)}"
+        f'uid "{safe_text(check.nearest_blue_uid or "?", 64)}"'
         f" ({'unknown provenance' if provenance is None else provenance.value}"
         f", source {check.nearest_blue_source or '-'})"
     )
@@ -77,9 +77,9 @@ class Story:
             uid = safe_text(event.uid, 64)
             if event.callsign:
                 who = shown(event.callsign, event.provenance, event.source, event.source_name)
-                who += f", uid {uid},"
+                who += f', uid "{uid}",'
             else:
-                who = f"uid {uid} ({event.provenance.value}, source {event.source_name or '-'})"
+                who = f'uid "{uid}" ({event.provenance.value}, source {event.source_name or "-"})'
             return [f"blue force registered: {who} at {_mgrs(event.position)} via {event.source}"]
         if isinstance(event, Detection):
             key = f"{event.airframe}\x00{event.sensor.value}\x00{event.object_class}"

@@ -122,7 +122,7 @@ def describe(event: Event) -> str:
             else "-"
         )
         return (
-            f"{head} {safe_text(event.uid, 64)} {who} at {_where(event.position)}"
+            f'{head} uid "{safe_text(event.uid, 64)}" {who} at {_where(event.position)}'
             f" via {event.source}"
         )
     if isinstance(event, Handoff):

@@ -98,6 +98,7 @@ RELAYED: Final = _ids(
 )
 #: Read-only requests that may be broadcast (target_system 0).
 BROADCAST_OK: Final = _ids(
+    "COMMAND_ACK",  # its target is an extension a station may leave out
     "PING",
     "TIMESYNC",
     "PARAM_REQUEST_LIST",
@@ -113,6 +114,24 @@ _PARAM_SET_MSGS: Final = _ids("PARAM_SET", "PARAM_EXT_SET", prefix="MAVLINK_MSG_
 _SET_MODE: Final = int(m.MAVLINK_MSG_ID_SET_MODE)
 _FTP: Final = int(m.MAVLINK_MSG_ID_FILE_TRANSFER_PROTOCOL)
 _ARMED_FLAG: Final = int(m.MAV_MODE_FLAG_SAFETY_ARMED)
+#: Mode flags only a signed station may set: armed, hardware in the loop, test.
+_SIGNED_MODE_FLAGS: Final = (
+    _ARMED_FLAG | int(m.MAV_MODE_FLAG_HIL_ENABLED) | int(m.MAV_MODE_FLAG_TEST_ENABLED)
+)
+_MISSION_TYPED: Final = _ids(
+    "MISSION_COUNT",
+    "MISSION_CLEAR_ALL",
+    "MISSION_WRITE_PARTIAL_LIST",
+    "MISSION_ITEM",
+    "MISSION_ITEM_INT",
+    prefix="MAVLINK_MSG_ID_",
+)
+_SAFETY_MISSIONS: Final = frozenset(
+    {int(m.MAV_MISSION_TYPE_FENCE), int(m.MAV_MISSION_TYPE_RALLY), int(m.MAV_MISSION_TYPE_ALL)}
+)
+_REQUEST_DATA_STREAM: Final = int(m.MAVLINK_MSG_ID_REQUEST_DATA_STREAM)
+_HOME_COMMANDS: Final = _ids("DO_SET_HOME", prefix="MAV_CMD_")
+_SET_MESSAGE_INTERVAL: Final = int(m.MAV_CMD_SET_MESSAGE_INTERVAL)
 _DO_SET_MODE: Final = int(m.MAV_CMD_DO_SET_MODE)
 
 #: Flight, mission, camera, gimbal and read-only commands: no effector among them.
@@ -253,6 +272,15 @@ OUTPUT_PARAMS: Final = (
     "PAYLOAD*",
     "TRIG_*",
     "ICE_*",
+    # Arming, termination and the checks that guard them: never from a ground station here.
+    "AFS_*",
+    "ARMING_*",
+    "BRD_SAFETY*",
+    "CBRK_*",
+    "COM_ARM*",
+    "FS_*",
+    "SIGNING*",
+    "SYSID*",
 )
 #: MAVLink FTP opcodes that only read (terminate, reset, list, open read-only, read, CRC,
 #: burst read).
@@ -278,15 +306,33 @@ def _message_name(msgid: int) -> str:
 
 
 def may_arm(base_mode: float) -> bool:
-    """Whether DO_SET_MODE's ``base_mode`` (param1, a float) may carry the armed flag.
+    """Whether DO_SET_MODE's ``base_mode`` (param1, a float) may carry the armed flag, or
+    the test or hardware-in-the-loop flag (which some autopilots honour).
 
     An autopilot casts param1 to a uint8_t in C: a value outside 0..255 (1e10), NaN or an
     infinity has no defined cast (an ARM core saturates 1e10 to 0xFF, armed flag set), so
-    only a finite value in range whose integer part lacks the flag is taken as not arming.
+    only a finite value in range whose integer part lacks those flags is taken as harmless.
     """
     if not math.isfinite(base_mode) or not 0 <= base_mode < 256:
         return True
-    return bool(int(base_mode) & _ARMED_FLAG)
+    return bool(int(base_mode) & _SIGNED_MODE_FLAGS)
+
+
+def _safety_setting(msg: Any, msgid: int) -> str | None:
+    """What ``msg`` would change of the airframe's own safety, if anything: its geofence or
+    rally points (mission_type 1 or 2), its home (where it returns to), or its telemetry
+    (stopping a stream blinds the node). Those need a signed uplink."""
+    if msgid in _MISSION_TYPED and int(getattr(msg, "mission_type", 0)) in _SAFETY_MISSIONS:
+        return "the geofence or rally points"
+    if msgid == _REQUEST_DATA_STREAM and not int(msg.start_stop):
+        return "a telemetry stream (stopped)"
+    if msgid in _COMMAND_MSGS or msgid in _MISSION_ITEM_MSGS:
+        command = int(msg.command)
+        if command in _HOME_COMMANDS:
+            return "the home position"
+        if command == _SET_MESSAGE_INTERVAL and msgid in _COMMAND_MSGS and float(msg.param2) < 0:
+            return "a telemetry stream (disabled)"
+    return None
 
 
 def _command(command: int, base_mode: float, uplink: Uplink) -> Refusal | None:
@@ -328,13 +374,19 @@ def check(
     target = getattr(msg, "target_system", None)
     if target is not None and target != sysid and not (target == 0 and msgid in BROADCAST_OK):
         return Refusal("wrong_target", f"{name} addressed to system {target}, not {sysid}")
+    if uplink != "signed":
+        setting = _safety_setting(msg, msgid)
+        if setting is not None:
+            return Refusal("signed_only", f"{name} changes {setting}: needs a signed uplink")
     if msgid in RELAYED:
         return None
     if msgid in _COMMAND_MSGS:
         return _command(int(msg.command), float(msg.param1), uplink)
     if msgid == _SET_MODE:
-        if int(msg.base_mode) & _ARMED_FLAG and uplink != "signed":
-            return Refusal("signed_only", "SET_MODE with the armed flag needs a signed uplink")
+        if int(msg.base_mode) & _SIGNED_MODE_FLAGS and uplink != "signed":
+            return Refusal(
+                "signed_only", "SET_MODE with the armed, test or HIL flag needs a signed uplink"
+            )
         return None
     if msgid in _MISSION_ITEM_MSGS:
         command = int(msg.command)

@@ -77,6 +77,19 @@ class StartCheck:
         """Committed transactions among them."""
         return 0 if self.wal is None else self.wal.lost_commits
 
+    @property
+    def loss(self) -> str:
+        """What this start could not recover, in words; "" when it lost nothing."""
+        lost = []
+        if self.lost_commits or self.lost_frames:
+            lost.append(
+                f"{self.lost_commits} committed transactions ({self.lost_frames} WAL frames) "
+                f"could not be replayed; copy kept at {self.wal_copy}"
+            )
+        if self.moved_to is not None:
+            lost.append(f"the damaged database was moved aside to {self.moved_to}")
+        return "; ".join(lost)
+
     def status(self) -> dict[str, Any]:
         """For /status."""
         wal = self.wal

@@ -121,6 +121,9 @@ def effector_frames(gcs: Any, target: int) -> list[bytes]:
     ]
     frames += [
         gcs.command_long_encode(target, 1, 400, 0, 1, 21196, 0, 0, 0, 0, 0),  # forced arm
+        gcs.mission_clear_all_encode(target, 1, 1),  # the geofence cleared
+        gcs.command_long_encode(target, 1, 179, 0, 0, 0, 0, 0, 59.0, 18.0, 0),  # home moved
+        gcs.request_data_stream_encode(target, 1, 0, 0, 0),  # telemetry stopped
         gcs.command_long_encode(target, 1, 176, 0, 128 | 1, 4, 0, 0, 0, 0, 0),  # armed flag
         # No armed bit in Python, 0xFF after an ARM core's saturating cast to a byte.
         gcs.command_long_encode(target, 1, 176, 0, 1e10, 4, 0, 0, 0, 0, 0),
@@ -272,6 +275,13 @@ def assert_no_effector(n: Node, *, arming_ok: bool) -> None:
             assert command not in EFFECTOR_ITEMS, f"{n.id}: effector mission item relayed"
         if msg.get_type() == "SET_MODE":
             assert arming_ok or not msg.base_mode & 128
+        # The airframe's own safety settings: only from a signed station.
+        if msg.get_type() == "MISSION_CLEAR_ALL":
+            assert arming_ok or msg.mission_type == 0, f"{n.id}: geofence cleared"
+        if msg.get_type() == "REQUEST_DATA_STREAM":
+            assert arming_ok or msg.start_stop, f"{n.id}: telemetry stopped"
+        if command == 179:
+            assert arming_ok, f"{n.id}: home moved from an unsigned station"
 
 
 def test_no_local_process_moves_an_effector_or_ends_the_daemon(

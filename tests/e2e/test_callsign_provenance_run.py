@@ -135,7 +135,7 @@ def test_an_unauthenticated_callsign_reaches_the_cue_and_story_only_safe_and_mar
     lines = story.read_text(encoding="utf-8").splitlines()
     marked = f'"{SAFE}" (unauthenticated CoT callsign, source atak-mesh)'
     assert any(f"nearest blue {marked} at " in line for line in lines), lines
-    assert any(f"blue force registered: {marked}, uid ANDROID-RED," in line for line in lines)
+    assert any(f'blue force registered: {marked}, uid "ANDROID-RED",' in line for line in lines)
     assert any('"1. pluton" (configured callsign, source cuas)' in line for line in lines)
     text = "\n".join(lines)
     assert "AUTHORISED BY BDE" not in text

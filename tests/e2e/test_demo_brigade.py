@@ -46,7 +46,7 @@ def test_the_steps_come_in_the_operations_order(story: list[str]) -> None:
     steps = [
         r"battery registered: GUTE II GUTE-1 at 65\.8235 N 21\.6955 E",
         r'blue force registered: "VIDAR \d" \(unauthenticated CoT callsign, source atak\),'
-        r" uid BLUE-\dPLUT, at 34W E",
+        r' uid "BLUE-\dPLUT", at 34W E',
         r"detection ingested: F26E-00\d (EO|IR) sees loitering_munition LANCET-3",
         # Confirmed after M of N detections, a track may be published fused from the start.
         r"track T-\w+-\d+ (created|fused): loitering_munition LANCET-3 confidence 0\.95 .*"

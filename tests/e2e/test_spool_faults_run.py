@@ -141,7 +141,8 @@ def test_a_damaged_wal_at_start_is_reported_with_counts_and_kept(
         handle.write(bytes([byte[0] ^ 0xFF]))
     with running(config) as daemon:
         lost = daemon.wait_event("spool_wal_frames_lost", 10)
-        start = daemon.status()["spool"]["start_check"]
+        spool = daemon.status()["spool"]
+        start = spool["start_check"]
         lost_frames = daemon.metric("fg_spool_wal_lost_frames")
         lost_commits = daemon.metric("fg_spool_wal_lost_commits")
     assert lost["level"] == "error"
@@ -149,6 +150,8 @@ def test_a_damaged_wal_at_start_is_reported_with_counts_and_kept(
     assert 0 < start["wal_lost_frames"] == lost["lost_frames"] == lost_frames
     assert 0 < start["wal_lost_commits"] == lost["lost_commits"] == lost_commits
     assert start["wal_problem"].endswith("fails its checksum")
+    assert spool["state"] == "recovered_with_loss"
+    assert f"{lost_commits:.0f} committed transactions" in spool["reason"]
     copy = Path(start["wal_copy"])
     assert copy.parent == tmp_path
     assert copy.name.startswith("spool.db-wal.corrupt-")
@@ -161,10 +164,13 @@ def test_a_damaged_database_is_moved_aside_and_the_gateway_starts(tmp_path: Path
     spool = tmp_path / "spool.db"
     spool.write_bytes(b"SQLite format 3\x00" + b"\xa5" * 8000)
     with running(config) as daemon:
-        start = daemon.status()["spool"]["start_check"]
+        spool_status = daemon.status()["spool"]
+        start = spool_status["start_check"]
         failures = daemon.metric("fg_spool_integrity_failures")
         wait_until(lambda: daemon.get("/readyz")[0] == 200, 10, "ready on the new spool")
     assert start["integrity"] == "corrupt"
+    assert spool_status["state"] == "recovered_with_loss"
+    assert "moved aside" in spool_status["reason"]
     assert failures == len(start["problems"]) >= 1
     moved = Path(start["moved_to"])
     assert moved.read_bytes().startswith(b"SQLite format 3\x00\xa5")

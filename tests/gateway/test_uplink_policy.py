@@ -123,7 +123,7 @@ class TestPolicy:
 
     def test_flight_and_read_commands_pass_and_the_lists_do_not_overlap(self) -> None:
         gcs = station()
-        for command in COMMANDS:
+        for command in COMMANDS - {179}:  # DO_SET_HOME: a safety setting (TestSafetySettings)
             msg = parsed(
                 bytes(gcs.command_long_encode(1, 1, command, 0, 1, 4, 4, 0, 0, 0, 0).pack(gcs))
             )
@@ -268,3 +268,51 @@ def test_a_flood_from_strangers_leaves_room_for_a_proven_station() -> None:
             passthrough._from_gcs("gcs", station, b"command")
         assert send.statistics().current_buffer_used == 202
         assert passthrough.uplink_dropped == 1000 - 192
+
+
+class TestSafetySettings:
+    """What changes the airframe's own safety needs a signed station (the cold run's finds)."""
+
+    @pytest.mark.parametrize(
+        "build",
+        [
+            lambda g: g.mission_count_encode(1, 1, 4, 1),  # a new geofence
+            lambda g: g.mission_clear_all_encode(1, 1, 2),  # rally points cleared
+            lambda g: g.mission_clear_all_encode(1, 1, 255),  # everything cleared
+            lambda g: g.mission_item_int_encode(1, 1, 0, 0, 5001, 0, 1, 4, 0, 0, 0, 0, 0, 0, 1),
+            lambda g: g.command_long_encode(1, 1, 179, 0, 0, 0, 0, 0, 65.0, 21.0, 0),
+            lambda g: g.mission_item_int_encode(1, 1, 0, 0, 179, 0, 1, 0, 0, 0, 0, 0, 0, 0, 0),
+            lambda g: g.request_data_stream_encode(0, 0, 0, 0, 0),  # stop every stream
+            lambda g: g.command_long_encode(1, 1, 511, 0, 33, -1, 0, 0, 0, 0, 0),
+            lambda g: g.set_mode_encode(1, 32 | 1, 0),  # hardware in the loop
+            lambda g: g.command_long_encode(1, 1, 176, 0, 2 | 1, 4, 4, 0, 0, 0, 0),  # test flag
+        ],
+    )
+    def test_refused_from_an_open_station_relayed_from_a_signed_one(self, build: Any) -> None:
+        gcs = station()
+        msg = parsed(bytes(build(gcs).pack(gcs)))
+        refusal = check(msg, sysid=1, uplink="open")
+        assert refusal is not None
+        assert refusal.reason == "signed_only"
+        assert check(msg, sysid=1, uplink="signed") is None
+
+    def test_a_mission_and_a_stream_request_still_pass_from_an_open_station(self) -> None:
+        gcs = station()
+        for msg in (
+            gcs.mission_count_encode(1, 1, 4, 0),
+            gcs.mission_clear_all_encode(1, 1, 0),
+            gcs.request_data_stream_encode(0, 0, 0, 4, 1),
+            gcs.command_long_encode(1, 1, 511, 0, 33, 200000, 0, 0, 0, 0, 0),
+            gcs.command_ack_encode(76, 0, 0, 0, 0, 0),  # no target: an extension left out
+        ):
+            assert check(parsed(bytes(msg.pack(gcs))), sysid=1, uplink="open") is None
+
+    @pytest.mark.parametrize(
+        "name", [b"AFS_TERMINATE", b"ARMING_REQUIRE", b"brd_safety_deflt", b"CBRK_IO_SAFETY"]
+    )
+    def test_parameters_that_arm_or_terminate_are_never_set(self, name: bytes) -> None:
+        gcs = station()
+        msg = parsed(bytes(gcs.param_set_encode(1, 1, name, 0, 9).pack(gcs)))
+        refusal = check(msg, sysid=1, uplink="signed", param_set_allow=("*",))
+        assert refusal is not None
+        assert refusal.reason == "parameter"

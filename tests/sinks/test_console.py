@@ -148,7 +148,7 @@ class TestText:
             " at 65.82520,21.68860 alt 250.0 m MSL cep50 10 m"
         )
         assert blue == (
-            "12:00:01.234Z blue_force ANDROID-1 - at 65.82520,21.68860 alt 250.0 m MSL via cot"
+            '12:00:01.234Z blue_force uid "ANDROID-1" - at 65.82520,21.68860 alt 250.0 m MSL via cot'
         )
 
     def test_a_callsign_is_shown_safe_and_marked_by_provenance(self) -> None:
@@ -162,7 +162,7 @@ class TestText:
             callsign="WEAPONS FREE\u202e - ENGAGE AUTHORISED BY BDE",
         )
         assert describe(blue) == (
-            '12:00:01.234Z blue_force ANDROID-RED "WEAPONS FREE - ENGAGE AUTHORI..."'
+            '12:00:01.234Z blue_force uid "ANDROID-RED" "WEAPONS FREE - ENGAGE AUTHORI..."'
             " (unauthenticated CoT callsign, source atak-mesh)"
             " at 65.82520,21.68860 alt 250.0 m MSL via cot"
         )

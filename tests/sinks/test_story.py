@@ -121,7 +121,7 @@ def test_friendly_units_are_registered_once() -> None:
     unit = BlueForce(event_id="b", uid="PLT-1", time=T, callsign="1. pluton", position=WHERE,
                      source="cot")  # fmt: skip
     assert story.tell(unit) == [
-        'blue force registered: "1. pluton" (unauthenticated CoT callsign), uid PLT-1,'
+        'blue force registered: "1. pluton" (unauthenticated CoT callsign), uid "PLT-1",'
         " at 34W EU 3146 0059 via cot"
     ]
     assert story.tell(unit.model_copy(update={"event_id": "b2"})) == []
@@ -148,4 +148,4 @@ def test_a_callsign_from_an_unauthenticated_peer_is_shown_only_safe_and_marked()
     # Without a callsign, the uid is shown with the provenance instead.
     bare = check.model_copy(update={"nearest_blue_callsign": None})
     held, _ = Story().tell(sample.model_copy(update={"deconfliction": bare}))
-    assert "nearest blue uid ANDROID-RED (unauthenticated, source atak-mesh) at 110 m" in held
+    assert 'nearest blue uid "ANDROID-RED" (unauthenticated, source atak-mesh) at 110 m' in held
