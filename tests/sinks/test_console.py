@@ -148,7 +148,8 @@ class TestText:
             " at 65.82520,21.68860 alt 250.0 m MSL cep50 10 m"
         )
         assert blue == (
-            '12:00:01.234Z blue_force uid "ANDROID-1" - at 65.82520,21.68860 alt 250.0 m MSL via cot'
+            '12:00:01.234Z blue_force uid "ANDROID-1" - at 65.82520,21.68860 alt 250.0 m MSL'
+            " via cot"
         )
 
     def test_a_callsign_is_shown_safe_and_marked_by_provenance(self) -> None:
