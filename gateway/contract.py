@@ -378,7 +378,7 @@ def check_processor(
                     await send.send(event)
             await anyio.sleep(settle_s)
 
-        with send:
+        with send, receive:
             await _exercise_run(phase, run, feed_then_wait, deadline_s)
 
     _guarded(exercise, published, deadline_s)
@@ -520,7 +520,7 @@ async def _exercise_run(
     if error is not None:
         raise error
     if problem is None and took > deadline_s:
-        problem = f"run() took {took:.3f} s to end after it was cancelled (limit {deadline_s} s)"
+        problem = f"{phase.what} did not happen within {deadline_s} s (it took {took:.3f} s)"
     if problem is None and ended:
         problem = f"run() {ended[0]} when it was cancelled"
     if problem is None and watch.longest > MAX_BLOCK_S:
@@ -551,7 +551,8 @@ def _guarded(
     exercise: Callable[[_Phase], Awaitable[None]], published: _Published, deadline_s: float
 ) -> None:
     """Run ``exercise`` on its own event loop in a thread, so a run that never ends cannot
-    hang the check: past twice the deadline in one phase, that phase is the violation."""
+    hang the check: past twice the deadline in one phase, that phase is the violation (and
+    the thread is left to end when it may)."""
     phase = _Phase()
     failure: list[BaseException] = []
 
@@ -570,7 +571,7 @@ def _guarded(
     while thread.is_alive():
         thread.join(_TICK_S * 10)
         if thread.is_alive() and time.monotonic() - phase.since > 2 * deadline_s:
-            raise ContractViolation(f"{phase.what} did not end within {deadline_s} s")
+            raise ContractViolation(f"{phase.what} did not happen within {deadline_s} s")
     if failure:
         raise failure[0]
     if published.problem is not None:
