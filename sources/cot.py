@@ -37,9 +37,10 @@ from urllib.parse import urlsplit
 import anyio
 import anyio.abc
 import structlog
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import Field, field_validator
 
 from gateway.c2.newest import NewestTimes
+from gateway.c2.source import SourceConfig
 from gateway.clock import utc_now
 from gateway.codecs.cot.validate import CotError, ParsedCot, is_unknown, parse_cot
 from gateway.domain.peertext import safe_text
@@ -59,14 +60,12 @@ FUTURE_TOLERANCE = timedelta(seconds=60)
 _SCHEMES = ("udp", "udp+multicast", "tcp")
 
 
-class CotSourceConfig(BaseModel):
+class CotSourceConfig(SourceConfig):
     """A CoT input: ``udp://HOST:PORT``, ``udp+multicast://GROUP:PORT`` or ``tcp://HOST:PORT``.
 
     For UDP, HOST is the address to bind (or a multicast group to join on ``interface``); for
     TCP, the address to listen on. Port 0 picks a free port (see ``CotSource.local_port``).
     """
-
-    model_config = ConfigDict(frozen=True, extra="forbid")
 
     type: Literal["cot"] = Field(default="cot", description="The source type (only cot today).")
     name: str = Field(

@@ -52,6 +52,7 @@ from pydantic import (
 )
 
 from gateway.c2.newest import NewestTimes
+from gateway.c2.source import SourceConfig
 from gateway.clock import utc_now
 from gateway.codecs.nffi import MAX_MESSAGE_BYTES, NffiError, NffiTrack, parse_message
 from gateway.codecs.nffi_stream import MessageSplitter
@@ -120,10 +121,8 @@ class NffiSourceTls(BaseModel):
         return self
 
 
-class NffiSourceConfig(BaseModel):
+class NffiSourceConfig(SourceConfig):
     """An IP1 listener: ``tcp://HOST:PORT`` or ``tls://HOST:PORT``, and who may connect."""
-
-    model_config = _FROZEN
 
     type: Literal["nffi"] = Field(default="nffi", description="The source type.")
     name: str = Field(
