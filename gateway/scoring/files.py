@@ -165,15 +165,19 @@ def _report(track: Track, plane: Plane) -> TrackReport:
     )
 
 
+def _take(tracks: Tracks, event: Track | Handoff, plane: Plane) -> None:
+    if isinstance(event, Track):
+        tracks.add(event.track_id, _report(event, plane))
+    elif event.handoff_id not in tracks.cues:
+        report = _report(event.track, plane)
+        tracks.cues[event.handoff_id] = (report.unix_s, report.x, report.y)
+
+
 def tracks_from_events(events: Iterable[Track | Handoff], plane: Plane) -> Tracks:
     """Track events as histories and Handoff events as cues, in ``plane``."""
     tracks = Tracks()
     for event in events:
-        if isinstance(event, Track):
-            tracks.add(event.track_id, _report(event, plane))
-        elif event.handoff_id not in tracks.cues:
-            report = _report(event.track, plane)
-            tracks.cues[event.handoff_id] = (report.unix_s, report.x, report.y)
+        _take(tracks, event, plane)
     tracks.sort()
     return tracks
 
@@ -196,12 +200,11 @@ def _archive_events(path: Path, tracks: Tracks) -> Iterator[Track | Handoff]:
 
 
 def read_archive(paths: Iterable[Path], plane: Plane) -> Tracks:
-    """Every Track and Handoff event of the archive files (in order), in ``plane``."""
-    skipped = Tracks()
-    events: list[Track | Handoff] = []
+    """Every Track and Handoff event of the archive files (in order), in ``plane``; each
+    event is reduced to what the scorer needs as it is read."""
+    tracks = Tracks()
     for path in paths:
-        events.extend(_archive_events(path, skipped))
-    tracks = tracks_from_events(events, plane)
-    tracks.skipped_lines = skipped.skipped_lines
-    tracks.first_skipped_line = skipped.first_skipped_line
+        for event in _archive_events(path, tracks):
+            _take(tracks, event, plane)
+    tracks.sort()
     return tracks
