@@ -344,6 +344,8 @@ def through_run(name: str, speed: float, workdir: Path) -> dict[str, object]:
         capture_output=True,
     )
     result: dict[str, object] = json.loads(scored.stdout)
+    if not load_scenario(name).batteries:
+        result["cues_per_munition"] = {}  # no battery, no counter_uas: no cue expected
     return result
 
 
