@@ -24,8 +24,9 @@ Track events, which is its output).
 **Through the daemon (``--run``).** ``--run --speed 1 --speed 4`` plays each scenario with
 ``fischer-gateway simulate --scenario X --truth T`` into ``fischer-gateway run`` (one link,
 the ``fusion`` processor with ``max_speed_mps`` raised for the speed, ``counter_uas`` with the
-scenario's batteries, a jsonl archive) on loopback, then scores the archive with
-``fischer-gateway score``: the numbers an operator gets.
+scenario's batteries, a jsonl archive, an ``ra180`` sink to a UDP port this script listens on
+as the radio net) on loopback, then scores the archive with ``fischer-gateway score`` and
+counts the Ra 180 "new target" messages per hostile target: the numbers an operator gets.
 """
 
 from __future__ import annotations
@@ -47,11 +48,13 @@ from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
 
+from gateway.codecs.ra180 import CdmError, parse_cdm
+from gateway.domain.geodesy import from_mgrs
 from gateway.events import Detection
-from gateway.scoring.files import tracks_from_events
+from gateway.scoring.files import read_truth, tracks_from_events
 from gateway.scoring.model import Plane, TrackReport, Tracks, TruthRun
 from gateway.scoring.replay import frames, replay, scenario_detections, scenario_truth
-from gateway.scoring.score import Score, score
+from gateway.scoring.score import Score, announcements_per_target, score
 from gateway.sim.scenario import load_scenario, shipped_scenarios
 from processors.fusion import FusionConfig, FusionProcessor
 
@@ -254,7 +257,9 @@ def _free_udp_port() -> int:
         return int(sock.getsockname()[1])
 
 
-def _node_config(workdir: Path, name: str, port: int, speed: float) -> tuple[Path, Path]:
+def _node_config(
+    workdir: Path, name: str, port: int, speed: float, radio_port: int
+) -> tuple[Path, Path]:
     scenario = load_scenario(name)
     archive = workdir / f"{name}-x{speed:g}.jsonl"
     airframes = "\n".join(
@@ -289,8 +294,10 @@ processors:
   - {{name: fusion, type: fusion, options: {{max_speed_mps: {max_speed:g}}}}}
 {cuas}sinks:
   - {{name: archive, type: jsonl, options: {{path: '{archive}'}}}}
+  - {{name: radio, type: ra180, options: {{udp: {{host: 127.0.0.1, port: {radio_port}}}}}}}
 routes:
   - {{kinds: [track, handoff], sinks: [archive]}}
+  - {{kinds: [track], sinks: [radio]}}
 """
     )
     return config, archive
@@ -313,10 +320,54 @@ def _started(proc: subprocess.Popen[bytes], timeout_s: float) -> threading.Threa
     return reader
 
 
+class RadioNet:
+    """The Ra 180 net's side: every CDM datagram with the time it was heard."""
+
+    def __init__(self) -> None:
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.settimeout(0.2)
+        self.port = int(self.sock.getsockname()[1])
+        self.heard: list[tuple[float, str]] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._listen, daemon=True)
+        self._thread.start()
+
+    def _listen(self) -> None:
+        while not self._stop.is_set():
+            try:
+                data = self.sock.recv(2048)
+            except TimeoutError:
+                continue
+            self.heard.append((time.time(), data.decode("ascii", "replace")))
+
+    def close(self) -> None:
+        """Stop listening."""
+        self._stop.set()
+        self._thread.join(5)
+        self.sock.close()
+
+    def new_targets(self, truth: TruthRun) -> tuple[dict[str, int], int]:
+        """ "MAL" (new target) messages per hostile target, and those matching none (within
+        300 m: the net hears a position up to a budget's delay old)."""
+        heard = []
+        for when, text in self.heard:
+            try:
+                cdm = parse_cdm(text)
+            except CdmError:
+                continue
+            if cdm.type != "MAL":
+                continue
+            where = from_mgrs(cdm.mgrs)
+            heard.append((when, *truth.plane.xy(where.lat_deg, where.lon_deg)))
+        return announcements_per_target(truth, heard, 300.0)
+
+
 def through_run(name: str, speed: float, workdir: Path) -> dict[str, object]:
     """One scenario through ``fischer-gateway run`` at ``speed``; the scorer's JSON."""
     port = _free_udp_port()
-    config, archive = _node_config(workdir, name, port, speed)
+    radio = RadioNet()
+    config, archive = _node_config(workdir, name, port, speed, radio.port)
     truth = workdir / f"{name}-x{speed:g}.truth.jsonl"
     gateway = [sys.executable, "-m", "gateway"]
     daemon = subprocess.Popen(
@@ -337,6 +388,7 @@ def through_run(name: str, speed: float, workdir: Path) -> dict[str, object]:
     finally:
         daemon.send_signal(signal.SIGTERM)
         daemon.wait(30)
+        radio.close()
     reader.join(10)
     scored = subprocess.run(
         [*gateway, "score", "--truth", str(truth), "--tracks", str(archive), "--json"],
@@ -346,7 +398,18 @@ def through_run(name: str, speed: float, workdir: Path) -> dict[str, object]:
     result: dict[str, object] = json.loads(scored.stdout)
     if not load_scenario(name).batteries:
         result["cues_per_munition"] = {}  # no battery, no counter_uas: no cue expected
+    news, unmatched = radio.new_targets(read_truth(truth))
+    result["ra180_new_per_target"] = news
+    result["ra180_new_unmatched"] = unmatched
     return result
+
+
+def _counts(per: object, unmatched: object) -> str:
+    if not isinstance(per, dict):
+        return "-"
+    values = sorted(per.values())
+    text = f"{min(values)}–{max(values)}" if values else "-"
+    return f"{text} (+{unmatched} unmatched)" if unmatched else text
 
 
 def run_table(results: Sequence[tuple[str, float, dict[str, object]]]) -> str:
@@ -357,8 +420,8 @@ def run_table(results: Sequence[tuple[str, float, dict[str, object]]]) -> str:
 
     out = [
         "| scenario | speed | GOSPA m | tracks/target | false tracks | ID switches "
-        "| speed err p90 m/s | with velocity | cues per munition |",
-        "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |",
+        "| speed err p90 m/s | with velocity | cues per munition | Ra 180 new per target |",
+        "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- | --- |",
     ]
     for name, speed, r in results:
         cues = r.get("cues_per_munition") or {}
@@ -369,7 +432,8 @@ def run_table(results: Sequence[tuple[str, float, dict[str, object]]]) -> str:
             f"| {r['false_tracks']}/{r['track_ids']} | {r['id_switches']} "
             f"| {num(r['speed_error_p90'])} "
             f"| {num(100 * share if isinstance(share, float) else None, 0)} % "
-            f"| {' '.join(f'{k}:{v}' for k, v in cues.items()) or '-'} |"
+            f"| {' '.join(f'{k}:{v}' for k, v in cues.items()) or '-'} "
+            f"| {_counts(r.get('ra180_new_per_target'), r.get('ra180_new_unmatched'))} |"
         )
     return "\n".join(out)
 

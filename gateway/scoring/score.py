@@ -28,13 +28,21 @@ from __future__ import annotations
 import bisect
 import math
 from collections import Counter
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 
 from gateway.scoring.gospa import gospa
 from gateway.scoring.model import TrackReport, Tracks, TruthRun, TruthTarget
 
-__all__ = ["Score", "ScoreSettings", "percentile", "picture_at", "score"]
+__all__ = [
+    "Score",
+    "ScoreSettings",
+    "announcements_per_target",
+    "nearest_target",
+    "percentile",
+    "picture_at",
+    "score",
+]
 
 _TERMINAL = frozenset({"lost", "merged"})
 _ROUNDING_S = 1e-3
@@ -129,31 +137,67 @@ def _angle_deg(a: float, b: float) -> float:
     return min(d, 360.0 - d)
 
 
+def nearest_target(
+    truth: TruthRun,
+    unix_s: float,
+    x: float,
+    y: float,
+    radius_m: float,
+    classes: frozenset[str] | None = None,
+) -> str | None:
+    """The target (of ``classes``, any when None) nearest (x, y) at ``unix_s``, if closer
+    than ``radius_m``; targets are moved from the nearest truth second by their velocity."""
+    if not truth.frames:
+        return None
+    starts = [f.unix_s for f in truth.frames]
+    k = min(bisect.bisect_left(starts, unix_s), len(starts) - 1)
+    if k > 0 and abs(starts[k - 1] - unix_s) < abs(starts[k] - unix_s):
+        k -= 1
+    frame = truth.frames[k]
+    dt = (unix_s - frame.unix_s) * truth.speed
+    best: tuple[float, str] | None = None
+    for t in frame.targets:
+        if classes is not None and t.object_class not in classes:
+            continue
+        d = math.hypot(t.x + t.ve * dt - x, t.y + t.vn * dt - y)
+        if d < radius_m and (best is None or d < best[0]):
+            best = (d, t.target)
+    return None if best is None else best[1]
+
+
 def _cues(tracks: Tracks, truth: TruthRun, c_m: float) -> tuple[dict[str, int], int]:
     munitions = sorted(
         {t.target for f in truth.frames for t in f.targets if t.object_class == _MUNITION}
     )
     per: dict[str, set[str]] = {m: set() for m in munitions}
     unmatched = 0
-    starts = [f.unix_s for f in truth.frames]
     for handoff_id, (unix_s, x, y) in tracks.cues.items():
-        k = min(max(bisect.bisect_left(starts, unix_s), 0), len(starts) - 1)
-        if k > 0 and abs(starts[k - 1] - unix_s) < abs(starts[k] - unix_s):
-            k -= 1
-        frame = truth.frames[k]
-        dt = (unix_s - frame.unix_s) * truth.speed
-        best: tuple[float, str] | None = None
-        for t in frame.targets:
-            if t.object_class != _MUNITION:
-                continue
-            d = math.hypot(t.x + t.ve * dt - x, t.y + t.vn * dt - y)
-            if d < c_m and (best is None or d < best[0]):
-                best = (d, t.target)
-        if best is None:
+        found = nearest_target(truth, unix_s, x, y, c_m, frozenset({_MUNITION}))
+        if found is None:
             unmatched += 1
         else:
-            per[best[1]].add(handoff_id)
+            per[found].add(handoff_id)
     return {m: len(ids) for m, ids in per.items()}, unmatched
+
+
+def announcements_per_target(
+    truth: TruthRun, heard: Iterable[tuple[float, float, float]], radius_m: float
+) -> tuple[dict[str, int], int]:
+    """Count announcements (UNIX time heard, x, y) per hostile target: each goes to the
+    hostile target nearest it within ``radius_m``; also how many matched none. For the
+    Ra 180 net's "new target" messages, which are not archive events."""
+    hostile = sorted(
+        {t.target for f in truth.frames for t in f.targets if t.affiliation == "hostile"}
+    )
+    per = dict.fromkeys(hostile, 0)
+    unmatched = 0
+    for unix_s, x, y in heard:
+        found = nearest_target(truth, unix_s, x, y, radius_m)
+        if found is None or found not in per:
+            unmatched += 1
+        else:
+            per[found] += 1
+    return per, unmatched
 
 
 def score(truth: TruthRun, tracks: Tracks, settings: ScoreSettings | None = None) -> Score:

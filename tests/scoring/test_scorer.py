@@ -7,7 +7,13 @@ import math
 import pytest
 
 from gateway.scoring.model import Plane, TrackReport, Tracks, TruthFrame, TruthRun, TruthTarget
-from gateway.scoring.score import Score, ScoreSettings, percentile, score
+from gateway.scoring.score import (
+    Score,
+    ScoreSettings,
+    announcements_per_target,
+    percentile,
+    score,
+)
 
 T0 = 1_800_000_000.0
 HALF = 100.0**2 / 2
@@ -142,6 +148,17 @@ class TestCues:
         s = score(truth, made)
         assert s.cues_per_munition == {"LM-1": 2}
         assert s.unmatched_cues == 1
+
+
+def test_announcements_go_to_the_nearest_hostile_target_moved_to_their_time() -> None:
+    truth = run(
+        (target("A", 0.0, ve=10.0), target("B", 500.0)),
+        (target("A", 10.0, ve=10.0), target("B", 500.0)),
+    )
+    heard = [(T0 + 0.5, 5.0, 0.0), (T0 + 1.0, 490.0, 0.0), (T0 + 1.0, 505.0, 3.0), (T0, 0, 900.0)]
+    per, unmatched = announcements_per_target(truth, heard, 100.0)
+    assert per == {"A": 1, "B": 2}
+    assert unmatched == 1
 
 
 def test_percentile_interpolates() -> None:
