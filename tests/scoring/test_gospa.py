@@ -6,6 +6,7 @@ import math
 import random
 
 import pytest
+from scipy.optimize import linear_sum_assignment  # with Stone Soup, in the test extra
 
 from gateway.scoring.gospa import assign, gospa
 
@@ -63,7 +64,6 @@ class TestAssign:
     """The pure-Python Hungarian algorithm finds SciPy's optimum."""
 
     def test_matches_scipy_on_random_matrices(self) -> None:
-        optimize = pytest.importorskip("scipy.optimize")
         rng = random.Random(22)
         for _ in range(300):
             n = rng.randint(1, 7)
@@ -73,7 +73,7 @@ class TestAssign:
             ]
             columns = assign(cost)
             assert len(set(columns)) == n
-            rows, cols = optimize.linear_sum_assignment(cost)
+            rows, cols = linear_sum_assignment(cost)
             best = sum(cost[r][c] for r, c in zip(rows, cols, strict=True))
             assert sum(cost[i][j] for i, j in enumerate(columns)) == pytest.approx(best)
 
