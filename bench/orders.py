@@ -8,6 +8,8 @@ area order of ``--corners`` corners (radius about 30 km) over a flat SRTM tile m
 
 * **checks**: ``processors._orderplan.plan`` then ``check`` (geofence, terrain floor along
   every leg every 250 m, endurance with the return leg), as the processor runs them;
+* **geofence**: ``gateway.domain.mission.route_exit`` alone on the route the check gives it
+  (every point in the ellipsoidal gnomonic plane, each leg as geodesic and rhumb line);
 * **geodesic peer**: the same terrain samples placed along the geodesic with geographiclib
   (``Geodesic.WGS84.Direct`` per sample) and looked up in the same DEM: what the terrain check
   would cost sampling on the geodesic instead of interpolating.
@@ -30,6 +32,7 @@ from pathlib import Path
 import numpy as np
 from geographiclib.geodesic import Geodesic  # type: ignore[import-untyped]
 
+from gateway.domain.mission import route_exit
 from gateway.domain.terrain import DemSource, TerrainModel
 from gateway.events import FiveLineOrder, OrderArea, OrderTask, Position, Telemetry
 from processors._orderplan import Limits, Plan, _samples, check, plan
@@ -103,9 +106,9 @@ def main() -> None:
         )
         print()
         head = ["order", "samples", "checks median ms", "checks p99 ms"]
-        head += ["geodesic peer median ms", "peer / checks"]
+        head += ["geofence median ms", "geodesic peer median ms", "peer / checks"]
         print(f"| {' | '.join(head)} |")
-        print("| --- | ---: | ---: | ---: | ---: | ---: |")
+        print("| --- | ---: | ---: | ---: | ---: | ---: | ---: |")
         for name, order in orders(args.corners).items():
             chosen = plan(order, here, None, LIMITS)
             assert isinstance(chosen, Plan)
@@ -114,11 +117,16 @@ def main() -> None:
                 check(plan(o, here, None, LIMITS), here, terrain, LIMITS)  # type: ignore[arg-type]
 
             ours = timed(ours_once, args.runs)
+            route = (chosen.route[0], *chosen.task_points, chosen.route[-1])
+            fence = LIMITS.fence
+            assert fence is not None
+            geofence = timed(lambda r=route, f=fence: route_exit(f, r), args.runs)
             peer = timed(lambda c=chosen: geodesic_peer(c, terrain), args.runs)
             samples = len(_samples((chosen.route[0], *chosen.task_points)))
             ours_ms, peer_ms = statistics.median(ours), statistics.median(peer)
             p99 = ours[min(len(ours) - 1, int(len(ours) * 0.99))]
-            cells = [name, str(samples), f"{ours_ms:.2f}", f"{p99:.2f}", f"{peer_ms:.2f}"]
+            cells = [name, str(samples), f"{ours_ms:.2f}", f"{p99:.2f}"]
+            cells += [f"{statistics.median(geofence):.2f}", f"{peer_ms:.2f}"]
             print(f"| {' | '.join(cells)} | {peer_ms / ours_ms:.1f}× |")
 
 

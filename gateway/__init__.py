@@ -17,6 +17,7 @@ if TYPE_CHECKING:
     from gateway.c2.sink import Sink as Sink
     from gateway.c2.sink import SinkConfig as SinkConfig
     from gateway.c2.source import Source as Source
+    from gateway.c2.source import SourceConfig as SourceConfig
     from gateway.config import Config as Config
     from gateway.configfile import load_config as load_config
     from gateway.errors import GatewayError as GatewayError
@@ -42,6 +43,7 @@ __all__ = [
     "Sink",
     "SinkConfig",
     "Source",
+    "SourceConfig",
     "TransientSinkError",
     "load_config",
 ]
@@ -57,6 +59,7 @@ _HOME = {
     "ProcessorConfig": "gateway.flow.processor",
     "Publish": "gateway.flow.processor",
     "Source": "gateway.c2.source",
+    "SourceConfig": "gateway.c2.source",
     "PermanentSinkError": "gateway.errors",
     "Sink": "gateway.c2.sink",
     "SinkConfig": "gateway.c2.sink",

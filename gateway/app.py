@@ -32,6 +32,7 @@ from gateway.fleet.hopschedule import HopSchedules
 from gateway.fleet.ingest import Ingest, LinkIntake
 from gateway.fleet.links import Link, make_link
 from gateway.fleet.passthrough import Passthrough
+from gateway.fleet.security.keys import read_key_file
 from gateway.fleet.security.material import Security
 from gateway.flow.bus import Bus
 from gateway.flow.processor import PinsUnits
@@ -42,6 +43,7 @@ from gateway.ops.instruments import Instruments
 from gateway.ops.logsetup import RateLimit
 from gateway.ops.sdnotify import SystemdNotifier
 from gateway.ops.supervise import Supervised, supervise
+from gateway.spool.commits import COMMIT_FAILURE_REASONS
 from gateway.spool.store import Spool
 
 __all__ = ["Gateway", "utc_now"]
@@ -49,6 +51,7 @@ __all__ = ["Gateway", "utc_now"]
 log = structlog.get_logger(__name__)
 
 _LINK_CHECK_INTERVAL_S = 0.25
+_SPOOL_PROBE_INTERVAL_S = 5.0
 
 
 def dem_sources(config: Config) -> list[DemSource]:
@@ -219,7 +222,19 @@ class Gateway:
         self.passthroughs: dict[str, Passthrough] = {}
         for airframe in config.airframes:
             if airframe.passthrough is not None:
-                passthrough = Passthrough(airframe.id, airframe.passthrough, self.send_to_airframe)
+                gcs_key = (
+                    None
+                    if airframe.passthrough.key_file is None
+                    else read_key_file(airframe.passthrough.key_file, exact=True)
+                )
+                passthrough = Passthrough(
+                    airframe.id,
+                    airframe.sysid,
+                    airframe.passthrough,
+                    self.send_to_airframe,
+                    gcs_key=gcs_key,
+                    refused_metric=self.instruments.passthrough_refused,
+                )
                 self.passthroughs[airframe.id] = passthrough
                 self.ingest.set_passthrough(airframe.id, passthrough.forward)
         self.health: HealthServer | None = None
@@ -286,6 +301,16 @@ class Gateway:
             lambda: [((sink,), float(n)) for sink, n in spool.pending_counts().items()]
         )
         inst.spool_dead_letters.set_function(lambda: [((), float(spool.dead_letter_count()))])
+        commits, check = spool.commits, spool.start_check
+        # Every reason from the start, at 0: increase() then sees the first failure too.
+        inst.spool_commit_failures.set_function(
+            lambda: [((r,), float(commits.failures[r])) for r in COMMIT_FAILURE_REASONS]
+        )
+        inst.spool_wal_lost_frames.set_function(lambda: [((), float(check.lost_frames))])
+        inst.spool_wal_lost_commits.set_function(lambda: [((), float(check.lost_commits))])
+        inst.spool_integrity_failures.set_function(
+            lambda: [((), float(len(check.problems) if check.integrity == "corrupt" else 0))]
+        )
 
     def _instrument_terrain_and_readiness(self) -> None:
         inst, terrain = self.instruments, self.terrain
@@ -307,6 +332,8 @@ class Gateway:
         )
         if unhealthy:
             line += f" (not: {', '.join(unhealthy[:3])}{', ...' if len(unhealthy) > 3 else ''})"
+        if self.spool.commits.failing:
+            line += "; spool writes failing"
         if self.terrain is not None:
             down = [s.name for s in self.terrain.sources if not self.terrain.is_source_up(s.name)]
             if down:
@@ -314,9 +341,10 @@ class Gateway:
         return line
 
     def is_ready(self) -> bool:
-        """True once every link is bound and every sink is open."""
+        """True once every link is bound and every sink is open, while the spool commits."""
         return (
             self._links_up
+            and not self.spool.commits.failing
             and all(link.is_bound for link in self.links.values())
             and all(runner.is_open for runner in self.runners.values())
         )
@@ -355,6 +383,7 @@ class Gateway:
                     # retried with backoff and shown on /status, never the daemon's end.
                     await ingest.start(partial(supervise, source.run, record, what="source"))
                 ingest.start_soon(self._watch_links)
+                ingest.start_soon(self._probe_spool)
                 if self.ingest.acks is not None:
                     ingest.start_soon(self.ingest.acks.run)
                 ingest.start_soon(self.hops.run)
@@ -399,6 +428,16 @@ class Gateway:
         while True:
             self.ingest.check_links()
             await anyio.sleep(_LINK_CHECK_INTERVAL_S)
+
+    async def _probe_spool(self) -> None:
+        """While the spool's writes fail, try one now and then: ready again once one commits.
+
+        Without it a node whose disk was freed would stay not ready until the next detection.
+        """
+        while True:
+            await anyio.sleep(_SPOOL_PROBE_INTERVAL_S)
+            if self.spool.commits.failing:
+                self.spool.probe()
 
     async def send_to_airframe(self, airframe: str, frames: bytes) -> None:
         """Send raw MAVLink ``frames`` to ``airframe`` on its active link, in the link's mode.
@@ -464,12 +503,24 @@ class Gateway:
             "unknown_sysids": sorted(self.ingest.unknown_sysids),
             "sinks": [runner.status() for runner in self.runners.values()],
             "spool": {
+                # failing: writes do not commit now; recovered_with_loss: this start could
+                # not recover everything (start_check says what), until the next restart.
+                "state": (
+                    "failing"
+                    if self.spool.commits.failing
+                    else "recovered_with_loss"
+                    if self.spool.start_check.loss
+                    else "ok"
+                ),
+                "reason": self.spool.commits.reason or self.spool.start_check.loss,
                 "path": None if self.spool.path is None else str(self.spool.path),
                 "size_bytes": self.spool.size_bytes,
                 "max_bytes": self.spool.max_bytes,
                 "pending": self.spool.pending_counts(),
                 "refused": self.spool.refused,
                 "dead_letters": self.spool.dead_letter_count(),
+                "commits": self.spool.commits.status(),
+                "start_check": self.spool.start_check.status(),
             },
             "processors": [p.status() for p in self.processors.values()],
             "listeners": [self.health.stats.status()] if self.health is not None else [],

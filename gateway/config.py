@@ -349,6 +349,57 @@ class HopPlanConfig(BaseModel):
         return self.jammer_reaction_us * 1e-6
 
 
+class PassthroughConfig(BaseModel):
+    """A local MAVLink endpoint for a ground station, and what it may send to the airframe.
+
+    ``uplink`` has no default, as a link's ``security`` has none: ``none`` (telemetry out
+    only), ``signed`` (the ground station signs with its own key, ``key_file``) or ``open``
+    (any local process). Whatever the mode, the command policy of
+    ``gateway/fleet/uplinkpolicy.py`` decides what reaches the airframe.
+    """
+
+    model_config = _FROZEN
+
+    uri: EndpointField = Field(description="udp://HOST:PORT[?mode=listen|connect], on loopback.")
+    uplink: Literal["none", "signed", "open"] = Field(
+        description="none: telemetry out only; signed: only frames signed with key_file; "
+        "open: any local process (warned at start, shown on /status)."
+    )
+    key_file: Path | None = Field(
+        default=None,
+        description="With uplink: signed, the ground station's own MAVLink 2 signing key "
+        "(32 raw bytes or 64 hex digits, mode 0600), never the airframe's.",
+    )
+    param_set_allow: tuple[str, ...] = Field(
+        default=(),
+        max_length=256,
+        description="Parameter names (fnmatch patterns, e.g. MPC_XY_CRUISE) a ground station "
+        "may set; none by default, and never one that maps outputs (SERVO*, RELAY*, ...).",
+    )
+    allow_non_loopback: bool = Field(
+        default=False,
+        description="The endpoint may bind beyond loopback only if this says so.",
+    )
+
+    @field_validator("uri")
+    @classmethod
+    def _udp_only(cls, uri: Endpoint) -> Endpoint:
+        if uri.scheme != "udp":
+            raise ValueError(f"expected a udp:// endpoint for the passthrough, found {uri}")
+        return uri
+
+    @model_validator(mode="after")
+    def _key_matches_mode(self) -> PassthroughConfig:
+        if self.uplink == "signed" and self.key_file is None:
+            raise ValueError(
+                "uplink: signed needs key_file: the ground station's MAVLink 2 signing key, "
+                "SHA-256 of its passphrase in hex (docs/security.md#the-passthrough)"
+            )
+        if self.uplink != "signed" and self.key_file is not None:
+            raise ValueError(f"key_file is used only with uplink: signed (uplink is {self.uplink})")
+        return self
+
+
 class AirframeConfig(BaseModel):
     """One airframe of the fleet."""
 
@@ -383,21 +434,28 @@ class AirframeConfig(BaseModel):
     ew_mode: EwMode = Field(
         default=EwMode.ACTIVE, description="EW mode assumed for predicted endurance."
     )
-    passthrough: EndpointField | None = Field(
+    passthrough: PassthroughConfig | None = Field(
         default=None,
-        description="A plain local MAVLink endpoint (udp:// only) for QGroundControl, "
-        "MAVProxy or MAVSDK; keep it on loopback.",
-    )
-    passthrough_allow_non_loopback: bool = Field(
-        default=False,
-        description="The passthrough is plain MAVLink: it may bind beyond loopback only if "
-        "this says so.",
+        description="A local MAVLink endpoint for QGroundControl, MAVProxy or MAVSDK, with "
+        "its uplink stated (docs/security.md#the-passthrough).",
     )
     hop_plan: HopPlanConfig | None = Field(
         default=None,
         description="An AD9361 hop plan uploaded to the airframe once it is linked "
         "(FISCHER_HOP_SCHEDULE; docs/hopping.md).",
     )
+
+    @field_validator("passthrough", mode="before")
+    @classmethod
+    def _uplink_stated(cls, value: object) -> object:
+        if isinstance(value, str):
+            raise ValueError(
+                "the passthrough must state what a ground station may send: write "
+                f"passthrough: {{uri: {value!r}, uplink: none|signed|open}} (none: telemetry "
+                "out only; signed: with the ground station's key_file; open: any local "
+                "process; docs/security.md#the-passthrough)"
+            )
+        return value
 
 
 class DemSourceConfig(BaseModel):

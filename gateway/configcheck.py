@@ -84,12 +84,24 @@ class NodeCheck:
                     read_credential(credential, self.env)
                 except ConfigError as exc:
                     yield loc, "; ".join(issue.message for issue in exc.issues), True
-        for i, airframe in enumerate(_items(data.get("airframes"))):
-            signing = _mapping(airframe.get("signing"))
-            key_file = signing.get("key_file")
+        airframes = _items(data.get("airframes"))
+        signing_keys = [
+            (str(airframe.get("id", i)), _mapping(airframe.get("signing")).get("key_file"))
+            for i, airframe in enumerate(airframes)
+        ]
+        for i, airframe in enumerate(airframes):
+            key_file = signing_keys[i][1]
             if isinstance(key_file, str):
                 loc = ("airframes", i, "signing", "key_file")
                 yield from _key_problem(loc, Path(key_file), exact=True)
+            gcs_key_file = _mapping(airframe.get("passthrough")).get("key_file")
+            if isinstance(gcs_key_file, str):
+                loc = ("airframes", i, "passthrough", "key_file")
+                yield from _key_problem(loc, Path(gcs_key_file), exact=True)
+                for j, (other, other_key_file) in enumerate(signing_keys):
+                    yield from _same_key(
+                        loc, gcs_key_file, other_key_file, None if j == i else other
+                    )
 
     def _devices(self, data: dict[str, Any]) -> Iterator[Finding]:
         for i, airframe in enumerate(_items(data.get("airframes"))):
@@ -254,6 +266,32 @@ def _key_problem(loc: Loc, path: Path, *, exact: bool) -> Iterator[Finding]:
         read_key_file(path, exact=exact)
     except ConfigError as exc:
         yield loc, f"{path}: " + "; ".join(issue.message for issue in exc.issues), True
+
+
+def _same_key(
+    loc: Loc, gcs_key_file: str, airframe_key_file: object, other: str | None
+) -> Iterator[Finding]:
+    """A ground station holding an airframe's signing key could command it around the policy.
+
+    ``other`` names the airframe whose key it is when that is not the passthrough's own.
+    """
+    if not isinstance(airframe_key_file, str):
+        return
+    try:
+        same = read_key_file(Path(gcs_key_file), exact=True) == read_key_file(
+            Path(airframe_key_file), exact=True
+        )
+    except ConfigError:
+        return  # reported on its own key
+    if same:
+        whose = "the airframe's" if other is None else f"airframe {other}'s"
+        yield (
+            loc,
+            f"the ground station's key is {whose} signing key: with it a ground "
+            "station could sign commands to that airframe directly, around the gateway's "
+            "command policy; give it a key of its own",
+            True,
+        )
 
 
 def _mapping(value: object) -> dict[str, Any]:

@@ -320,12 +320,6 @@ def _link_checks(data: dict[str, Any]) -> Iterator[tuple[Loc, str]]:
     for i, airframe in enumerate(airframes):
         if not isinstance(airframe, dict):
             continue
-        passthrough = airframe.get("passthrough")
-        if isinstance(passthrough, str) and not passthrough.startswith("udp://"):
-            yield (
-                ("airframes", i, "passthrough"),
-                (f"expected a udp:// endpoint for the passthrough, found {passthrough!r}"),
-            )
         links = airframe.get("links")
         for j, link in enumerate(links if isinstance(links, list) else ()):
             if not isinstance(link, dict) or not isinstance(link.get("uri"), str):
@@ -635,14 +629,15 @@ def _bind_checks(data: dict[str, Any]) -> Iterator[tuple[Loc, str]]:
     for i, airframe in enumerate(airframes if isinstance(airframes, list) else ()):
         if not isinstance(airframe, dict):
             continue
-        host = _uri_host(airframe.get("passthrough"))
+        passthrough = _mapping_or_empty(airframe.get("passthrough"))
+        host = _uri_host(passthrough.get("uri"))
         exposed = host is not None and not is_loopback_host(host)
-        if exposed and not airframe.get("passthrough_allow_non_loopback"):
+        if exposed and not passthrough.get("allow_non_loopback"):
             yield (
-                ("airframes", i, "passthrough"),
+                ("airframes", i, "passthrough", "uri"),
                 f"{host!r} is beyond loopback and the passthrough is plain MAVLink (anyone "
-                "who reaches it can command the airframe); add "
-                "passthrough_allow_non_loopback: true if that is intended",
+                "who reaches it reads the airframe's telemetry); add "
+                "allow_non_loopback: true to the passthrough if that is intended",
             )
         links = airframe.get("links")
         for j, link in enumerate(links if isinstance(links, list) else ()):
@@ -672,3 +667,7 @@ def _uri_host(uri: object) -> str | None:
         return urlsplit(uri).hostname
     except ValueError:
         return None
+
+
+def _mapping_or_empty(value: object) -> dict[str, Any]:
+    return value if isinstance(value, dict) else {}

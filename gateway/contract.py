@@ -1,13 +1,25 @@
-"""A sink contract check that third-party sink authors run in their own tests.
+"""The plugin contracts in one place, with the checks plugin authors run in their own tests.
 
-``check_sink(MySink, {"option": ...})`` builds the sink the way the gateway does and checks,
-with real calls on a real event loop, what the gateway relies on (docs/writing-a-sink.md):
-a strict, frozen config model; ``name``; ``kinds`` a non-empty frozenset of ``EventKind``;
-``aclose`` safe before ``open``; ``open``, ``send`` of an empty batch and of one event of
-every kind it accepts, and ``aclose``, each within a deadline and without blocking the event
-loop. A failure raises ``ContractViolation`` saying which rule and what was found.
+A sink, a source and a processor are each a small class found through an entry point
+(docs/writing-a-sink.md); this module names their protocols and option base classes
+(``Sink``/``SinkConfig``, ``Source``/``SourceConfig``, ``Processor``/``ProcessorConfig``) and
+ships one checker for each. A checker builds the component from its options the way the
+gateway does and runs it, with real calls on a real event loop, against what the gateway
+relies on: a strict, frozen options model; ``name`` kept; each call returning within a
+deadline without holding the event loop for more than ``MAX_BLOCK_S``; a long-running ``run``
+that reports ``started``, ends promptly when cancelled and publishes only valid events. A
+failure raises ``ContractViolation`` saying which rule and what was found.
 
-It is synchronous (it runs its own event loop), so call it from a plain test function::
+- ``check_sink``: ``kinds`` a non-empty frozenset of ``EventKind``; ``aclose`` safe before
+  ``open``; ``open``, ``send`` of an empty batch and of one event of every kind it accepts,
+  and ``aclose``.
+- ``check_source``: ``status()`` a dict before, during and after ``run``; ``drive`` (yours)
+  gives the running source its input.
+- ``check_processor``: ``kinds`` as for a sink; one sample event of every kind it consumes is
+  fed to its ``run``.
+
+The checkers are synchronous (each runs its own event loop), so call them from a plain test
+function::
 
     def test_my_sink_keeps_the_contract(tmp_path):
         check_sink(MySink, {"path": str(tmp_path / "out")})
@@ -15,15 +27,22 @@ It is synchronous (it runs its own event loop), so call it from a plain test fun
 
 from __future__ import annotations
 
+import json
+import threading
+import time
 from collections.abc import Awaitable, Callable, Mapping, Sequence
+from dataclasses import dataclass
 from datetime import UTC, datetime
-from typing import Any
+from typing import Any, Generic, TypeVar
 
 import anyio
+import anyio.abc
 import anyio.lowlevel
-from pydantic import ValidationError
+from pydantic import BaseModel, ValidationError
 
 from gateway.c2.sink import Sink, SinkConfig
+from gateway.c2.source import Source, SourceConfig
+from gateway.clock import utc_now
 from gateway.events import (
     BlueForce,
     Deconfliction,
@@ -45,17 +64,50 @@ from gateway.events import (
     Telemetry,
     Track,
     VideoFrameMetadata,
+    event_adapter,
 )
+from gateway.flow.processor import Processor, ProcessorConfig, Publish
 
-__all__ = ["ContractViolation", "check_sink", "sample_events"]
+__all__ = [
+    "MAX_BLOCK_S",
+    "ContractRun",
+    "ContractViolation",
+    "Processor",
+    "ProcessorConfig",
+    "Publish",
+    "Sink",
+    "SinkConfig",
+    "Source",
+    "SourceConfig",
+    "check_processor",
+    "check_sink",
+    "check_source",
+    "sample_events",
+]
 
 #: The event loop may not be held longer than this by one sink call.
 MAX_BLOCK_S = 0.1
 _TICK_S = 0.005
 
 
+#: At most this many published events are kept (and checked) by one check.
+MAX_PUBLISHED = 10_000
+
+T = TypeVar("T")
+
+
 class ContractViolation(AssertionError):
-    """Raised by ``check_sink`` when a sink breaks a rule of the sink contract."""
+    """Raised by a checker when a plugin breaks a rule of its contract."""
+
+
+@dataclass(frozen=True, slots=True)
+class ContractRun(Generic[T]):
+    """What a passed ``check_source`` or ``check_processor`` leaves for further asserts."""
+
+    component: T
+    """The instance that was checked (its ``status()``, counters ...)."""
+    published: tuple[Event, ...]
+    """Every event it published, in order (the first ``MAX_PUBLISHED``)."""
 
 
 def sample_events(kinds: frozenset[EventKind]) -> list[Event]:
@@ -186,26 +238,13 @@ def check_sink(
     ``events`` replaces the sample events (``sample_events(sink.kinds)``). Raises
     ``ContractViolation`` for the first rule broken.
     """
-    model = getattr(factory, "config_model", None)
-    if not (isinstance(model, type) and issubclass(model, SinkConfig)):
-        raise ContractViolation(f"{factory!r}: config_model must subclass gateway.SinkConfig")
-    try:
-        model.model_validate({"no_such_option_anywhere": 1})
-    except ValidationError:
-        pass
-    else:
-        raise ContractViolation(f"{model.__name__}: unknown options must be rejected")
-    config = model.model_validate(dict(options or {}))
+    config = _config(factory, SinkConfig, "gateway.SinkConfig", options)
     sink = factory(name, config)
     if not isinstance(sink, Sink):
         raise ContractViolation(f"{factory!r}: builds {sink!r}, which lacks Sink's members")
     if sink.name != name:
         raise ContractViolation(f"sink.name is {sink.name!r}, expected the given {name!r}")
-    kinds: object = sink.kinds
-    if not (
-        isinstance(kinds, frozenset) and kinds and all(isinstance(k, EventKind) for k in kinds)
-    ):
-        raise ContractViolation(f"kinds must be a non-empty frozenset of EventKind, got {kinds!r}")
+    kinds = _kinds(sink.kinds)
     batch = list(events) if events is not None else sample_events(kinds)
     anyio.run(_exercise, sink, batch, deadline_s)
     return sink
@@ -251,3 +290,289 @@ async def _timed(what: str, call: Callable[[], Awaitable[None]], deadline_s: flo
             f"{what} blocked the event loop for {longest:.3f} s (limit {MAX_BLOCK_S} s): "
             "run blocking work with anyio.to_thread.run_sync"
         )
+
+
+def check_source(
+    factory: Any,
+    options: Mapping[str, Any] | None = None,
+    *,
+    name: str = "contract",
+    drive: Callable[[Any], Awaitable[None]] | None = None,
+    run_s: float = 0.2,
+    deadline_s: float = 10.0,
+    clock: Callable[[], datetime] = utc_now,
+) -> ContractRun[Source]:
+    """Build ``factory`` (a source class) with ``options``, run it and check the contract.
+
+    The source runs until it reports ``started``; then ``drive(source)``, if given, gives it
+    input (send it a datagram, connect to its port); then it runs ``run_s`` more seconds and
+    is cancelled. Raises ``ContractViolation`` for the first rule broken; returns the source
+    and what it published.
+    """
+    config = _config(factory, SourceConfig, "gateway.SourceConfig", options)
+    published = _Published()
+    source = factory(name, config, published, clock=clock)
+    if not isinstance(source, Source):
+        raise ContractViolation(f"{factory!r}: builds {source!r}, which lacks Source's members")
+    if source.name != name:
+        raise ContractViolation(f"source.name is {source.name!r}, expected the given {name!r}")
+    _check_status(source, "before run()")
+
+    async def exercise(phase: _Phase) -> None:
+        async def input_then_wait() -> None:
+            if drive is not None:
+                phase.enter("drive(source)")
+                with anyio.fail_after(deadline_s):
+                    await drive(source)
+            _check_status(source, "while it runs")
+            await anyio.sleep(run_s)
+
+        await _exercise_run(phase, source.run, input_then_wait, deadline_s)
+
+    _nothing_published_yet(published)
+    _guarded(exercise, published, deadline_s)
+    _check_status(source, "after run() ended")
+    return ContractRun(source, published.kept())
+
+
+def check_processor(
+    factory: Any,
+    options: Mapping[str, Any] | None = None,
+    *,
+    name: str = "contract",
+    events: Sequence[Event] | None = None,
+    settle_s: float = 0.2,
+    deadline_s: float = 10.0,
+) -> ContractRun[Processor]:
+    """Build ``factory`` (a processor class) with ``options``, feed it and check the contract.
+
+    Its ``run`` gets a stream holding ``events`` (default: ``sample_events(processor.kinds)``);
+    once it has read them all and ``settle_s`` has passed, it is cancelled, as at shutdown.
+    Raises ``ContractViolation`` for the first rule broken; returns the processor and what it
+    published.
+    """
+    config = _config(factory, ProcessorConfig, "gateway.ProcessorConfig", options)
+    processor = factory(name, config)
+    if not isinstance(processor, Processor):
+        raise ContractViolation(
+            f"{factory!r}: builds {processor!r}, which lacks Processor's members"
+        )
+    if processor.name != name:
+        raise ContractViolation(
+            f"processor.name is {processor.name!r}, expected the given {name!r}"
+        )
+    batch = list(events) if events is not None else sample_events(_kinds(processor.kinds))
+    published = _Published()
+
+    async def exercise(phase: _Phase) -> None:
+        # Unbuffered: each send returns once run() has taken the event.
+        send, receive = anyio.create_memory_object_stream[Event](0)
+
+        async def run(*, task_status: anyio.abc.TaskStatus[None]) -> None:
+            await processor.run(receive, published, task_status=task_status)
+
+        async def feed_then_wait() -> None:
+            phase.enter(f"reading the {len(batch)} events fed to run()")
+            with anyio.fail_after(deadline_s):
+                for event in batch:
+                    await send.send(event)
+            await anyio.sleep(settle_s)
+
+        with send, receive:
+            await _exercise_run(phase, run, feed_then_wait, deadline_s)
+
+    _guarded(exercise, published, deadline_s)
+    return ContractRun(processor, published.kept())
+
+
+def _config(
+    factory: Any, base: type[BaseModel], base_name: str, options: Mapping[str, Any] | None
+) -> Any:
+    """The validated options of ``factory``; its model must subclass ``base`` and be strict."""
+    model = getattr(factory, "config_model", None)
+    if not (isinstance(model, type) and issubclass(model, base)):
+        raise ContractViolation(f"{factory!r}: config_model must subclass {base_name}")
+    try:
+        model.model_validate({"no_such_option_anywhere": 1})
+    except ValidationError:
+        pass
+    else:
+        raise ContractViolation(f"{model.__name__}: unknown options must be rejected")
+    return model.model_validate(dict(options or {}))
+
+
+def _kinds(kinds: object) -> frozenset[EventKind]:
+    if not (
+        isinstance(kinds, frozenset) and kinds and all(isinstance(k, EventKind) for k in kinds)
+    ):
+        raise ContractViolation(f"kinds must be a non-empty frozenset of EventKind, got {kinds!r}")
+    return kinds
+
+
+def _check_status(source: Source, when: str) -> None:
+    status: object = source.status()
+    if not isinstance(status, dict):
+        raise ContractViolation(f"status() {when} must return a dict, got {status!r}")
+    try:
+        json.dumps(status, default=str)
+    except (TypeError, ValueError) as exc:
+        raise ContractViolation(f"status() {when} does not serialise to JSON: {exc}") from exc
+
+
+class _Phase:
+    """What the check is waiting for, and since when (read by the watchdog thread)."""
+
+    def __init__(self) -> None:
+        self.what = "starting the event loop"
+        self.since = time.monotonic()
+
+    def enter(self, what: str) -> None:
+        self.what, self.since = what, time.monotonic()
+
+
+class _Published:
+    """The ``publish`` given to the plugin: keeps, and checks, every event it is handed."""
+
+    def __init__(self) -> None:
+        self.events: list[Event] = []
+        self.problem: str | None = None
+        self.loop_thread: int | None = None
+
+    def __call__(self, event: Event) -> bool:
+        if self.problem is None:
+            self.problem = self._check(event)
+        if len(self.events) < MAX_PUBLISHED:
+            self.events.append(event)
+        return True
+
+    def _check(self, event: object) -> str | None:
+        if threading.get_ident() != self.loop_thread:
+            return "publish() was called from outside the event loop's thread"
+        if not isinstance(event, BaseModel):
+            return f"published {event!r}, which is not a gateway event"
+        try:
+            again = event_adapter.validate_json(event.model_dump_json())
+        except (ValidationError, ValueError, TypeError) as exc:
+            return f"published an invalid {type(event).__name__}: {exc}"
+        if again != event:
+            return f"published a {type(event).__name__} that does not survive JSON: {event!r}"
+        return None
+
+    def kept(self) -> tuple[Event, ...]:
+        return tuple(self.events)
+
+
+def _nothing_published_yet(published: _Published) -> None:
+    """Nothing may be published before ``run`` (from ``__init__``, say)."""
+    if published.events:
+        raise ContractViolation(
+            f"published {len(published.events)} event(s) before run() was started"
+        )
+
+
+async def _exercise_run(
+    phase: _Phase,
+    run: Callable[..., Awaitable[None]],
+    meanwhile: Callable[[], Awaitable[None]],
+    deadline_s: float,
+) -> None:
+    """Start ``run`` as the gateway does, do ``meanwhile``, cancel it; check each step.
+
+    Violations are raised once every task group has exited, so they arrive unwrapped.
+    """
+    ended: list[str] = []
+    watch = _LoopWatch()
+
+    async def supervised(*, task_status: anyio.abc.TaskStatus[None]) -> None:
+        try:
+            await run(task_status=task_status)
+        except anyio.get_cancelled_exc_class():
+            raise
+        except Exception as exc:  # noqa: BLE001 - a plugin's bug, reported as a violation
+            ended.append(f"raised {type(exc).__name__}: {exc}")
+        else:
+            ended.append("returned")
+
+    problem: str | None = None
+    error: Exception | None = None
+    async with anyio.create_task_group() as outer:
+        outer.start_soon(watch.tick)
+        await anyio.lowlevel.checkpoint()
+        async with anyio.create_task_group() as tg:
+            phase.enter("run() calling task_status.started()")
+            try:
+                with anyio.fail_after(deadline_s):
+                    await tg.start(supervised)
+                await meanwhile()
+            except TimeoutError:
+                problem = f"{phase.what} did not happen within {deadline_s} s"
+            except RuntimeError:  # the child ended without reporting started
+                problem = f"run() {ended[0] if ended else 'ended'} before task_status.started()"
+            except Exception as exc:  # noqa: BLE001 - the caller's drive: raised unwrapped below
+                error = exc
+            if problem is None and ended:
+                problem = f"run() {ended[0]} before it was cancelled"
+            phase.enter("run() ending after it was cancelled")
+            cancelled_at = anyio.current_time()
+            tg.cancel_scope.cancel()
+        took = anyio.current_time() - cancelled_at
+        outer.cancel_scope.cancel()
+    if error is not None:
+        raise error
+    if problem is None and took > deadline_s:
+        problem = f"{phase.what} did not happen within {deadline_s} s (it took {took:.3f} s)"
+    if problem is None and ended:
+        problem = f"run() {ended[0]} when it was cancelled"
+    if problem is None and watch.longest > MAX_BLOCK_S:
+        problem = (
+            f"run() blocked the event loop for {watch.longest:.3f} s (limit {MAX_BLOCK_S} s): "
+            "run blocking work with anyio.to_thread.run_sync"
+        )
+    if problem is not None:
+        raise ContractViolation(problem)
+
+
+class _LoopWatch:
+    """Measures the longest time the event loop was held away from a ticking task."""
+
+    def __init__(self) -> None:
+        self.longest = 0.0
+
+    async def tick(self) -> None:
+        last = anyio.current_time()
+        while True:
+            await anyio.sleep(_TICK_S)
+            now = anyio.current_time()
+            self.longest = max(self.longest, now - last - _TICK_S)
+            last = now
+
+
+def _guarded(
+    exercise: Callable[[_Phase], Awaitable[None]], published: _Published, deadline_s: float
+) -> None:
+    """Run ``exercise`` on its own event loop in a thread, so a run that never ends cannot
+    hang the check: past twice the deadline in one phase, that phase is the violation (and
+    the thread is left to end when it may)."""
+    phase = _Phase()
+    failure: list[BaseException] = []
+
+    async def main() -> None:
+        published.loop_thread = threading.get_ident()
+        await exercise(phase)
+
+    def target() -> None:
+        try:
+            anyio.run(main)
+        except BaseException as exc:  # noqa: BLE001 - handed to the checking thread
+            failure.append(exc)
+
+    thread = threading.Thread(target=target, name="contract-check", daemon=True)
+    thread.start()
+    while thread.is_alive():
+        thread.join(_TICK_S * 10)
+        if thread.is_alive() and time.monotonic() - phase.since > 2 * deadline_s:
+            raise ContractViolation(f"{phase.what} did not happen within {deadline_s} s")
+    if failure:
+        raise failure[0]
+    if published.problem is not None:
+        raise ContractViolation(published.problem)

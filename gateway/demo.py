@@ -189,6 +189,10 @@ def prepare_demo(
     atak.bind(("127.0.0.1", 0))
     cot_port = _free_udp_port()
     data["sources"][0]["uri"] = f"udp://127.0.0.1:{cot_port}"
+    for processor in data["processors"]:
+        if processor["type"] == "fusion":
+            # Played ``speed`` times faster, everything moves that much faster on the wire.
+            processor.setdefault("options", {})["speed_scale"] = speed
     for sink in data["sinks"]:
         options = sink["options"]
         if sink["type"] == "jsonl":

@@ -25,6 +25,7 @@ __all__ = [
     "LATEST_WINS_KINDS",
     "Attitude",
     "BlueForce",
+    "BlueSourceCount",
     "Deconfliction",
     "Detection",
     "EffectorOption",
@@ -41,6 +42,7 @@ __all__ = [
     "OrderStatus",
     "OrderTask",
     "Position",
+    "Provenance",
     "Sensor",
     "Telemetry",
     "Track",
@@ -213,11 +215,14 @@ class Detection(BaseModel):
 
 
 class Track(BaseModel):
-    """A fused track built from one or more detections (``gateway.flow.tracker``).
+    """A fused track built from one or more detections (``tracking``).
 
     One ``track_id`` for the track's whole life; each create, update and loss is its own
-    event (``status``). ``confidence`` is the Dempster-Shafer belief in ``object_class``;
-    ``class_conflict`` the conflict K of the latest combination (0: the sensors agreed).
+    event (``status``). A track found to be a second track of another's object ends as
+    ``merged``, naming the surviving track in ``merged_into``; each event of one track has a
+    strictly newer ``time`` than the one before it. ``confidence`` is the Dempster-Shafer
+    belief in ``object_class``; ``class_conflict`` the conflict K of the latest combination
+    (0: the sensors agreed).
     ``detection_ids`` holds the newest contributing detections (at most 32).
     """
 
@@ -227,7 +232,9 @@ class Track(BaseModel):
     event_id: str
     track_id: str
     time: AwareDatetime
-    status: Literal["created", "updated", "lost"] = "updated"
+    status: Literal["created", "updated", "lost", "merged"] = "updated"
+    merged_into: str | None = None
+    """For ``merged``: the id of the track this one was folded into (it lives on)."""
     object_class: str
     subtype: str = ""
     confidence: float = Field(ge=0.0, le=1.0)
@@ -249,6 +256,27 @@ class Track(BaseModel):
     late_by_s: float | None = Field(default=None, ge=0.0)
 
 
+class Provenance(StrEnum):
+    """How far the sender of a friendly report (and its text) was checked.
+
+    - ``configured``: fixed in the gateway's own config (the ``counter_uas`` processor's
+      ``blue_forces``): the operator wrote it; no peer can send or move it.
+    - ``authenticated``: received over TLS from a peer whose client certificate chains to the
+      CA the source names (NFFI ``tls://``). The *transport* is authenticated: the peer holds a
+      key that CA vouched for. What it relays (another system's callsign) is still its word.
+    - ``address_only``: received over plain TCP from an address on the source's allow-list
+      (NFFI ``tcp://``). An address check, not authentication: any process on an allowed host,
+      or anyone able to use its address, can send.
+    - ``unauthenticated``: anyone who can reach the port (CoT over UDP, multicast or TCP). The
+      default for a report that does not say.
+    """
+
+    CONFIGURED = "configured"
+    AUTHENTICATED = "authenticated"
+    ADDRESS_ONLY = "address_only"
+    UNAUTHENTICATED = "unauthenticated"
+
+
 class BlueForce(BaseModel):
     """A friendly unit's reported position (from CoT, NFFI ...), used for deconfliction."""
 
@@ -265,6 +293,11 @@ class BlueForce(BaseModel):
     speed_mps: float | None = Field(default=None, ge=0.0)
     sidc: str | None = Field(default=None, pattern=r"^[A-Z0-9*-]{15}$")
     """The unit's 15-character letter SIDC (APP-6A / 2525B/C) when the report gave one."""
+    source_name: str = ""
+    """The configured name of the source (or processor) that produced the report."""
+    provenance: Provenance = Provenance.UNAUTHENTICATED
+    """How far its sender was checked (``Provenance``); a report that
+    does not say (an archive from before provenance existed) is unauthenticated."""
 
 
 class EffectorOption(BaseModel):
@@ -277,6 +310,16 @@ class EffectorOption(BaseModel):
     danger_close_m: float = Field(ge=0.0)
 
 
+class BlueSourceCount(BaseModel):
+    """How many current friendly units one source gave deconfliction, and how far it is trusted."""
+
+    model_config = _FROZEN
+
+    source: str
+    provenance: Provenance
+    units: int = Field(ge=0)
+
+
 class Deconfliction(BaseModel):
     """The blue-force check of a cued track: the nearest current friendly unit, if any.
 
@@ -284,7 +327,14 @@ class Deconfliction(BaseModel):
     offered and the blue-force picture is complete. ``blue_picture_complete`` is False when
     no friendly position is current at all (nothing known is not "clear") or the gateway had
     to drop friendly reports for room lately; ``clear`` is then always False.
-    ``blue_units_considered`` says how many units the check saw.
+    ``blue_units_considered`` says how many units the check saw, ``blue_sources`` how many of
+    them came from each source, with what provenance.
+
+    The nearest unit's uid and callsign are peer text made safe (``peertext.safe_text``);
+    ``nearest_blue_callsign_provenance`` says in words what the callsign is ("unauthenticated
+    CoT callsign"), ``nearest_blue_source`` and ``nearest_blue_provenance`` which source
+    reported the unit and how far its sender was checked. Whatever shows the callsign shows
+    its provenance with it.
     """
 
     model_config = _FROZEN
@@ -295,6 +345,10 @@ class Deconfliction(BaseModel):
     nearest_blue_m: float | None = Field(default=None, ge=0.0)
     blue_units_considered: int = Field(ge=0)
     blue_picture_complete: bool = True
+    nearest_blue_callsign_provenance: str | None = None
+    nearest_blue_source: str | None = None
+    nearest_blue_provenance: Provenance | None = None
+    blue_sources: tuple[BlueSourceCount, ...] = ()
 
 
 class Handoff(BaseModel):
@@ -310,6 +364,10 @@ class Handoff(BaseModel):
     the cue is sent again as the next ``revision``. Each revision is its own delivery:
     ``event_id`` (the idempotency key) is ``handoff_id`` for revision 0 and
     ``<handoff_id>-r<revision>`` after it.
+
+    ``status`` says what the battery should do with the cue: ``active`` (it stands),
+    ``superseded`` (its track merged into another that has its own cue, ``superseded_by``;
+    drop this one) or ``withdrawn``. ``note`` says in words why a revision was sent.
     """
 
     model_config = _FROZEN
@@ -318,6 +376,9 @@ class Handoff(BaseModel):
     event_id: str
     handoff_id: str
     revision: int = Field(default=0, ge=0)
+    status: Literal["active", "superseded", "withdrawn"] = "active"
+    superseded_by: str | None = None
+    note: str = ""
     time: AwareDatetime
     battery: str
     battery_position: Position

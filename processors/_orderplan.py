@@ -6,9 +6,11 @@ through (from where it is, over the task, back home) and the time it will spend 
 ``check`` runs the acceptance checks on a plan, in order, and returns the first that fails
 as a ``Refusal`` naming the check and its numbers:
 
-- ``geofence``: every point of the route, and every leg, inside the airframe's fence;
-- ``terrain``: at every task point and along the inbound and task legs, where a DEM covers
-  them, the commanded
+- ``geofence``: every point of the route, and every leg flown as the geodesic and as the
+  rhumb line (``gateway.domain.paths``), inside the airframe's fence, whose edges are
+  geodesics (``gateway.domain.mission.route_exit``); a refusal says how far outside;
+- ``terrain``: at every task point and along the inbound and task legs (their geodesic and,
+  where it parts from it, their rhumb line), where a DEM covers them, the commanded
   altitude is at least the ground plus the clearance plus 3σ of height above ground
   (``gateway.domain.terrain.safe_floor_agl_m``, σ from the barometer and the DEM);
 - ``endurance``: the route at cruise speed, the time on task and the reserve fit in the
@@ -29,11 +31,13 @@ from gateway.domain.geodesy import destination
 from gateway.domain.mission import (
     MAV_CMD_NAV_LOITER_TIME,
     MAV_CMD_NAV_WAYPOINT,
+    Excursion,
     MissionItem,
     polygon_problem,
-    route_inside,
+    route_exit,
     route_length_m,
 )
+from gateway.domain.paths import geodesic_points, linear_bow_m, rhumb_bow_m, rhumb_points
 from gateway.domain.terrain import SAFETY_SIGMAS, TerrainModel, agl_sigma, safe_floor_agl_m
 from gateway.events import FiveLineOrder, OrderTask, Telemetry
 
@@ -45,6 +49,12 @@ LatLon = tuple[float, float]
 _SAMPLE_SPACING_M = 250.0
 _MAX_SAMPLES = 5000
 _M_PER_DEG = 111_320.0
+#: A leg whose geodesic, rhumb line and latitude-longitude line are all within this of each
+#: other is sampled along the last (the cheapest); see ``_samples``.
+_TERRAIN_TOLERANCE_M = 5.0
+#: The loiter circle is checked as the octagon round it (corners at radius / cos 22.5°),
+#: which holds the whole circle: at most 8 % of the radius further out than the circle.
+_OCTAGON = 8
 
 
 @dataclass(frozen=True, slots=True)
@@ -120,8 +130,12 @@ def plan(
                 (limits.time_on_task_s, 0.0, radius, 0.0),
             ),
         )
-        # The loiter circle: its far side is still flown, so check it for fence and terrain.
-        circle = tuple(destination(point[0], point[1], b, radius) for b in (0, 90, 180, 270))
+        # The loiter circle: its far side is still flown, so check it for fence and terrain,
+        # as the octagon drawn round it (its legs never cut inside the circle).
+        out_r = radius / math.cos(math.pi / _OCTAGON)
+        circle = tuple(
+            destination(point[0], point[1], 360.0 * i / _OCTAGON, out_r) for i in range(_OCTAGON)
+        )
         task: tuple[LatLon, ...] = (point, *circle, point)
         orbit_m = 2 * math.pi * radius
         on_task_s = max(limits.time_on_task_s, orbit_m / limits.cruise_speed_mps)
@@ -147,12 +161,14 @@ def plan(
 
 def _samples(points: Sequence[LatLon]) -> list[LatLon]:
     """The points and, between them, a sample every ``_SAMPLE_SPACING_M`` for the terrain
-    check (sparser on a very long route: ``_MAX_SAMPLES`` in all at most).
+    check (sparser on a very long route: ``_MAX_SAMPLES`` per path in all at most).
 
-    Interpolated linearly in latitude and longitude, not along the geodesic: over a leg of
-    tens of kilometres the two differ by metres, far less than a DEM cell, and the linear
-    form costs a hundredth as much (a 64-corner area is checked in milliseconds, on the
-    event loop).
+    A leg is sampled along the paths an autopilot flies (``gateway.domain.paths``): its
+    geodesic and, where that parts from it by more than ``_TERRAIN_TOLERANCE_M``, its rhumb
+    line too. A short leg, where the two and the line linear in latitude and longitude are
+    all within ``_TERRAIN_TOLERANCE_M`` of each other, is sampled along the last, which costs
+    a tenth as much (the legs of an area order are short: its 64 corners are checked in
+    milliseconds, on the event loop); those samples are within 10 m of either path.
     """
     legs = []
     for a, b in pairwise(points):
@@ -165,11 +181,32 @@ def _samples(points: Sequence[LatLon]) -> list[LatLon]:
     out: list[LatLon] = list(points[:1])
     for a, b, dlat, dlon, length_m in legs:
         steps = math.ceil(length_m / spacing_m)
+        bow_m = rhumb_bow_m(a, b, length_m)
+        if bow_m > _TERRAIN_TOLERANCE_M or linear_bow_m(a, b) > _TERRAIN_TOLERANCE_M:
+            out.extend(geodesic_points(a, b, spacing_m)[1:])
+            if bow_m > _TERRAIN_TOLERANCE_M:
+                out.extend(rhumb_points(a, b, steps)[1:-1])
+            continue
         for i in range(1, steps):
             f = i / steps
             out.append((a[0] + f * dlat, (a[1] + f * dlon + 180.0) % 360.0 - 180.0))
         out.append(b)
     return out
+
+
+def _distance(metres: float) -> str:
+    return f"{metres:.0f} m" if metres < 10_000 else f"{metres / 1000:.1f} km"
+
+
+def _fence_reason(where: Excursion) -> str:
+    reason = (
+        f"the route leaves the geofence at {_fmt(where.point)} (lat, lon),"
+        f" {_distance(where.outside_m)} outside"
+    )
+    if where.leg is not None:
+        a, b = where.leg
+        reason += f", on the leg {_fmt(a)} to {_fmt(b)} flown as the {where.path}"
+    return reason
 
 
 def check(
@@ -181,11 +218,9 @@ def check(
         points = (
             plan.route if plan.is_return else (*plan.route[:1], *plan.task_points, plan.route[-1])
         )
-        outside = route_inside(fence, points)
+        outside = route_exit(fence, points)
         if outside is not None:
-            return Refusal(
-                "geofence", f"the route leaves the geofence at {_fmt(outside)} (lat, lon)"
-            )
+            return Refusal("geofence", _fence_reason(outside))
     if terrain is not None and not plan.is_return:
         worst: tuple[float, float, float, float, LatLon] | None = None
         # The inbound leg is flown towards the commanded altitude too; the way home is the

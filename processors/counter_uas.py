@@ -34,7 +34,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from gateway.clock import utc_now
 from gateway.configfile import load_model_text, read_bounded_text
 from gateway.domain.effectors import EffectorTable, check_effector_table, load_effector_table
-from gateway.events import BlueForce, Event, EventKind, Position, Track, event_id
+from gateway.events import BlueForce, Event, EventKind, Position, Provenance, Track, event_id
 from gateway.flow.blueforce import BlueForceRegistry
 from gateway.flow.cue import Battery, CueDesk
 from gateway.flow.processor import ProcessorConfig, Publish
@@ -162,6 +162,8 @@ class CounterUasProcessor:
                 callsign=unit.callsign,
                 position=Position(lat_deg=unit.lat_deg, lon_deg=unit.lon_deg),
                 source=f"config:{name}",
+                source_name=name,
+                provenance=Provenance.CONFIGURED,
             )
             for unit in config.blue_forces
         ]
@@ -218,6 +220,7 @@ class CounterUasProcessor:
                             processor=self.name,
                             handoff=handoff.event_id,
                             revision=handoff.revision,
+                            status=handoff.status,
                             battery=handoff.battery,
                             deconfliction_clear=handoff.deconfliction.clear,
                             recommended=handoff.recommended_effector,
@@ -248,4 +251,6 @@ class CounterUasProcessor:
             "not_clear": counts.not_clear,
             "out_of_reach": counts.out_of_reach,
             "below_confidence": counts.below_confidence,
+            "superseded": counts.superseded,
+            "carried_on": counts.carried_on,
         }

@@ -1,30 +1,43 @@
 """The fusion processor: Detections in, Dempster-Shafer fused Tracks out.
 
-``FusionProcessor`` feeds each Detection from its inbox to a ``gateway.flow.tracker.Tracker``
-and publishes the Tracks it returns. It ticks the tracker about once a second (every
+``FusionProcessor`` feeds each Detection from its inbox to a ``tracking.Tracker`` and
+publishes the Tracks it returns. The tracker assigns the detections of one sensor frame
+jointly, so a frame is processed once its source's next frame starts or, at the latest,
+``frame_wait_s`` after the inbox went quiet. It ticks the tracker about once a second (every
 ``tick_s``) even when no detection arrives, so held-back updates are flushed and silent
-tracks are reported lost on time. The algorithm and its rules are in ``gateway.flow.tracker``;
-this module holds only the options and the loop.
+tracks are reported lost on time. The algorithm and its rules are in ``tracking``; this
+module holds only the options and the loop.
 """
 
 from __future__ import annotations
 
+import math
 from typing import ClassVar, Literal
 
 import anyio
 import anyio.abc
 import structlog
 from anyio.streams.memory import MemoryObjectReceiveStream
-from pydantic import BaseModel, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from gateway.clock import Clock, utc_now
 from gateway.events import Detection, Event, EventKind
 from gateway.flow.processor import ProcessorConfig, Publish
-from gateway.flow.tracker import DEFAULT_CLASSES, OTHER, Tracker, TrackerSettings
+from tracking import DEFAULT_CLASSES, OTHER, Tracker, TrackerSettings
+from tracking.priors import load_priors
 
-__all__ = ["FusionConfig", "FusionProcessor"]
+__all__ = ["ClassPriorOption", "FusionConfig", "FusionProcessor"]
 
 log = structlog.get_logger(__name__)
+
+
+class ClassPriorOption(BaseModel):
+    """One class's motion prior (``tracking.priors``)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    max_speed_mps: float = Field(gt=0, le=1000, description="Plausible top speed (m/s).")
+    accel_mps2: float = Field(gt=0, le=100, description="Manoeuvring acceleration σ (m/s²).")
 
 
 class FusionConfig(ProcessorConfig):
@@ -40,13 +53,22 @@ class FusionConfig(ProcessorConfig):
         description="Classes reported hostile; every other class is suspect.",
     )
     gate_sigma: float = Field(
-        default=3.0, gt=0, le=10, description="Association gate, in combined σ."
+        default=4.0, gt=0, le=10, description="Association gate: Mahalanobis distance, in σ."
     )
     max_gap_s: float = Field(
-        default=10.0, gt=0, le=600, description="A track older than this is not associated."
+        default=60.0, gt=0, le=600, description="A track silent this long takes no detection."
+    )
+    coast_after_s: float = Field(
+        default=3.0, gt=0, le=600, description="A track without detections this long coasts."
     )
     lost_after_s: float = Field(
-        default=30.0, gt=0, le=3600, description="A track without detections this long is lost."
+        default=60.0, gt=0, le=3600, description="A track without detections this long is lost."
+    )
+    confirm_hits: int = Field(
+        default=3, ge=1, le=20, description="Detections (M) that confirm a tentative track..."
+    )
+    confirm_window: int = Field(
+        default=5, ge=1, le=50, description="...within its first N chances (M of N)."
     )
     max_tracks: int = Field(
         default=5000, ge=1, le=1_000_000, description="Live tracks at most; more are refused."
@@ -54,14 +76,24 @@ class FusionConfig(ProcessorConfig):
     update_interval_s: float = Field(
         default=1.0, ge=0, le=60, description="Updates of one track at most this often."
     )
-    process_noise_mps: float = Field(
-        default=5.0, ge=0, le=100, description="Velocity uncertainty that grows position σ."
+    class_priors: dict[str, ClassPriorOption] = Field(
+        default_factory=dict,
+        description="Per-class speed limit and manoeuvre noise, over tracking/classes.yaml.",
     )
-    max_speed_mps: float = Field(
-        default=100.0, gt=0, le=1000, description="The fastest plausible target (m/s)."
+    max_speed_mps: float | None = Field(
+        default=None, gt=0, le=1000, description="Raise every class's speed limit to this."
     )
-    velocity_window: int = Field(
-        default=6, ge=2, le=64, description="Fused positions the velocity is fitted over."
+    speed_scale: float = Field(
+        default=1.0, gt=0, le=100, description="Speed limits × this (a sim played faster)."
+    )
+    report_velocity_sigma_mps: float = Field(
+        default=1.2, gt=0, le=100, description="Velocity published once σ ≤ this + 6 % speed."
+    )
+    merge_sigma: float = Field(
+        default=3.0, gt=0, le=10, description="Two tracks this close (σ) are merge candidates."
+    )
+    merge_after: int = Field(
+        default=2, ge=1, le=20, description="...merged after agreeing this many updates."
     )
     index: Literal["grid", "all_pairs"] = Field(
         default="grid", description="Association candidates: spatial grid, or every track."
@@ -71,6 +103,9 @@ class FusionConfig(ProcessorConfig):
     )
     loitering_munition: Literal["uav_attack", "missile"] = Field(
         default="uav_attack", description="The symbol a loitering munition's SIDC uses."
+    )
+    frame_wait_s: float = Field(
+        default=0.05, ge=0, le=5, description="A sensor frame is processed this long after input."
     )
     tick_s: float = Field(
         default=1.0, gt=0, le=60, description="Seconds between ageing passes without input."
@@ -90,21 +125,37 @@ class FusionConfig(ProcessorConfig):
         unknown = sorted(set(self.hostile_classes) - set(self.classes))
         if unknown:
             raise ValueError(f"hostile_classes {unknown} are not in classes")
+        if self.confirm_hits > self.confirm_window:
+            raise ValueError("confirm_hits must not exceed confirm_window")
         return self
 
     def settings(self) -> TrackerSettings:
         """The tracker's parameters from these options."""
+        base = load_priors()
+        overrides: dict[str, object] = {}
+        for name in {*base.names(), *self.class_priors}:
+            given = self.class_priors.get(name)
+            prior = base[name] if given is None else given
+            speed = prior.max_speed_mps
+            if self.max_speed_mps is not None:
+                speed = max(speed, self.max_speed_mps)
+            overrides[name] = {"max_speed_mps": speed, "accel_mps2": prior.accel_mps2}
         return TrackerSettings(
             classes=self.classes,
             hostile_classes=frozenset(self.hostile_classes),
             gate_sigma=self.gate_sigma,
             max_gap_s=self.max_gap_s,
+            coast_after_s=self.coast_after_s,
             lost_after_s=self.lost_after_s,
+            confirm_hits=self.confirm_hits,
+            confirm_window=self.confirm_window,
             max_tracks=self.max_tracks,
             update_interval_s=self.update_interval_s,
-            process_noise_mps=self.process_noise_mps,
-            max_speed_mps=self.max_speed_mps,
-            velocity_window=self.velocity_window,
+            speed_scale=self.speed_scale,
+            report_velocity_sigma_mps=self.report_velocity_sigma_mps,
+            merge_sigma=self.merge_sigma,
+            merge_after=self.merge_after,
+            priors=load_priors(overrides),
             index=self.index,
             cell_m=self.cell_m,
             loitering_munition=self.loitering_munition,
@@ -112,7 +163,7 @@ class FusionConfig(ProcessorConfig):
 
 
 class FusionProcessor:
-    """Detections to fused Tracks (``gateway.flow.tracker``), ticked every ``tick_s``."""
+    """Detections to fused Tracks (``tracking``), ticked every ``tick_s``."""
 
     config_model: ClassVar[type[BaseModel]] = FusionConfig
 
@@ -141,18 +192,28 @@ class FusionProcessor:
         """
         task_status.started()
         deadline = anyio.current_time() + self.config.tick_s
+        flush_at = math.inf
         async with events:
             while True:
-                with anyio.move_on_after(max(0.0, deadline - anyio.current_time())):
+                wake = min(deadline, flush_at)
+                with anyio.move_on_after(max(0.0, wake - anyio.current_time())):
                     try:
                         event = await events.receive()
                     except anyio.EndOfStream:
+                        for track in self.tracker.flush():
+                            publish(track)
                         return
                     if isinstance(event, Detection):
                         for track in self.tracker.update(event):
                             publish(track)
-                if anyio.current_time() >= deadline:
-                    deadline = anyio.current_time() + self.config.tick_s
+                        flush_at = anyio.current_time() + self.config.frame_wait_s
+                now = anyio.current_time()
+                if now >= flush_at:
+                    flush_at = math.inf
+                    for track in self.tracker.flush():
+                        publish(track)
+                if now >= deadline:
+                    deadline = now + self.config.tick_s
                     for track in self.tracker.tick(self._clock()):
                         publish(track)
 
@@ -161,8 +222,13 @@ class FusionProcessor:
         counts = self.tracker.counts
         return {
             "tracks": len(self.tracker),
+            "confirmed": len(self.tracker.confirmed_ids),
+            "frames": counts.frames,
             "associated": counts.associated,
             "created": counts.created,
+            "discarded": counts.discarded,
+            "merged": counts.merged,
+            "speed_prior": counts.speed_prior,
             "refused_full": counts.refused_full,
             "total_conflict": counts.total_conflict,
             "lost": counts.lost,

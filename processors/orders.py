@@ -184,6 +184,8 @@ class OrdersProcessor:
         self._seen: OrderedDict[str, None] = OrderedDict()
         #: The newest position of each live fused track, for track_target orders naming one.
         self._tracks: OrderedDict[str, Position] = OrderedDict()
+        #: Merged track id → the track it was folded into (an order may name either).
+        self._merged: OrderedDict[str, str] = OrderedDict()
         self._running: dict[str, _Running] = {}
         self._publish: Publish = lambda _event: True
         self.counts: dict[str, int] = {}
@@ -442,7 +444,11 @@ class OrdersProcessor:
 
     def _on_track(self, track: Track) -> None:
         self._tracks.pop(track.track_id, None)
-        if track.status != "lost":
+        if track.status == "merged" and track.merged_into is not None:
+            self._merged[track.track_id] = track.merged_into
+            while len(self._merged) > _REMEMBERED_TRACKS:
+                self._merged.popitem(last=False)
+        if track.status not in ("lost", "merged"):
             self._tracks[track.track_id] = track.position
             while len(self._tracks) > _REMEMBERED_TRACKS:
                 self._tracks.popitem(last=False)
@@ -451,7 +457,12 @@ class OrdersProcessor:
         """A track_target order naming a live track flies to the track's newest position."""
         if order.task is not OrderTask.TRACK_TARGET or order.track_id is None:
             return order
-        where = self._tracks.get(order.track_id)
+        track_id = order.track_id
+        for _ in range(8):  # a merged track's survivor, followed a few merges deep at most
+            if track_id not in self._merged:
+                break
+            track_id = self._merged[track_id]
+        where = self._tracks.get(track_id)
         if where is None:
             return order
         given = order.location.point.alt_msl_m if order.location.point is not None else None

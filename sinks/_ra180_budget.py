@@ -182,7 +182,8 @@ class Budget:
         """
         c = self.counts
         c.offered += 1
-        if track.status == "lost":
+        if track.status in ("lost", "merged"):
+            # Gone, or folded into another track the net keeps hearing: its wait ends here.
             self._known.pop(track.track_id, None)
             if self._drop_held(track.track_id) is not None:
                 c.dropped_lost += 1

@@ -3,8 +3,10 @@
 ``Story.tell(event)`` returns the lines an event adds to the story, or none: a friendly unit
 when first registered, the first detection of each airframe, sensor and class (later ones are
 only counted), a track when created, when its fused class or confidence changes and when
-lost, and each counter-UAS cue with its deconfliction. Positions are MGRS. State is bounded:
-at most ``MAX_KEYS`` remembered keys per kind, the oldest forgotten first.
+lost, and each counter-UAS cue with its deconfliction. A callsign (peer text) is shown made
+safe, quoted and marked with its provenance (``gateway.domain.peertext``). Positions are
+MGRS. State is bounded: at most ``MAX_KEYS`` remembered keys per kind, the oldest forgotten
+first.
 """
 
 from __future__ import annotations
@@ -12,10 +14,11 @@ from __future__ import annotations
 from collections import OrderedDict
 
 from gateway.domain.geodesy import to_mgrs
+from gateway.domain.peertext import marked, safe_text, shown
 from gateway.errors import GatewayError
-from gateway.events import BlueForce, Detection, Event, Handoff, Position, Track
+from gateway.events import BlueForce, Deconfliction, Detection, Event, Handoff, Position, Track
 
-__all__ = ["Story"]
+__all__ = ["Story", "nearest_blue"]
 
 MAX_KEYS = 10_000
 
@@ -25,6 +28,22 @@ def _mgrs(position: Position) -> str:
         return to_mgrs(position.lat_deg, position.lon_deg, 10, spaced=True)
     except GatewayError:  # polar: MGRS has no UTM zone there
         return f"{position.lat_deg:.5f},{position.lon_deg:.5f}"
+
+
+def nearest_blue(check: Deconfliction) -> str:
+    """The nearest friendly unit, its callsign (peer text) marked with its provenance."""
+    if check.nearest_blue_callsign:
+        return marked(
+            check.nearest_blue_callsign,
+            check.nearest_blue_callsign_provenance,
+            check.nearest_blue_source,
+        )
+    provenance = check.nearest_blue_provenance
+    return (
+        f'uid "{safe_text(check.nearest_blue_uid or "?", 64)}"'
+        f" ({'unknown provenance' if provenance is None else provenance.value}"
+        f", source {check.nearest_blue_source or '-'})"
+    )
 
 
 class _Seen:
@@ -55,10 +74,13 @@ class Story:
         if isinstance(event, BlueForce):
             if not self._blue.changed(event.uid, ""):
                 return []
-            return [
-                f"blue force registered: {event.callsign or event.uid} ({event.uid})"
-                f" at {_mgrs(event.position)} via {event.source}"
-            ]
+            uid = safe_text(event.uid, 64)
+            if event.callsign:
+                who = shown(event.callsign, event.provenance, event.source, event.source_name)
+                who += f', uid "{uid}",'
+            else:
+                who = f'uid "{uid}" ({event.provenance.value}, source {event.source_name or "-"})'
+            return [f"blue force registered: {who} at {_mgrs(event.position)} via {event.source}"]
         if isinstance(event, Detection):
             key = f"{event.airframe}\x00{event.sensor.value}\x00{event.object_class}"
             if not self._detections.changed(key, ""):
@@ -77,6 +99,11 @@ class Story:
     def _track(self, track: Track) -> list[str]:
         if track.status == "lost":
             return [f"track {track.track_id} lost: no detection since {track.last_seen:%H:%M:%SZ}"]
+        if track.status == "merged":
+            return [
+                f"track {track.track_id} merged into {track.merged_into}:"
+                " a second track of the same object"
+            ]
         sensors = "+".join(sorted({s.value.upper() for s in track.sensors})) or "-"
         summary = f"{track.object_class}|{track.confidence:.2f}|{sensors}"
         if not self._tracks.changed(track.track_id, summary):
@@ -94,12 +121,18 @@ class Story:
 
     @staticmethod
     def _handoff(handoff: Handoff) -> list[str]:
+        if handoff.status != "active":
+            return [
+                f"GUTE II cue {handoff.handoff_id} revision {handoff.revision}"
+                f" {handoff.status} at battery {handoff.battery}"
+                + (f" by {handoff.superseded_by}" if handoff.superseded_by else "")
+                + (f": {handoff.note}" if handoff.note else "")
+            ]
         check = handoff.deconfliction
         if check.nearest_blue_m is None:
             nearest = f"no friendly unit known ({check.blue_units_considered} considered)"
         else:
-            who = check.nearest_blue_callsign or check.nearest_blue_uid or "?"
-            nearest = f"nearest blue {who} at {check.nearest_blue_m:.0f} m"
+            nearest = f"nearest blue {nearest_blue(check)} at {check.nearest_blue_m:.0f} m"
         verdict = "deconfliction clear" if check.clear else "deconfliction NOT clear"
         if not check.blue_picture_complete:
             nearest += "; blue-force picture incomplete (no friendly position, or reports dropped)"

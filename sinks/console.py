@@ -23,6 +23,7 @@ import structlog
 from pydantic import Field
 
 from gateway.c2.sink import SinkConfig
+from gateway.domain.peertext import safe_text, shown
 from gateway.errors import TransientSinkError
 from gateway.events import (
     BlueForce,
@@ -39,7 +40,7 @@ from gateway.events import (
     Track,
     VideoFrameMetadata,
 )
-from sinks._story import Story
+from sinks._story import Story, nearest_blue
 
 __all__ = ["ConsoleSink", "ConsoleSinkConfig", "describe"]
 
@@ -115,8 +116,13 @@ def describe(event: Event) -> str:
             f" at {_where(event.position)} cep50 {event.cep50_m:.0f} m"
         )
     if isinstance(event, BlueForce):
+        who = (
+            shown(event.callsign, event.provenance, event.source, event.source_name)
+            if event.callsign
+            else "-"
+        )
         return (
-            f"{head} {event.uid} {event.callsign or '-'} at {_where(event.position)}"
+            f'{head} uid "{safe_text(event.uid, 64)}" {who} at {_where(event.position)}'
             f" via {event.source}"
         )
     if isinstance(event, Handoff):
@@ -124,10 +130,7 @@ def describe(event: Event) -> str:
         nearest = (
             "no blue force known"
             if blue.nearest_blue_m is None
-            else (
-                f"nearest blue {blue.nearest_blue_callsign or blue.nearest_blue_uid}"
-                f" {blue.nearest_blue_m:.0f} m"
-            )
+            else (f"nearest blue {nearest_blue(blue)} {blue.nearest_blue_m:.0f} m")
         )
         verdict = "deconfliction clear" if blue.clear else "deconfliction NOT clear"
         return (

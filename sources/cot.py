@@ -18,6 +18,10 @@ event is counted by outcome in ``counts`` (``accepted``, ``no_fix``, ``not_frien
 an event, ``invalid``, ``oversize``, ``fragment`` for stream bytes that
 were not an event), invalid ones also by ``problems``, and logged rate-limited without the
 payload. The TCP side and its bounds are in ``sources._cot_stream``.
+
+Anyone who can reach the port is a sender, so every BlueForce from here is ``unauthenticated``
+(``gateway.domain.peertext.Provenance``) and its callsign is made safe (``safe_text``) here;
+whatever shows it later marks it "unauthenticated CoT callsign".
 """
 
 from __future__ import annotations
@@ -33,12 +37,14 @@ from urllib.parse import urlsplit
 import anyio
 import anyio.abc
 import structlog
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import Field, field_validator
 
 from gateway.c2.newest import NewestTimes
+from gateway.c2.source import SourceConfig
 from gateway.clock import utc_now
 from gateway.codecs.cot.validate import CotError, ParsedCot, is_unknown, parse_cot
-from gateway.events import BlueForce, Event, Position, event_id
+from gateway.domain.peertext import safe_text
+from gateway.events import BlueForce, Event, Position, Provenance, event_id
 from gateway.ops.logsetup import RateLimit
 from gateway.transports.udp import is_multicast
 from sources._cot_stream import CotStreamServer
@@ -54,14 +60,12 @@ FUTURE_TOLERANCE = timedelta(seconds=60)
 _SCHEMES = ("udp", "udp+multicast", "tcp")
 
 
-class CotSourceConfig(BaseModel):
+class CotSourceConfig(SourceConfig):
     """A CoT input: ``udp://HOST:PORT``, ``udp+multicast://GROUP:PORT`` or ``tcp://HOST:PORT``.
 
     For UDP, HOST is the address to bind (or a multicast group to join on ``interface``); for
     TCP, the address to listen on. Port 0 picks a free port (see ``CotSource.local_port``).
     """
-
-    model_config = ConfigDict(frozen=True, extra="forbid")
 
     type: Literal["cot"] = Field(default="cot", description="The source type (only cot today).")
     name: str = Field(
@@ -231,7 +235,7 @@ class CotSource:
             return
         self._newest.remember(cot.uid, cot.time)
         self.counts["accepted"] += 1
-        self._publish(_blue_force(cot))
+        self._publish(_blue_force(cot, self.name))
 
     async def run(
         self, *, task_status: anyio.abc.TaskStatus[None] = anyio.TASK_STATUS_IGNORED
@@ -278,16 +282,19 @@ class CotSource:
                 self.handle(data)
 
 
-def _blue_force(cot: ParsedCot) -> BlueForce:
+def _blue_force(cot: ParsedCot, source_name: str) -> BlueForce:
+    """Anyone who reaches a CoT port may send: unauthenticated, its callsign made safe."""
     return BlueForce(
         event_id=event_id("cot", cot.uid, int(cot.time.timestamp() * 1000)),
         uid=cot.uid,
         time=cot.time,
-        callsign=cot.callsign,
+        callsign=safe_text(cot.callsign),
         position=Position(
             lat_deg=cot.lat,
             lon_deg=cot.lon,
             alt_hae_m=None if is_unknown(cot.hae) else cot.hae,
         ),
         source="cot",
+        source_name=source_name,
+        provenance=Provenance.UNAUTHENTICATED,
     )

@@ -34,8 +34,9 @@ import anyio.abc
 import structlog
 from anyio.streams.buffered import BufferedByteReceiveStream
 from anyio.streams.memory import MemoryObjectSendStream
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
+from gateway.c2.source import SourceConfig
 from gateway.clock import utc_now
 from gateway.codecs.slb_order import read_order
 from gateway.errors import OrderRejected
@@ -53,10 +54,8 @@ _WATCH_QUEUE = 32
 _REMEMBERED_IDS = 10_000
 
 
-class LocalOrderSourceConfig(BaseModel):
+class LocalOrderSourceConfig(SourceConfig):
     """Options of the local order source (beside ``name`` and ``type: local``)."""
-
-    model_config = ConfigDict(frozen=True, extra="forbid")
 
     socket: Path = Field(
         description="The Unix socket to listen on, e.g. /var/lib/fischer-gateway/orders.sock."

@@ -20,6 +20,11 @@ trackSource (``older``, ``duplicate``; the newest times of ``max_units`` units a
 Nothing here raises on bad input: every outcome is counted (``counts``), invalid documents
 and skipped tracks also by ``problems``, and logged at most once per ``LOG_INTERVAL_S`` per
 outcome, without the payload.
+
+Each BlueForce says how far its sender was checked (``provenance``): ``authenticated`` on
+``tls://`` (the peer's certificate chains to ``client_ca_file``), ``address_only`` on
+``tcp://`` (an allow-listed address, not an authenticated sender). Its callsign (unit short
+name or transponder id) is made safe here (``gateway.domain.peertext.safe_text``).
 """
 
 from __future__ import annotations
@@ -47,10 +52,12 @@ from pydantic import (
 )
 
 from gateway.c2.newest import NewestTimes
+from gateway.c2.source import SourceConfig
 from gateway.clock import utc_now
 from gateway.codecs.nffi import MAX_MESSAGE_BYTES, NffiError, NffiTrack, parse_message
 from gateway.codecs.nffi_stream import MessageSplitter
-from gateway.events import BlueForce, Event, Position, event_id
+from gateway.domain.peertext import safe_text
+from gateway.events import BlueForce, Event, Position, Provenance, event_id
 from gateway.ops.logsetup import RateLimit
 from gateway.transports.listener import Connection, TcpListener
 from gateway.transports.tls import TlsFiles, unreadable_file
@@ -114,10 +121,8 @@ class NffiSourceTls(BaseModel):
         return self
 
 
-class NffiSourceConfig(BaseModel):
+class NffiSourceConfig(SourceConfig):
     """An IP1 listener: ``tcp://HOST:PORT`` or ``tls://HOST:PORT``, and who may connect."""
-
-    model_config = _FROZEN
 
     type: Literal["nffi"] = Field(default="nffi", description="The source type.")
     name: str = Field(
@@ -206,6 +211,11 @@ class NffiSource:
         self._clock = clock
         # Read the TLS files now: a missing file is a config error on this source's line.
         self._context = None if config.tls is None else _server_context(config.tls)
+        #: ``authenticated`` on tls:// (a client certificate from ``client_ca_file``),
+        #: ``address_only`` on tcp:// (the allow-list checks an address, not a sender).
+        self.provenance = (
+            Provenance.ADDRESS_ONLY if config.tls is None else Provenance.AUTHENTICATED
+        )
         parts = urlsplit(config.uri)
         self.host, self.port = str(parts.hostname), int(parts.port or 0)
         #: Outcomes: tracks (accepted, stale, future, no_fix, not_friendly, older, duplicate,
@@ -285,7 +295,7 @@ class NffiSource:
             return
         self._newest.remember(uid, track.time)
         self.counts["accepted"] += 1
-        self._publish(_blue_force(track))
+        self._publish(_blue_force(track, self.name, self.provenance))
 
     # -- connections -----------------------------------------------------------------------
 
@@ -388,14 +398,16 @@ async def _receive_tls(sock: ssl.SSLSocket, max_bytes: int) -> bytes:
         return data
 
 
-def _blue_force(track: NffiTrack) -> BlueForce:
+def _blue_force(track: NffiTrack, source_name: str, provenance: Provenance) -> BlueForce:
     return BlueForce(
         event_id=event_id("nffi", track.uid, int(track.time.timestamp())),
         uid=track.uid,
         time=track.time,
-        callsign=track.unit_short_name or track.transponder_id,
+        callsign=safe_text(track.unit_short_name or track.transponder_id),
         position=Position(lat_deg=track.lat_deg, lon_deg=track.lon_deg, alt_msl_m=track.alt_msl_m),
         source="nffi",
+        source_name=source_name,
+        provenance=provenance,
         course_deg=track.bearing_deg,
         speed_mps=track.speed_mps,
         sidc=track.unit_symbol,

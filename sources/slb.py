@@ -44,6 +44,7 @@ import httpx
 import structlog
 from pydantic import Field
 
+from gateway.c2.source import SourceConfig
 from gateway.clock import utc_now
 from gateway.codecs.slb_order import order_id_of, parse_order_list, read_order, receipt_payload
 from gateway.errors import OrderRejected
@@ -67,7 +68,7 @@ _LOG_INTERVAL_S = 10.0
 _MAX_REASON_BYTES = 512
 
 
-class SlbSourceConfig(HttpsEndpoint):
+class SlbSourceConfig(SourceConfig, HttpsEndpoint):
     """Options of the SLB order source (beside ``name`` and ``type: slb``)."""
 
     poll_interval_s: float = Field(

@@ -40,6 +40,7 @@ import anyio.to_thread
 import structlog
 from pydantic import Field
 
+from gateway.c2.source import SourceConfig
 from gateway.clock import utc_now
 from gateway.codecs.sweccis import (
     Ack,
@@ -75,7 +76,7 @@ STABLE_S = 30.0
 REMEMBERED_ORDERS = 4096
 
 
-class SweccisSourceConfig(SweccisLinkOptions):
+class SweccisSourceConfig(SourceConfig, SweccisLinkOptions):
     """A SWECCIS order intake: the server, the TLS material and the reconnect backoff."""
 
     type: Literal["sweccis"] = Field(default="sweccis", description="The source type.")

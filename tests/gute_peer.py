@@ -33,7 +33,7 @@ from typing import Any
 from https_peer import Answer, Head, HttpsPeer, Request
 from jsonschema import Draft202012Validator
 
-from gateway.codecs.gute import load_schema
+from gateway.codecs.gute import SCHEMA_ID, SCHEMA_VERSIONS, load_schema
 
 __all__ = ["PATH", "GutePeer", "Request"]
 
@@ -61,9 +61,13 @@ class GutePeer(HttpsPeer):
         self.duplicate_status = duplicate_status
         #: Accepted documents by Idempotency-Key, in arrival order; a key at most once.
         self.accepted: dict[str, dict[str, Any]] = {}
-        self._validator = Draft202012Validator(
-            load_schema(), format_checker=Draft202012Validator.FORMAT_CHECKER
-        )
+        #: One validator per schema version: a /1 document is still read by its own schema.
+        self._validators = {
+            version: Draft202012Validator(
+                load_schema(version), format_checker=Draft202012Validator.FORMAT_CHECKER
+            )
+            for version in SCHEMA_VERSIONS
+        }
 
     @property
     def url(self) -> str:
@@ -91,7 +95,10 @@ class GutePeer(HttpsPeer):
             document = json.loads(body)
         except ValueError as exc:
             return 400, {"error": f"not JSON: {exc}"}
-        problems = sorted(self._validator.iter_errors(document), key=lambda e: list(e.path))
+        named = document.get("schema") if isinstance(document, dict) else None
+        validator = self._validators.get(named if isinstance(named, str) else "")
+        validator = validator or self._validators[SCHEMA_ID]
+        problems = sorted(validator.iter_errors(document), key=lambda e: list(e.path))
         if problems:
             where = "/".join(str(p) for p in problems[0].absolute_path)
             return 400, {"error": f"schema: /{where}: {problems[0].message}"}

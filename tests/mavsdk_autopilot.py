@@ -10,7 +10,8 @@ see and steer what crosses the link:
 - ``mission_raw_server`` takes mission uploads (recorded in ``missions``) and, once
   ``action_server`` has been put in MISSION mode (``flight_modes``), completes one item every
   ``step_s`` so the gateway sees MISSION_CURRENT / MISSION_ITEM_REACHED to the end;
-- the relay records the type of every message the gateway sent the airframe (``uplink``) and
+- the relay records the type of every message the gateway sent the airframe (``uplink``), the
+  command of every command and mission item among them (``uplink_commands``), and
   drops the airframe's COMMAND_ACKs while ``drop_command_acks`` is set (``dropped_acks``).
 
 Nothing here mirrors MAVLink's command or mission protocol: MAVSDK answers both.
@@ -53,6 +54,7 @@ class MavsdkAutopilot:
     missions: list[list[tuple[int, int, float, float, float]]] = field(default_factory=list)
     flight_modes: list[str] = field(default_factory=list)
     uplink: list[str] = field(default_factory=list)
+    uplink_commands: list[int] = field(default_factory=list)
     dropped_acks: int = 0
     items_completed: int = 0
 
@@ -95,6 +97,8 @@ class MavsdkAutopilot:
                         elif self._client is not None:  # gateway → MAVSDK
                             for msg in self._parse_up.parse_buffer(data) or ():
                                 self.uplink.append(msg.get_type())
+                                if hasattr(msg, "command"):  # commands and mission items
+                                    self.uplink_commands.append(int(msg.command))
                             self._front.sendto(data, self._client)
                     except OSError:
                         continue

@@ -69,3 +69,17 @@ def test_the_wheel_ships_config_unit_docs_contract_and_example(tmp_path: Path) -
             == (ROOT / "config" / "example.yaml").read_text()
         )
     assert {"gateway/contract.py", "gateway/testing.py", "sinks/example.py"} <= names
+
+
+def test_what_files_out_ships_links_only_to_what_it_ships(tmp_path: Path) -> None:
+    """An operator reading /opt/fischer-gateway/share follows every link there."""
+    from gateway.ops.share import write_shared
+
+    written = {path.name: path for path in write_shared(tmp_path)}
+    for name, path in written.items():
+        if not name.endswith(".md") or name == "README.md":
+            continue  # the README is the repository's front page (its links are checked above)
+        for target in LINK.findall(path.read_text()):
+            if re.match(r"[a-z]+:", target) or "/" in target:
+                continue  # the web, or the repository's source (read there, not shipped)
+            assert target in written, f"{name} links to {target}, which is not shipped"

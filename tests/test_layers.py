@@ -6,12 +6,19 @@ do not know each other: the airframe side (``gateway.fleet``), the middle
 (``gateway.flow``) and the C2 side (``gateway.c2`` and the plugins in ``sinks``/``sources``)
 meet only in ``gateway.app``. The core never imports a plugin: plugins are found through
 entry points.
+
+An import is any way a module names another: ``import a.b``, ``from a import b`` (which names
+the module ``a.b`` when ``b`` is one: ``from gateway import app``), relative imports, and
+``importlib.import_module("a.b")`` or ``__import__("a.b")`` with a literal name. The
+``TestInjectedViolations`` prove each form is caught.
 """
 
 from __future__ import annotations
 
 import ast
 from pathlib import Path
+
+import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -35,10 +42,12 @@ LAYERS: dict[str, tuple[int, str]] = {
     "gateway.flow": (3, "flow"),
     "gateway.c2": (3, "c2"),
     "gateway.testing": (3, "c2"),
-    "gateway.contract": (3, "c2"),
+    # The plugin contracts and their checkers: names the sink, source and processor sides.
+    "gateway.contract": (3, "contract"),
     "sinks": (3, "sinks"),
     "sources": (3, "sources"),
     "processors": (3, "processors"),
+    "tracking": (3, "tracking"),
     "gateway.app": (4, "assembly"),
     "gateway.configcheck": (4, "assembly"),
     "gateway.configschema": (4, "assembly"),
@@ -65,8 +74,15 @@ ALLOWED_ACROSS: set[tuple[str, str]] = {
     ("sinks", "public"),
     ("sources", "public"),
     ("processors", "flow"),
+    ("processors", "tracking"),
+    ("tracking", "flow"),
     ("processors", "public"),
+    ("contract", "c2"),
+    ("contract", "flow"),
 }
+
+#: Calls that import the module their first argument names.
+IMPORT_CALLS = {"import_module", "__import__"}
 
 
 def _layer(module: str) -> tuple[int, str] | None:
@@ -85,7 +101,7 @@ def _layer(module: str) -> tuple[int, str] | None:
 
 def _modules() -> dict[str, Path]:
     found = {}
-    for package in ("gateway", "sinks", "sources", "processors"):
+    for package in ("gateway", "sinks", "sources", "processors", "tracking"):
         for path in (ROOT / package).rglob("*.py"):
             parts = list(path.relative_to(ROOT).with_suffix("").parts)
             if parts[-1] == "__init__":
@@ -94,19 +110,71 @@ def _modules() -> dict[str, Path]:
     return found
 
 
-def _imports(module: str, path: Path) -> set[str]:
+def _imports(module: str, path: Path, known: frozenset[str] | None = None) -> set[str]:
+    """Every project module ``module`` (at ``path``) names; ``known``: the project's modules."""
+    known = frozenset(_modules()) if known is None else known
     names = set()
     package = module.split(".") if path.name == "__init__.py" else module.split(".")[:-1]
     for node in ast.walk(ast.parse(path.read_text())):
-        if isinstance(node, ast.ImportFrom) and node.level > 0:
-            # Relative imports count too: ``from ..c2 import x`` is gateway.c2.x.
-            base = package[: len(package) - node.level + 1]
-            names.add(".".join([*base, *(node.module.split(".") if node.module else [])]))
-        elif isinstance(node, ast.ImportFrom) and node.module:
-            names.add(node.module)
+        if isinstance(node, ast.ImportFrom):
+            if node.level > 0:
+                # Relative imports count too: ``from ..c2 import x`` is gateway.c2.x.
+                base = package[: len(package) - node.level + 1]
+                source = ".".join([*base, *(node.module.split(".") if node.module else [])])
+            else:
+                source = node.module or ""
+            names.add(source)
+            # ``from gateway import app`` imports the module gateway.app, not a name of gateway.
+            names.update(
+                f"{source}.{alias.name}"
+                for alias in node.names
+                if f"{source}.{alias.name}" in known
+            )
         elif isinstance(node, ast.Import):
             names.update(alias.name for alias in node.names)
-    return {n for n in names if n.split(".")[0] in ("gateway", "sinks", "sources", "processors")}
+        elif (
+            isinstance(node, ast.Call)
+            and _called_name(node.func) in IMPORT_CALLS
+            and node.args
+            and isinstance(node.args[0], ast.Constant)
+            and isinstance(node.args[0].value, str)
+        ):
+            names.add(node.args[0].value)
+    return {
+        n
+        for n in names
+        if n.split(".")[0] in ("gateway", "sinks", "sources", "processors", "tracking")
+    }
+
+
+def _called_name(func: ast.expr) -> str | None:
+    if isinstance(func, ast.Name):
+        return func.id
+    if isinstance(func, ast.Attribute):
+        return func.attr
+    return None
+
+
+def _violations(module: str, path: Path, known: frozenset[str] | None = None) -> list[str]:
+    """How ``module``'s imports break the layering (empty when they do not)."""
+    here = _layer(module)
+    assert here is not None
+    if module == "gateway":
+        return []
+    broken = []
+    for imported in sorted(_imports(module, path, known)):
+        there = _layer(imported)
+        if there is None or imported == module:
+            continue
+        if there[0] > here[0]:
+            broken.append(f"{module} -> {imported}: runs up from layer {here[0]} to {there[0]}")
+        elif (
+            there[0] == here[0]
+            and there[1] != here[1]
+            and (here[1], there[1]) not in ALLOWED_ACROSS
+        ):
+            broken.append(f"{module} -> {imported}: {here[1]} may not import {there[1]}")
+    return broken
 
 
 def test_every_module_has_a_layer() -> None:
@@ -114,33 +182,75 @@ def test_every_module_has_a_layer() -> None:
 
 
 def test_imports_run_down_the_layers_and_the_sides_stay_apart() -> None:
-    broken = []
-    for module, path in sorted(_modules().items()):
-        here = _layer(module)
-        assert here is not None
-        if module == "gateway":
-            continue
-        for imported in sorted(_imports(module, path)):
-            there = _layer(imported)
-            if there is None or imported == module:
-                continue
-            if there[0] > here[0]:
-                broken.append(f"{module} -> {imported}: runs up from layer {here[0]} to {there[0]}")
-            elif (
-                there[0] == here[0]
-                and there[1] != here[1]
-                and (here[1], there[1]) not in ALLOWED_ACROSS
-            ):
-                broken.append(f"{module} -> {imported}: {here[1]} may not import {there[1]}")
+    known = frozenset(_modules())
+    broken = [
+        problem
+        for module, path in sorted(_modules().items())
+        for problem in _violations(module, path, known)
+    ]
     assert broken == []
 
 
 def test_the_core_never_imports_a_plugin() -> None:
+    known = frozenset(_modules())
     offenders = [
         f"{module} -> {imported}"
         for module, path in _modules().items()
         if module.split(".")[0] == "gateway"
-        for imported in _imports(module, path)
+        for imported in _imports(module, path, known)
         if imported.split(".")[0] in ("sinks", "sources", "processors")
     ]
     assert offenders == []
+
+
+class TestInjectedViolations:
+    """Each way of importing across the layers, written into a module, is caught."""
+
+    @pytest.mark.parametrize(
+        ("module", "source", "expected"),
+        [
+            ("sinks.injected", "import gateway.app\n", "sinks.injected -> gateway.app"),
+            ("sinks.injected", "from gateway import app\n", "sinks.injected -> gateway.app"),
+            ("sinks.injected", "from gateway.fleet import session\n", "sinks may not import fleet"),
+            (
+                "processors.injected",
+                "from gateway import fleet\n",
+                "processors.injected -> gateway.fleet: processors may not import fleet",
+            ),
+            (
+                "gateway.flow.injected",
+                "from .. import app\n",
+                "gateway.flow.injected -> gateway.app",
+            ),
+            (
+                "sources.injected",
+                "import importlib\nimportlib.import_module('gateway.fleet.ingest')\n",
+                "sources may not import fleet",
+            ),
+            (
+                "sources.injected",
+                "from importlib import import_module\nimport_module('gateway.app')\n",
+                "sources.injected -> gateway.app",
+            ),
+            ("sinks.injected", "__import__('gateway.cli')\n", "sinks.injected -> gateway.cli"),
+            ("gateway.errors", "from gateway.fleet import session\n", "runs up from layer 0"),
+        ],
+    )
+    def test_is_caught(self, module: str, source: str, expected: str, tmp_path: Path) -> None:
+        path = tmp_path / "injected.py"
+        path.write_text(source)
+        problems = _violations(module, path, frozenset(_modules()))
+        assert any(expected in p for p in problems), problems
+
+    def test_public_names_and_allowed_imports_stay_allowed(self, tmp_path: Path) -> None:
+        path = tmp_path / "injected.py"
+        path.write_text(
+            "from gateway import Sink, SinkConfig\nfrom gateway.c2.sink import Sink\n"
+            "import importlib\nimportlib.import_module(name)\n"
+        )
+        assert _violations("sinks.injected", path, frozenset(_modules())) == []
+
+    def test_the_core_importing_a_plugin_by_name_is_seen(self, tmp_path: Path) -> None:
+        path = tmp_path / "injected.py"
+        path.write_text("import importlib\nimportlib.import_module('sinks.cot')\n")
+        assert "sinks.cot" in _imports("gateway.app", path, frozenset(_modules()))

@@ -14,7 +14,7 @@ import gateway
 ROOT = Path(__file__).resolve().parents[1]
 MODULES = sorted(
     ".".join(path.relative_to(ROOT).with_suffix("").parts)
-    for package in ("gateway", "sinks", "sources", "processors")
+    for package in ("gateway", "sinks", "sources", "processors", "tracking")
     for path in (ROOT / package).rglob("*.py")
     if path.name not in ("__init__.py", "__main__.py")
 )
@@ -36,7 +36,7 @@ def test_every_module_imports_on_its_own() -> None:
     code = (
         "import importlib, sys\n"
         "for name in sys.argv[1:]:\n"
-        "    ours = ('gateway', 'sinks', 'sources', 'processors')\n"
+        "    ours = ('gateway', 'sinks', 'sources', 'processors', 'tracking')\n"
         "    for loaded in [m for m in sys.modules if m.startswith(ours)]:\n"
         "        del sys.modules[loaded]\n"
         "    importlib.import_module(name)\n"

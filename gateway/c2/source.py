@@ -18,11 +18,17 @@ from typing import Any, ClassVar, Protocol, runtime_checkable
 
 import anyio
 import anyio.abc
-from pydantic import BaseModel
+from pydantic import BaseModel, ConfigDict
 
 from gateway.events import Event, EventKind, OrderStatus
 
-__all__ = ["OrderStatusFeed", "OrderStatusListener", "Source", "SourceClass"]
+__all__ = ["OrderStatusFeed", "OrderStatusListener", "Source", "SourceClass", "SourceConfig"]
+
+
+class SourceConfig(BaseModel):
+    """Base of every source's options model: frozen, unknown keys rejected."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
 
 
 @runtime_checkable

@@ -10,6 +10,13 @@ stays with the battery's human operator.
 The schema ships as package data (``gateway/data/schemas/gute2-handoff.schema.json``, JSON
 Schema draft 2020-12); ``load_schema`` reads it. ``SCHEMA_ID`` versions the document: a change
 of shape is a new version, never a silent edit.
+
+Version 2 adds where the blue-force picture came from (the nearest unit's source, provenance
+and what its callsign is, "unauthenticated CoT callsign", and the current units counted per
+source and provenance, ``blue_sources``) and the cue's own ``status``, ``superseded_by`` and
+``note`` (a cue superseded when its track merged into another). Version 1's schema still ships
+(``gute2-handoff-1.schema.json``, ``load_schema(1)``), so a document written before stays
+readable and checkable, and ``schema_for`` picks a document's own.
 """
 
 from __future__ import annotations
@@ -21,18 +28,52 @@ from typing import Any
 
 from gateway.events import Deconfliction, EffectorOption, Handoff, Position, Track
 
-__all__ = ["SCHEMA_ID", "encode_handoff", "handoff_payload", "load_schema"]
+__all__ = [
+    "SCHEMA_ID",
+    "SCHEMA_VERSION",
+    "SCHEMA_VERSIONS",
+    "encode_handoff",
+    "handoff_payload",
+    "load_schema",
+    "schema_for",
+]
 
-#: The ``schema`` member of every document; its last part is the version.
-SCHEMA_ID = "fischer-gateway/gute2-handoff/1"
-_SCHEMA_RESOURCE = "data/schemas/gute2-handoff.schema.json"
+#: The ``schema`` member of every document written now; its last part is the version.
+SCHEMA_ID = "fischer-gateway/gute2-handoff/2"
+SCHEMA_VERSION = 2
+#: Every version a reader understands, by ``schema`` member, and its schema resource.
+SCHEMA_VERSIONS = {
+    "fischer-gateway/gute2-handoff/1": "data/schemas/gute2-handoff-1.schema.json",
+    SCHEMA_ID: "data/schemas/gute2-handoff.schema.json",
+}
 
 
-def load_schema() -> dict[str, Any]:
-    """The handoff document's JSON Schema (draft 2020-12), read from package data."""
-    text = files("gateway").joinpath(_SCHEMA_RESOURCE).read_text(encoding="utf-8")
+def load_schema(version: int | str = SCHEMA_ID) -> dict[str, Any]:
+    """The JSON Schema (draft 2020-12) of ``version``, read from package data.
+
+    ``version`` is a number (1, 2) or a document's ``schema`` member; the current version by
+    default. An unknown number raises ``ValueError``, an unknown member ``KeyError``, each
+    naming it.
+    """
+    if isinstance(version, int):
+        if f"fischer-gateway/gute2-handoff/{version}" not in SCHEMA_VERSIONS:
+            known = ", ".join(sid.rsplit("/", 1)[1] for sid in SCHEMA_VERSIONS)
+            raise ValueError(f"no GUTE II handoff schema version {version}; known: {known}")
+        version = f"fischer-gateway/gute2-handoff/{version}"
+    try:
+        resource = SCHEMA_VERSIONS[version]
+    except KeyError:
+        raise KeyError(f"unknown GUTE II handoff schema {version!r}") from None
+    text = files("gateway").joinpath(resource).read_text(encoding="utf-8")
     schema: dict[str, Any] = json.loads(text)
     return schema
+
+
+def schema_for(document: object) -> dict[str, Any]:
+    """The schema of ``document``'s own version (its ``schema`` member); the current one
+    when it names none we know, so validation then reports the mismatch."""
+    named = document.get("schema") if isinstance(document, dict) else None
+    return load_schema(named if isinstance(named, str) and named in SCHEMA_VERSIONS else SCHEMA_ID)
 
 
 def _time(value: datetime) -> str:
@@ -84,6 +125,15 @@ def _deconfliction(result: Deconfliction) -> dict[str, Any]:
         "nearest_blue_m": result.nearest_blue_m,
         "blue_units_considered": result.blue_units_considered,
         "blue_picture_complete": result.blue_picture_complete,
+        "nearest_blue_callsign_provenance": result.nearest_blue_callsign_provenance,
+        "nearest_blue_source": result.nearest_blue_source,
+        "nearest_blue_provenance": (
+            None if result.nearest_blue_provenance is None else result.nearest_blue_provenance.value
+        ),
+        "blue_sources": [
+            {"source": s.source, "provenance": s.provenance.value, "units": s.units}
+            for s in result.blue_sources
+        ],
     }
 
 
@@ -98,6 +148,9 @@ def handoff_payload(handoff: Handoff) -> dict[str, Any]:
         "handoff_id": handoff.handoff_id,
         "revision": handoff.revision,
         "idempotency_key": handoff.event_id,
+        "status": handoff.status,
+        "superseded_by": handoff.superseded_by,
+        "note": handoff.note,
         "time": _time(handoff.time),
         "battery": {"id": handoff.battery, "position": _position(handoff.battery_position)},
         "track": _track(handoff.track),

@@ -175,7 +175,7 @@ def _reporting_data(
     accuracy = _at_least(ACCURACY, event.confidence)
     lost = False
     if isinstance(event, Track):
-        lost = event.status == "lost"
+        lost = event.status in ("lost", "merged")  # a merged track's object lives on elsewhere
         if accuracy == "2" and (len(set(airframes)) > 1 or len(set(event.sensors)) > 1):
             accuracy = "1"  # corroborated: several airframes or sensors agree
     return {

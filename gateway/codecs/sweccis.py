@@ -194,7 +194,9 @@ def _track(track: Track) -> bytes:
     root = _root(Fas.INTEL, track.event_id)
     body = add(root, "Track")
     add(body, "TrackId", check_text(track.track_id, "TrackId", 128, min_length=1))
-    add(body, "Status", track.status)
+    # FAS version 1 knows created/updated/lost: a merged track's id ends here as lost (its
+    # object lives on under the survivor's id). Saying "merged" needs a version 2.
+    add(body, "Status", "lost" if track.status == "merged" else track.status)
     add(body, "Time", time_text(track.time))
     add(body, "FirstSeen", time_text(track.first_seen))
     add(body, "LastSeen", time_text(track.last_seen))

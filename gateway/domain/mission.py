@@ -1,14 +1,15 @@
-"""Reconnaissance routes as MAVLink mission items, and the plane geometry of a geofence.
+"""Reconnaissance routes as MAVLink mission items, and whether a route stays in a geofence.
 
 A ``MissionItem`` is one MAVLink mission item in the global frame (altitudes MSL), the
 vocabulary the orders processor and the airframe side share: the processor builds them
 from an order, the fleet uploads them (MISSION_COUNT / MISSION_ITEM_INT / MISSION_ACK).
 Only navigation commands are built here (waypoint, timed loiter): nothing arms or releases.
 
-The geofence is a polygon of (lat, lon) corners. ``inside`` and ``crosses`` work in a local
-equirectangular plane around the fence, which is exact enough for fences of tens of
-kilometres (the error is far below a GNSS fix); a route is inside when each of its points is
-inside and none of its legs crosses an edge.
+The geofence is a polygon of (lat, lon) corners whose edges are geodesics; the geometry is
+``gateway.domain.fence`` (an ellipsoidal gnomonic plane, where geodesics are straight). A
+route is inside when each of its points is inside and each leg stays inside flown both as
+the geodesic and as the rhumb line (``gateway.domain.paths``: what PX4 and ArduPilot fly
+between two waypoints); ``route_exit`` says where and by how much it leaves.
 """
 
 from __future__ import annotations
@@ -18,7 +19,11 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from itertools import pairwise
 
+from geographiclib.geodesic import Geodesic  # type: ignore[import-untyped]
+
+from gateway.domain.fence import ON_EDGE_M, Fence, FenceError, fence_of
 from gateway.domain.geodesy import distance_bearing
+from gateway.domain.paths import rhumb_at, rhumb_bow_m, rhumb_points
 
 __all__ = [
     "MAV_CMD_DO_SET_MODE",
@@ -26,11 +31,14 @@ __all__ = [
     "MAV_CMD_NAV_LOITER_TIME",
     "MAV_CMD_NAV_RETURN_TO_LAUNCH",
     "MAV_CMD_NAV_WAYPOINT",
+    "RHUMB_TOLERANCE_M",
+    "Excursion",
     "MissionItem",
     "Outcome",
     "crosses",
     "inside",
     "polygon_problem",
+    "route_exit",
     "route_inside",
     "route_length_m",
 ]
@@ -44,6 +52,9 @@ MAV_CMD_MISSION_START = 300
 MAV_FRAME_GLOBAL = 0
 
 LatLon = tuple[float, float]
+_GEOD = Geodesic.WGS84
+#: Two corners closer than this (in the fence's plane, about metres) are one point.
+_SAME_POINT_M = 1e-4
 
 
 @dataclass(frozen=True, slots=True)
@@ -72,84 +83,148 @@ def route_length_m(points: Sequence[LatLon]) -> float:
     return sum(distance_bearing(a[0], a[1], b[0], b[1])[0] for a, b in pairwise(points))
 
 
-def _plane(fence: Sequence[LatLon]) -> tuple[float, float, float]:
-    lat0 = sum(p[0] for p in fence) / len(fence)
-    # Longitudes averaged as offsets from the first corner: a fence across the antimeridian
-    # (179° and -179°) is centred on 180°, not on 0° (which turned it inside out).
-    ref = fence[0][1]
-    lon0 = ref + sum((p[1] - ref + 180.0) % 360.0 - 180.0 for p in fence) / len(fence)
-    return lat0, lon0, math.cos(math.radians(lat0))
-
-
-def _xy(point: LatLon, plane: tuple[float, float, float]) -> tuple[float, float]:
-    lat0, lon0, scale = plane
-    # Longitudes wrap: a fence near the antimeridian keeps its points on one side.
-    dlon = (point[1] - lon0 + 180.0) % 360.0 - 180.0
-    return dlon * scale, point[0] - lat0
-
-
 def inside(fence: Sequence[LatLon], point: LatLon) -> bool:
-    """True if ``point`` is inside the polygon ``fence`` (3+ corners; on an edge is inside)."""
-    if len(fence) < 3:
-        raise ValueError(f"a geofence needs at least 3 corners, found {len(fence)}")
-    plane = _plane(fence)
-    x, y = _xy(point, plane)
-    corners = [_xy(c, plane) for c in fence]
-    is_in = False
-    for (x1, y1), (x2, y2) in zip(corners, corners[1:] + corners[:1], strict=True):
-        if _on_segment((x, y), (x1, y1), (x2, y2)):
-            return True
-        if (y1 > y) != (y2 > y) and x < x1 + (y - y1) * (x2 - x1) / (y2 - y1):
-            is_in = not is_in
-    return is_in
-
-
-def _cross(o: tuple[float, float], a: tuple[float, float], b: tuple[float, float]) -> float:
-    return (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0])
-
-
-def _on_segment(p: tuple[float, float], a: tuple[float, float], b: tuple[float, float]) -> bool:
-    if abs(_cross(a, b, p)) > 1e-12:
-        return False
-    return min(a[0], b[0]) - 1e-12 <= p[0] <= max(a[0], b[0]) + 1e-12 and (
-        min(a[1], b[1]) - 1e-12 <= p[1] <= max(a[1], b[1]) + 1e-12
-    )
+    """True if ``point`` is inside the polygon ``fence`` (3+ corners; on an edge is inside).
+    Edges are geodesics (``gateway.domain.fence``)."""
+    return fence_of(tuple(fence)).contains(point)
 
 
 def crosses(fence: Sequence[LatLon], a: LatLon, b: LatLon) -> bool:
-    """True if the leg from ``a`` to ``b`` properly crosses an edge of ``fence``."""
-    plane = _plane(fence)
-    p, q = _xy(a, plane), _xy(b, plane)
-    corners = [_xy(c, plane) for c in fence]
-    for c1, c2 in zip(corners, corners[1:] + corners[:1], strict=True):
-        d1, d2 = _cross(c1, c2, p), _cross(c1, c2, q)
-        d3, d4 = _cross(p, q, c1), _cross(p, q, c2)
-        if d1 * d2 < 0 and d3 * d4 < 0:
+    """True if the geodesic from ``a`` to ``b`` properly crosses an edge of ``fence``."""
+    plane = fence_of(tuple(fence))
+    p, q = plane.project(a), plane.project(b)
+    if p is None or q is None:
+        return True
+    return plane.crosses_edge((p[0], p[1]), (q[0], q[1]))
+
+
+@dataclass(frozen=True, slots=True)
+class Excursion:
+    """Where a route leaves a fence: the farthest ``point`` outside found, how far outside
+    (``outside_m``), and on which ``leg`` and ``path`` (``geodesic`` or ``rhumb line``);
+    ``leg`` is None for a route point that is itself outside."""
+
+    point: LatLon
+    outside_m: float
+    leg: tuple[LatLon, LatLon] | None = None
+    path: str = ""
+
+
+#: The rhumb line of a leg is checked when it parts from the geodesic by more than this,
+#: along chords that depart from it by at most half of it.
+RHUMB_TOLERANCE_M = 1.0
+_WORST_SAMPLES = 128
+
+
+def _worst(fence: Fence, leg: tuple[LatLon, LatLon], path: str) -> Excursion:
+    """The farthest point outside ``fence`` along ``path`` of ``leg``: sampled, then refined
+    round the farthest sample by golden section."""
+    a, b = leg
+    if path == "geodesic":
+        line = _GEOD.InverseLine(a[0], a[1], b[0], b[1])
+
+        def at(f: float) -> LatLon:
+            got = line.Position(line.s13 * f)
+            return float(got["lat2"]), float(got["lon2"])
+    else:
+
+        def at(f: float) -> LatLon:
+            return rhumb_at(a, b, f)
+
+    fs = [i / _WORST_SAMPLES for i in range(_WORST_SAMPLES + 1)]
+    out = [fence.outside_m(at(f)) for f in fs]
+    best = max(range(len(fs)), key=out.__getitem__)
+    lo, hi = fs[max(0, best - 1)], fs[min(len(fs) - 1, best + 1)]
+    ratio = (math.sqrt(5) - 1) / 2
+    for _ in range(24):
+        m1, m2 = hi - ratio * (hi - lo), lo + ratio * (hi - lo)
+        if fence.outside_m(at(m1)) >= fence.outside_m(at(m2)):
+            hi = m2
+        else:
+            lo = m1
+    f = (lo + hi) / 2
+    far = fence.outside_m(at(f))
+    if far < out[best]:
+        f, far = fs[best], out[best]
+    return Excursion(at(f), far, leg, path)
+
+
+def route_exit(fence: Sequence[LatLon], points: Sequence[LatLon]) -> Excursion | None:
+    """None if the route through ``points`` stays in ``fence``, else where it leaves.
+
+    First every point (the first outside is named), then every leg, flown as the geodesic
+    and as the rhumb line (``gateway.domain.paths``: what PX4 and ArduPilot fly): the
+    geodesic is a straight line in the fence's plane, the rhumb line a chain of chords each
+    within ``RHUMB_TOLERANCE_M`` / 2 of it. Of a leg that leaves, the farthest point
+    outside on either path is named.
+    """
+    plane = fence_of(tuple(fence))
+    xy: list[tuple[float, float, float]] = []
+    for point in points:
+        got = plane.project(point)
+        if got is None or not plane.contains_xy((got[0], got[1])):
+            return Excursion(point, plane.outside_m(point))
+        xy.append(got)
+    for (a, b), (pa, pb) in zip(pairwise(points), pairwise(xy), strict=True):
+        leaves = ["geodesic"] if plane.segment_leaves(pa[:2], pb[:2]) else []
+        length_m = math.hypot(pb[0] - pa[0], pb[1] - pa[1]) * min(pa[2], pb[2])
+        if _rhumb_leaves(plane, (a, b), (pa[:2], pb[:2]), length_m):
+            leaves.append("rhumb line")
+        if leaves:  # the farther of the two paths that leave
+            return max((_worst(plane, (a, b), path) for path in leaves), key=_outside)
+    return None
+
+
+def _outside(excursion: Excursion) -> float:
+    return excursion.outside_m
+
+
+def _rhumb_leaves(
+    plane: Fence,
+    leg: tuple[LatLon, LatLon],
+    ends: tuple[tuple[float, float], tuple[float, float]],
+    length_m: float,
+) -> bool:
+    """True if the rhumb line of ``leg`` (both ends inside) leaves the fence, checked along
+    chords that are within ``RHUMB_TOLERANCE_M`` / 2 of it; False where it is within
+    ``RHUMB_TOLERANCE_M`` of the geodesic (checked already)."""
+    bow_m = rhumb_bow_m(*leg, length_m)
+    if bow_m <= RHUMB_TOLERANCE_M:
+        return False
+    pieces = math.ceil(math.sqrt(2.0 * bow_m / RHUMB_TOLERANCE_M))
+    chain = [ends[0]]
+    for sample in rhumb_points(*leg, pieces)[1:-1]:
+        got = plane.project(sample)
+        if got is None or not plane.contains_xy((got[0], got[1])):
             return True
-    return False
+        chain.append((got[0], got[1]))
+    chain.append(ends[1])
+    return any(plane.segment_leaves(p, q) for p, q in pairwise(chain))
 
 
 def route_inside(fence: Sequence[LatLon], points: Sequence[LatLon]) -> LatLon | None:
     """None if the route through ``points`` stays in ``fence``; else the first point outside
-    (or, for a leg that leaves and comes back, the leg's start)."""
-    for point in points:
-        if not inside(fence, point):
-            return point
-    for a, b in pairwise(points):
-        if crosses(fence, a, b):
-            return a
-    return None
+    or, for a leg that leaves and comes back, the leg's start (``route_exit`` says more)."""
+    got = route_exit(fence, points)
+    if got is None:
+        return None
+    return got.point if got.leg is None else got.leg[0]
 
 
 def polygon_problem(corners: Sequence[LatLon]) -> str | None:
-    """Why ``corners`` is not a simple polygon (a repeated corner, no area, edges that cross),
-    or None. Corners are 1-based in the answer, as an operator counts them."""
-    plane = _plane(corners)
-    pts = [_xy(c, plane) for c in corners]
-    n = len(pts)
+    """Why ``corners`` is not a simple polygon with geodesic edges (a repeated corner, no
+    area, edges that cross, too big to check), or None. Corners are 1-based in the answer,
+    as an operator counts them."""
+    n = len(corners)
+    if n < 3:
+        return f"has {n} corners; at least 3 are needed"
+    try:
+        pts = list(Fence(corners).xy)
+    except FenceError as exc:
+        return str(exc)
     edges = list(zip(pts, pts[1:] + pts[:1], strict=True))
     for i, (a, b) in enumerate(edges):
-        if math.hypot(b[0] - a[0], b[1] - a[1]) < 1e-9:
+        if math.hypot(b[0] - a[0], b[1] - a[1]) < _SAME_POINT_M:
             return f"has corners {i + 1} and {(i + 1) % n + 1} at the same point"
     for i in range(n):
         for j in range(i + 2, n):
@@ -162,7 +237,12 @@ def polygon_problem(corners: Sequence[LatLon]) -> str | None:
                 return (
                     f"crosses itself: edge {i + 1}-{i + 2} crosses edge {j + 1}-{(j + 1) % n + 1}"
                 )
-    area = sum(a[0] * b[1] - b[0] * a[1] for a, b in edges) / 2.0
-    if abs(area) < 1e-12:
+    area = abs(sum(a[0] * b[1] - b[0] * a[1] for a, b in edges) / 2.0)
+    perimeter = sum(math.hypot(b[0] - a[0], b[1] - a[1]) for a, b in edges)
+    if 2.0 * area / perimeter < ON_EDGE_M:  # narrower on average than the edge tolerance
         return "has no area (its corners are on one line)"
     return None
+
+
+def _cross(o: tuple[float, float], a: tuple[float, float], b: tuple[float, float]) -> float:
+    return (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0])

@@ -102,7 +102,7 @@ class _DatagramProtocol(asyncio.DatagramProtocol):
 
     def datagram_received(self, data: bytes, addr: tuple[str, int]) -> None:
         link = self.link
-        if link.max_learned_peers:
+        if link.learn_on_receive:
             link.learn_peer(addr)
         link.on_data(link.label, addr, data)
 
@@ -123,7 +123,7 @@ class UdpLink(Link):
 
     A listening link sends only to peers it is told (``send_to``), except when built with
     ``max_learned_peers`` (the passthrough): then it remembers that many most recent senders
-    and ``send_nowait`` reaches them.
+    (or, with ``learn_on_receive=False``, those it is told of) and ``send_nowait`` reaches them.
     """
 
     def __init__(
@@ -133,9 +133,13 @@ class UdpLink(Link):
         on_close: CloseHandler,
         *,
         max_learned_peers: int = 0,
+        learn_on_receive: bool = True,
     ) -> None:
         super().__init__(config, on_data, on_close)
         self.max_learned_peers = max_learned_peers
+        #: Learn every sender (else only those ``learn_peer`` is told of, once they proved
+        #: themselves: the passthrough on a signed uplink).
+        self.learn_on_receive = learn_on_receive and max_learned_peers > 0
         self.peers: OrderedDict[tuple[str, int], None] = OrderedDict()
         self.send_errors = 0
         self.error_log = RateLimit(interval_s=_ERROR_LOG_INTERVAL_S)

@@ -4,7 +4,9 @@
 only ones that may speak for it) and the peer that last authenticated on each, link health
 and failover, de-duplication, the passthrough, the normalised state, and an extensible
 message table (``on(name, handler)``: telemetry, detections and COMMAND_ACK are registered by
-ingest; camera, gimbal and mission messages join the same way). ``Ingest`` demultiplexes
+ingest; camera, gimbal and mission messages join the same way). A message may have several
+handlers, called in the order they were registered; registering the same handler for the same
+message twice is an error, never a silent replacement. ``Ingest`` demultiplexes
 frames to sessions after authentication; everything per airframe lives here.
 
 Outbound, ``send`` puts raw MAVLink on the airframe's active link in the link's mode (the
@@ -103,7 +105,7 @@ class AirframeSession:
     inserts: int = 0
     peers: dict[str, object] = field(default_factory=dict)
     """Per link label, the peer that last sent an authenticated frame of this airframe."""
-    handlers: dict[str, Handler] = field(default_factory=dict)
+    _handlers: dict[str, list[Handler]] = field(default_factory=dict)
     transmit: Transmit | None = None
     last_command: CommandResult | None = None
     commands_sent: int = 0
@@ -117,14 +119,34 @@ class AirframeSession:
         return self.config.id
 
     def on(self, message: str, handler: Handler) -> None:
-        """Handle every accepted ``message`` (a MAVLink message name) of this airframe."""
-        self.handlers[message] = handler
+        """Also hand every accepted ``message`` (a MAVLink message name) to ``handler``.
+
+        Handlers of one message are called in the order they were registered. ``ValueError``
+        if ``handler`` already handles ``message`` (it would be called twice per message).
+        """
+        handlers = self._handlers.setdefault(message, [])
+        if handler in handlers:
+            raise ValueError(f"airframe {self.id}: {handler!r} already handles {message}")
+        handlers.append(handler)
+
+    def handlers(self, message: str) -> tuple[Handler, ...]:
+        """The handlers of ``message``, in the order they are called."""
+        return tuple(self._handlers.get(message, ()))
 
     def dispatch(self, label: str, name: str, msg: MavMessage) -> None:
-        """Hand an accepted message to its handler; messages nobody handles are ignored."""
-        handler = self.handlers.get(name)
-        if handler is not None:
-            handler(self, label, msg)
+        """Hand an accepted message to each of its handlers; unhandled messages are ignored.
+
+        A handler that raises does not keep the message from the others: every handler is
+        called, then the first exception is raised for the caller to count.
+        """
+        failure: Exception | None = None
+        for handler in self._handlers.get(name, ()):
+            try:
+                handler(self, label, msg)
+            except Exception as exc:  # noqa: BLE001 - raised below, after the other handlers
+                failure = failure or exc
+        if failure is not None:
+            raise failure
 
     # -- outbound ---------------------------------------------------------------------------
 

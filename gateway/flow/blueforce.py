@@ -10,18 +10,21 @@ drop the picture is not ``complete`` (deconfliction then never reads "clear"); n
 while no unit is current at all. Units
 fixed in the config are ``pin``-ned: they never expire and no report from the network can
 move or evict them (a report under a pinned uid is ignored).
+
+``nearest`` carries the unit's source, source name and provenance, and ``by_source`` counts
+the current units per source and provenance, so a cue can say where its picture came from.
 """
 
 from __future__ import annotations
 
 import math
-from collections import OrderedDict
+from collections import Counter, OrderedDict
 from dataclasses import dataclass
 from datetime import datetime, timedelta
 
 from gateway.clock import Clock
 from gateway.domain.geodesy import distance_bearing
-from gateway.events import BlueForce
+from gateway.events import BlueForce, Provenance
 
 __all__ = ["BlueForceRegistry", "NearestBlue"]
 
@@ -34,6 +37,9 @@ class NearestBlue:
     callsign: str
     distance_m: float
     report_time: datetime
+    source: str = ""
+    source_name: str = ""
+    provenance: Provenance = Provenance.UNAUTHENTICATED
 
 
 class BlueForceRegistry:
@@ -120,8 +126,21 @@ class BlueForceRegistry:
                 lat_deg, lon_deg, report.position.lat_deg, report.position.lon_deg
             )
             if best is None or distance_m < best.distance_m:
-                best = NearestBlue(report.uid, report.callsign, distance_m, report.time)
+                best = NearestBlue(
+                    report.uid,
+                    report.callsign,
+                    distance_m,
+                    report.time,
+                    report.source,
+                    report.source_name or report.source,
+                    report.provenance,
+                )
         return best
+
+    def by_source(self) -> list[tuple[str, Provenance, int]]:
+        """Current units per (source name, provenance), most units first."""
+        counts = Counter((u.source_name or u.source, u.provenance) for u in self.current())
+        return [(name, provenance, n) for (name, provenance), n in counts.most_common()]
 
 
 #: The mean Earth radius (IUGG), and a bound on a spherical distance's relative error against

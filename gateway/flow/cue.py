@@ -14,11 +14,22 @@
    Nor is it clear while the blue-force picture is incomplete (friendly reports dropped for
    room lately: a flood may have pushed a real unit out).
 
+The deconfliction says where the blue-force picture came from: the nearest unit's source and
+provenance, its callsign made safe and marked with what it is ("unauthenticated CoT
+callsign", ``gateway.domain.peertext``), and how many current units each source gave.
+
 Once cued, a track stays with its battery. On each later update the check is made again for
 that battery; when the deconfliction or the recommendation changes, the cue goes out again as
 the next *revision* of the same handoff: at once when it stops being clear (a friendly unit
 now within danger close), otherwise at most every ``revision_interval_s``, so a track on the
 edge cannot flood the battery. A track out of its battery's reach keeps its last cue.
+
+A cued track that the tracker finds to be a second track of another object (``merged``, naming
+the survivor) never leaves the battery holding two live cues for one object: when the survivor
+has a cue of its own, the merged track's cue goes out once more as a revision with status
+``superseded`` naming the survivor's cue; otherwise the cue carries on with the survivor, and
+the survivor's next update goes out as its next revision with a note saying so (one cue id
+per object, revisions allowed).
 
 The result is a ``Handoff``: a cue with a recommendation for the battery's human operator,
 who alone authorises an engagement. Nothing here can command an effector, and the event
@@ -30,10 +41,13 @@ from __future__ import annotations
 from collections import OrderedDict
 from dataclasses import dataclass
 from datetime import datetime
+from typing import Literal
 
 from gateway.domain.effectors import EffectorTable, recommend
 from gateway.domain.geodesy import distance_bearing
+from gateway.domain.peertext import callsign_provenance, safe_text
 from gateway.events import (
+    BlueSourceCount,
     Deconfliction,
     EffectorOption,
     Handoff,
@@ -64,6 +78,8 @@ class CueCounts:
     not_clear: int = 0
     out_of_reach: int = 0
     below_confidence: int = 0
+    superseded: int = 0
+    carried_on: int = 0
 
 
 @dataclass(slots=True)
@@ -76,6 +92,7 @@ class _Cue:
     clear: bool
     recommended: str | None
     sent: datetime
+    note: str = ""
 
 
 class CueDesk:
@@ -111,9 +128,13 @@ class CueDesk:
         if track.status == "lost":
             self.forget(track.track_id)
             return None
+        if track.status == "merged":
+            return self._merged(track)
+        last = self._cued.get(track.track_id)
+        if last is not None and last.note:
+            return self._revise(track, last)  # carried on from a merged track: say so now
         if track.object_class not in self.classes:
             return None
-        last = self._cued.get(track.track_id)
         if last is not None:
             return self._revise(track, last)
         if track.confidence < self.min_confidence:
@@ -141,26 +162,55 @@ class CueDesk:
         self.counts.handed_off += 1
         return handoff
 
+    def _merged(self, track: Track) -> Handoff | None:
+        """``track`` was folded into ``track.merged_into``: supersede or carry on its cue."""
+        cue = self._cued.pop(track.track_id, None)
+        survivor_id = track.merged_into
+        if cue is None or survivor_id is None:
+            return None
+        survivor = self._cued.get(survivor_id)
+        if survivor is None:
+            cue.note = (
+                f"track {track.track_id} merged into {survivor_id}; this cue now follows"
+                f" {survivor_id}"
+            )
+            self._remember(survivor_id, cue)
+            self.counts.carried_on += 1
+            return None
+        nearest = self._nearest(track)
+        range_m, bearing, offered = self._offer(track, cue.battery, nearest)
+        self.counts.superseded += 1
+        return self._handoff(
+            track, cue.battery, cue.handoff_id, cue.revision + 1, range_m, bearing, offered,
+            nearest, complete=self.blue.complete, status="superseded",
+            superseded_by=survivor.handoff_id,
+            note=(
+                f"track {track.track_id} merged into {survivor_id}, which cue"
+                f" {survivor.handoff_id} follows: drop this cue"
+            ),
+        )  # fmt: skip
+
     def _revise(self, track: Track, last: _Cue) -> Handoff | None:
         nearest = self._nearest(track)
         range_m, bearing, offered = self._offer(track, last.battery, nearest)
-        if not offered:
+        if not offered and not last.note:
             return None  # out of its battery's reach for now: the last cue stands
         complete = self.blue.complete
-        clear = complete and all(o.deconfliction_clear for o in offered)
+        clear = complete and bool(offered) and all(o.deconfliction_clear for o in offered)
         recommended = offered[0].effector if clear else None
-        if (clear, recommended) == (last.clear, last.recommended):
-            return None
-        waited = (track.time - last.sent).total_seconds()
-        if clear and waited < self.revision_interval_s:
-            return None  # good news can wait; losing "clear" never does
+        if not last.note:
+            if (clear, recommended) == (last.clear, last.recommended):
+                return None
+            waited = (track.time - last.sent).total_seconds()
+            if clear and waited < self.revision_interval_s:
+                return None  # good news can wait; losing "clear" never does
         revision = last.revision + 1
         handoff = self._handoff(
             track, last.battery, last.handoff_id, revision, range_m, bearing, offered, nearest,
-            complete=complete,
+            complete=complete, note=last.note,
         )  # fmt: skip
-        last.revision, last.clear, last.recommended, last.sent = (
-            revision, clear, recommended, track.time,
+        last.revision, last.clear, last.recommended, last.sent, last.note = (
+            revision, clear, recommended, track.time, "",
         )  # fmt: skip
         self._cued.move_to_end(track.track_id)
         self.counts.revised += 1
@@ -208,30 +258,62 @@ class CueDesk:
         nearest: NearestBlue | None,
         *,
         complete: bool,
+        status: Literal["active", "superseded"] = "active",
+        superseded_by: str | None = None,
+        note: str = "",
     ) -> Handoff:
-        clear = complete and all(option.deconfliction_clear for option in offered)
+        clear = complete and bool(offered) and all(o.deconfliction_clear for o in offered)
         if not clear:
             self.counts.not_clear += 1
         return Handoff(
             event_id=handoff_id if revision == 0 else f"{handoff_id}-r{revision}",
             handoff_id=handoff_id,
             revision=revision,
+            status=status,
+            superseded_by=superseded_by,
+            note=note,
             time=track.time,
             battery=battery.id,
             battery_position=battery.position,
             track=track,
             range_m=range_m,
             bearing_deg=bearing,
-            recommended_effector=offered[0].effector if clear else None,
+            recommended_effector=offered[0].effector if clear and status == "active" else None,
             options=tuple(offered),
-            deconfliction=Deconfliction(
+            deconfliction=self._deconfliction(clear, nearest, complete=complete),
+        )
+
+    def _deconfliction(
+        self, clear: bool, nearest: NearestBlue | None, *, complete: bool
+    ) -> Deconfliction:
+        """The blue-force check, its peer text made safe and marked by provenance."""
+        sources = tuple(
+            BlueSourceCount(source=safe_text(name, 64), provenance=provenance, units=units)
+            for name, provenance, units in self.blue.by_source()
+        )
+        if nearest is None:
+            return Deconfliction(
                 clear=clear,
-                nearest_blue_uid=None if nearest is None else nearest.uid,
-                nearest_blue_callsign=None if nearest is None else nearest.callsign or None,
-                nearest_blue_m=None if nearest is None else nearest.distance_m,
                 blue_units_considered=len(self.blue),
                 blue_picture_complete=complete,
+                blue_sources=sources,
+            )
+        callsign = safe_text(nearest.callsign) or None
+        return Deconfliction(
+            clear=clear,
+            nearest_blue_uid=safe_text(nearest.uid, 64),
+            nearest_blue_callsign=callsign,
+            nearest_blue_m=nearest.distance_m,
+            blue_units_considered=len(self.blue),
+            blue_picture_complete=complete,
+            nearest_blue_callsign_provenance=(
+                None
+                if callsign is None
+                else callsign_provenance(nearest.provenance, nearest.source)
             ),
+            nearest_blue_source=safe_text(nearest.source_name, 64),
+            nearest_blue_provenance=nearest.provenance,
+            blue_sources=sources,
         )
 
     def _remember(self, track_id: str, cue: _Cue) -> None:

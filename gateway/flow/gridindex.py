@@ -79,8 +79,10 @@ class GridIndex(Generic[K]):
         """The keys filed at most ``radius_m`` from (x, y), in no particular order."""
         if radius_m < 0:
             return []
-        i0, j0 = self._cell(x_m - radius_m, y_m - radius_m)
-        i1, j1 = self._cell(x_m + radius_m, y_m + radius_m)
+        # x - r can round past a key exactly r away into the next cell: widen by a few ulps.
+        reach = radius_m + 4 * math.ulp(abs(x_m) + abs(y_m) + radius_m)
+        i0, j0 = self._cell(x_m - reach, y_m - reach)
+        i1, j1 = self._cell(x_m + reach, y_m + reach)
         found: list[K] = []
         if (i1 - i0 + 1) * (j1 - j0 + 1) > len(self._cells):
             cells: Iterator[set[K]] = (

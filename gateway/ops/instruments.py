@@ -115,6 +115,26 @@ class Instruments:
             "fg_spool_refused_total", "Durable events refused because the spool was full."
         )
         self.spool_dead_letters = r.gauge("fg_spool_dead_letters", "Dead letters held.")
+        self.spool_commit_failures = r.counter(
+            "fg_spool_commit_failures_total",
+            "Spool writes that failed to commit (nothing of them acknowledged), by reason "
+            "(full, io, readonly, busy, corrupt, other).",
+            ("reason",),
+        )
+        self.spool_wal_lost_frames = r.gauge(
+            "fg_spool_wal_lost_frames",
+            "WAL frames of committed transactions SQLite could not replay at this start "
+            "(a damaged -wal file; a copy is kept beside the spool).",
+        )
+        self.spool_wal_lost_commits = r.gauge(
+            "fg_spool_wal_lost_commits",
+            "Committed transactions among the WAL frames lost at this start.",
+        )
+        self.spool_integrity_failures = r.gauge(
+            "fg_spool_integrity_failures",
+            "Problems the integrity check found in the spool at this start (the damaged file "
+            "was moved aside and the gateway started on an empty spool).",
+        )
         self.detections_acked = r.counter(
             "fg_detections_acknowledged_total",
             "FISCHER_DETECTION_ACKs queued to airframes, by result (held, duplicate).",
@@ -128,6 +148,12 @@ class Instruments:
         self.uplink_refused = r.counter(
             "fg_uplink_refused_total",
             "Sends to an airframe refused, by reason (no_link, no_peer, unsignable, send_failed).",
+            ("airframe", "reason"),
+        )
+        self.passthrough_refused = r.counter(
+            "fg_passthrough_refused_total",
+            "Ground-station frames the passthrough did not relay, by airframe and reason "
+            "(docs/security.md#the-passthrough).",
             ("airframe", "reason"),
         )
         self.processor_events = r.counter(

@@ -30,7 +30,11 @@ DESCRIPTIONS = {
     "nffi.md": "the NFFI sink and source: mapping, IP1 framing, trust, options",
     "sweccis.md": "the SWECCIS sink and order source: FAS documents, framing, XSD, options",
     "ra180.md": "the Ra 180 sink: the 127-character message, budget, serial/UDP, Swedish voice",
-    "security.md": "threat model per link mode and port, listener limits, the attack tests",
+    "security.md": "threat model per link mode and port, the passthrough policy, the attack tests",
+    "counter-uas.md": "fusion into tracks, the counter-UAS cue and the GUTE II sink",
+    "hopping.md": "AD9361 hop plans: checks, upload, acknowledgement, hop events",
+    "klv.md": "STANAG 4609 / MISB ST 0601 KLV metadata over UDP and MPEG-TS",
+    "orders.md": "five-line orders to the airframes: checks, missions, statuses",
     "README.md": "what works today",
 }
 

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import functools
 import os
 import sqlite3
 import time
@@ -37,6 +38,8 @@ import structlog
 from gateway.errors import SpoolError
 from gateway.events import Event, event_adapter
 from gateway.ops.logsetup import RateLimit
+from gateway.spool.commits import Commits
+from gateway.spool.startcheck import StartCheck, create_private, open_checked
 
 __all__ = ["DeadLetter", "Spool", "Spooled"]
 
@@ -153,28 +156,24 @@ class Spool:
         target = ":memory:" if path is None else str(path)
         self._owner = exclusive
         self._lock = _lock(path) if path is not None and exclusive else None
-        if path is not None and exclusive and not path.exists():
-            # Created private: the WAL and shared-memory files take the database's mode.
-            with contextlib.suppress(OSError):
-                os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
+        #: What the check at start found (the gateway's own spool file only).
+        self.start_check = StartCheck()
+        #: Writes that failed to commit.
+        self.commits = Commits(target)
         try:
-            self._db = sqlite3.connect(
-                target, isolation_level=None, check_same_thread=False, timeout=0.0
-            )
-            db = self._db
-            if path is not None:
-                mode = db.execute("PRAGMA journal_mode=WAL").fetchone()[0]
-                if str(mode).lower() != "wal":
-                    raise SpoolError(f"{path}: the file system does not support WAL ({mode})")
-            db.execute(f"PRAGMA synchronous={'FULL' if sync == 'full' else 'NORMAL'}")
-            # The gateway waits at most this for the 'spool' command's short writes (on the
-            # event loop, so short); the command itself waits longer for the gateway's.
-            db.execute(f"PRAGMA busy_timeout={250 if exclusive else 5000}")
-            db.execute("PRAGMA foreign_keys=OFF")
-            db.executescript(_SCHEMA)
+            if path is not None and exclusive:
+                create_private(path)
+                connect = functools.partial(self._connect, target, sync, exclusive=exclusive)
+                self._db, self.start_check = open_checked(path, connect)
+            else:
+                self._db = self._connect(target, sync, exclusive=exclusive)
+            self._db.executescript(_SCHEMA)
             self._check_version()
         except sqlite3.Error as exc:
             raise SpoolError(f"{target}: {exc}") from exc
+        except OSError as exc:  # a damaged spool that cannot be moved aside
+            raise SpoolError(f"{target}: cannot move the damaged spool aside: {exc}") from exc
+        db = self._db
         self._depth = 0  # open batch() contexts
         self._in_batch: list[tuple[int, tuple[str, ...]]] = []
         #: Sequence numbers appended in a batch that then failed to commit: never delivered.
@@ -198,6 +197,23 @@ class Spool:
                     break
 
     # -- housekeeping ---------------------------------------------------------------------
+
+    def _connect(self, target: str, sync: str, *, exclusive: bool) -> sqlite3.Connection:
+        db = sqlite3.connect(target, isolation_level=None, check_same_thread=False, timeout=0.0)
+        try:
+            if self.path is not None:
+                mode = db.execute("PRAGMA journal_mode=WAL").fetchone()[0]
+                if str(mode).lower() != "wal":
+                    raise SpoolError(f"{self.path}: the file system does not support WAL ({mode})")
+            db.execute(f"PRAGMA synchronous={'FULL' if sync == 'full' else 'NORMAL'}")
+            # The gateway waits at most this for the 'spool' command's short writes (on the
+            # event loop, so short); the command itself waits longer for the gateway's.
+            db.execute(f"PRAGMA busy_timeout={250 if exclusive else 5000}")
+            db.execute("PRAGMA foreign_keys=OFF")
+        except BaseException:
+            db.close()
+            raise
+        return db
 
     def _check_version(self) -> None:
         row = self._db.execute("SELECT value FROM meta WHERE key='schema'").fetchone()
@@ -252,27 +268,36 @@ class Spool:
             try:
                 self._db.execute("BEGIN IMMEDIATE")
             except sqlite3.Error as exc:
+                self.commits.failed(exc)
                 raise SpoolError(f"spool {self.path or ':memory:'}: {exc}") from exc
         self._depth += 1
         try:
             yield
-        except BaseException:
+        except BaseException as exc:
             self._depth -= 1
             if self._depth == 0:
-                with contextlib.suppress(sqlite3.Error):
-                    self._db.execute("ROLLBACK")
+                self._rollback(exc)
                 self._undo_batch()
             raise
         self._depth -= 1
         if self._depth == 0:
             try:
-                self._db.execute("COMMIT")
+                self._commit()
             except sqlite3.Error as exc:
-                with contextlib.suppress(sqlite3.Error):
-                    self._db.execute("ROLLBACK")
                 self._undo_batch()
                 raise SpoolError(f"spool {self.path or ':memory:'}: {exc}") from exc
             self._in_batch.clear()
+
+    def _commit(self) -> None:
+        """COMMIT the open transaction; on failure it is rolled back, counted and re-raised."""
+        try:
+            self._db.execute("COMMIT")
+        except sqlite3.Error as exc:
+            self.commits.failed(exc)
+            with contextlib.suppress(sqlite3.Error):
+                self._db.execute("ROLLBACK")
+            raise
+        self.commits.succeeded()
 
     def _undo_batch(self) -> None:
         """The batch did not commit: what it appended is not held, and must not be sent."""
@@ -286,19 +311,42 @@ class Spool:
         with contextlib.suppress(sqlite3.Error):
             self._bytes = self._measure()
 
+    def _rollback(self, exc: BaseException) -> None:
+        """Roll the open transaction back; count it if SQLite failed (directly or under ours)."""
+        cause = exc if isinstance(exc, sqlite3.Error) else exc.__cause__
+        if isinstance(cause, sqlite3.Error):
+            self.commits.failed(cause)
+        with contextlib.suppress(sqlite3.Error):
+            self._db.execute("ROLLBACK")
+
     @contextlib.contextmanager
     def _write(self) -> Iterator[sqlite3.Connection]:
-        """A write that commits at once, or joins the open batch."""
+        """A write that commits at once, or joins the open transaction (which counts failures)."""
         if self._depth or self._db.in_transaction:
             yield self._db
             return
-        self._db.execute("BEGIN IMMEDIATE")
+        try:
+            self._db.execute("BEGIN IMMEDIATE")
+        except sqlite3.Error as exc:
+            self.commits.failed(exc)
+            raise
         try:
             yield self._db
-        except BaseException:
-            self._db.execute("ROLLBACK")
+        except BaseException as exc:
+            self._rollback(exc)
             raise
-        self._db.execute("COMMIT")
+        self._commit()
+
+    def probe(self) -> bool:
+        """One small write, to learn whether writes commit again after failing; True if so."""
+        try:
+            with self._write() as db:
+                db.execute(
+                    "INSERT OR REPLACE INTO meta VALUES ('probed_at', ?)", (str(time.time()),)
+                )
+        except sqlite3.Error:
+            return False
+        return True
 
     def append(self, event: Event, sinks: Sequence[str]) -> int | None:
         """Hold ``event`` for ``sinks``; its ``seq``, or None if the spool is full.

@@ -36,7 +36,7 @@ def write_config(tmp_path: Path) -> tuple[Path, dict[str, int], Path]:
     ports = {name: free_udp_port() for name in ("tun", "sig", "open", "gcs")}
     tun_extra = (
         "    link_timeout_s: 0.5\n    failback_hold_s: 0\n"
-        f"    passthrough: 'udp://127.0.0.1:{ports['gcs']}'\n"
+        f"    passthrough: {{uri: 'udp://127.0.0.1:{ports['gcs']}', uplink: open}}\n"
     )
     config, archive = three_airframe_node(tmp_path, ports, tun_extra=tun_extra)
     return config, ports, archive
@@ -106,7 +106,7 @@ def test_uplink_goes_sealed_to_the_authenticated_peer_only_and_never_in_plaintex
     seal = sealer("TUN")
     tun = Airframe(1)
     gcs_mav = mav.MAVLink(None, srcSystem=255, srcComponent=190)
-    command = bytes(gcs_mav.command_long_encode(1, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0).pack(gcs_mav))
+    command = bytes(gcs_mav.command_long_encode(1, 1, 512, 0, 148, 0, 0, 0, 0, 0, 0).pack(gcs_mav))
     with running(config) as daemon:
         # The attacker's plain TUN frames reach OPEN's port; a second socket sends garbage
         # (and a plain frame) to the tunnel port; the genuine airframe sends sealed frames.
@@ -164,13 +164,13 @@ def test_signed_link_uplink_is_signed(
     )
     text = config.read_text()
     assert sig_link in text
-    passthrough = f"    passthrough: 'udp://127.0.0.1:{gcs_port}'\n"
+    passthrough = f"    passthrough: {{uri: 'udp://127.0.0.1:{gcs_port}', uplink: open}}\n"
     config.write_text(text.replace(sig_link, passthrough + sig_link))
     autopilot, gcs, attacker = udp_socket(), udp_socket(), udp_socket()
     fake = mav.MAVLink(None, srcSystem=2, srcComponent=68)
     radio_status = bytes(fake.radio_status_encode(200, 190, 100, 10, 12, 0, 0).pack(fake))
     gcs_mav = mav.MAVLink(None, srcSystem=255, srcComponent=190)
-    command = bytes(gcs_mav.command_long_encode(2, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0).pack(gcs_mav))
+    command = bytes(gcs_mav.command_long_encode(2, 1, 512, 0, 148, 0, 0, 0, 0, 0, 0).pack(gcs_mav))
     with running(config) as daemon:
         # Its signing clock starts now, after the gateway's (see test_restart_replay.py).
         sig = Airframe(2, signing_key=SIGNING_KEY)

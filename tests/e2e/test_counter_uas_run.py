@@ -164,6 +164,11 @@ def test_the_lancet_passing_a_platoon_is_recued_not_clear_with_no_effector(
     for document in held:
         assert document["recommended_effector"] is None
         assert document["deconfliction"]["nearest_blue_callsign"] == "VIDAR 1"
+        # The platoons report over CoT: their callsigns are marked for what they are.
+        assert document["deconfliction"]["nearest_blue_callsign_provenance"] == (
+            "unauthenticated CoT callsign"
+        )
+        assert document["deconfliction"]["nearest_blue_source"] == "atak"
         assert document["revision"] >= 1  # first cued clear, far out; revised as it closed in
         inside = [o for o in document["options"] if not o["deconfliction_clear"]]
         assert inside

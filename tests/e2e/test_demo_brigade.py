@@ -45,10 +45,14 @@ def first(lines: list[str], pattern: str) -> int:
 def test_the_steps_come_in_the_operations_order(story: list[str]) -> None:
     steps = [
         r"battery registered: GUTE II GUTE-1 at 65\.8235 N 21\.6955 E",
-        r"blue force registered: VIDAR \d \(BLUE-\dPLUT\) at 34W E",
+        r'blue force registered: "VIDAR \d" \(unauthenticated CoT callsign, source atak\),'
+        r' uid "BLUE-\dPLUT", at 34W E',
         r"detection ingested: F26E-00\d (EO|IR) sees loitering_munition LANCET-3",
-        r"track T-\w+-\d+ fused: loitering_munition LANCET-3 confidence 0\.95 .* from EO\+IR",
-        r"deconfliction clear for track T-\S+: nearest blue VIDAR \d at \d+ m",
+        # Confirmed after M of N detections, a track may be published fused from the start.
+        r"track T-\w+-\d+ (created|fused): loitering_munition LANCET-3 confidence 0\.95 .*"
+        r" from EO\+IR",
+        r'deconfliction clear for track T-\S+: nearest blue "VIDAR \d"'
+        r" \(unauthenticated CoT callsign, source atak\) at \d+ m",
         r"GUTE II cue: track T-\S+ to battery GUTE-1 \(\d+ m from it, bearing \d{3}°\), recommended"
         r" effector (TRIDON_MK2_40MM|TRACKFIRE_30MM)",
         r"published: GUTE II battery GUTE-1 received cue HO-T-\S+ revision 0 over HTTPS",
@@ -64,7 +68,11 @@ def test_the_steps_come_in_the_operations_order(story: list[str]) -> None:
 
 
 def test_the_lancet_passing_vidar_1_is_told_not_clear_with_no_effector(story: list[str]) -> None:
-    held = first(story, r"deconfliction NOT clear for track T-\S+: nearest blue VIDAR 1 at \d+ m")
+    held = first(
+        story,
+        r'deconfliction NOT clear for track T-\S+: nearest blue "VIDAR 1"'
+        r" \(unauthenticated CoT callsign, source atak\) at \d+ m",
+    )
     assert "recommended effector none (deconfliction not clear)" in story[held + 1]
     received = first(
         story, r"received cue HO-T-\S+ revision [1-9]\d* over HTTPS: deconfliction NOT"

@@ -2,9 +2,10 @@
 
 ``fischer-gateway run --config FILE`` in a child process with two unsecured airframes on
 loopback UDP, the ``fusion`` processor and a jsonl archive. Airframe 1 reports the munition
-on EO at 0.80 and airframe 2 on IR at 0.75, a few metres apart; the archive must hold one
-track for it, created and then updated to the seed's 0.95 with both airframes, and (with a
-short ``lost_after_s``) lost once the reports stop.
+on EO at 0.80 in three frames (the tracker confirms a track after three detections: M of N)
+and airframe 2 on IR at 0.75, a few metres away; the archive must hold one track for it,
+created and then updated to the seed's 0.95 with both airframes, and (with a short
+``lost_after_s``) lost once the reports stop.
 """
 
 from __future__ import annotations
@@ -82,8 +83,10 @@ def test_two_airframes_fuse_into_one_track_updated_to_095_then_lost(tmp_path: Pa
     ):
         sock.sendto(one.heartbeat(), ("127.0.0.1", ports[0]))
         sock.sendto(two.heartbeat(), ("127.0.0.1", ports[1]))
-        eo = detection_frame(one, sensor=0, confidence_pct=80, dlat_e7=0)
-        sock.sendto(eo, ("127.0.0.1", ports[0]))
+        for _ in range(3):  # three frames: a tentative track confirmed, then published
+            eo = detection_frame(one, sensor=0, confidence_pct=80, dlat_e7=0)
+            sock.sendto(eo, ("127.0.0.1", ports[0]))
+            time.sleep(0.01)  # each its own frame (time_usec)
         wait_until(lambda: len(tracks(archive)) >= 1, 15, "the track created")
         ir = detection_frame(two, sensor=1, confidence_pct=75, dlat_e7=20)  # about 2 m north
         sock.sendto(ir, ("127.0.0.1", ports[1]))
@@ -106,5 +109,6 @@ def test_two_airframes_fuse_into_one_track_updated_to_095_then_lost(tmp_path: Pa
     assert updated["sensors"] == ["eo", "ir"]
     assert updated["object_class"] == "loitering_munition"
     assert updated["hostility"] == "hostile"
-    assert updated["detection_count"] == 2
+    assert updated["detection_count"] == 4
+    assert created["detection_count"] == 3
     assert len({e["event_id"] for e in events}) == len(events)

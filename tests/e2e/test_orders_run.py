@@ -291,6 +291,14 @@ def by_operator(
         common = ("--task", "observe_point", "--airframe", "F26E-001", "--follow")
         runs["in"] = order_cli(sock, *common, "--order-id", "OP-1", "--point", "65.85", "21.10")
         runs["out"] = order_cli(sock, *common, "--order-id", "OP-2", "--point", "64.5", "21.0")
+        area = ("--task", "recon_area", "--airframe", "F26E-001", "--follow")
+        # The red team's 170 km leg along the fence's 65 N edge, 89 m north of the parallel
+        # (inside in latitude and longitude), and one 445 m north whose ends and geodesic are
+        # inside the geodesic edge but whose rhumb line (how ArduPilot flies it) is not.
+        edge = ("--polygon", "65.0008,20.2", "65.0008,23.8", "65.3,23.8", "65.3,20.2")
+        runs["edge"] = order_cli(sock, *area, "--order-id", "OP-3", *edge)
+        rhumb = ("--polygon", "65.004,20.1", "65.004,23.9", "65.3,23.9", "65.3,20.1")
+        runs["rhumb"] = order_cli(sock, *area, "--order-id", "OP-4", *rhumb)
         with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as raw:
             raw.settimeout(10)
             raw.connect(str(sock))
@@ -321,3 +329,22 @@ def test_an_operator_order_outside_the_fence_is_rejected_with_its_reason(
     assert lines[-1]["check"] == "geofence"
     assert lines[-1]["reason"].startswith("the route leaves the geofence at 64.5")
     assert json.loads(garbage) == {"status": "rejected", "reason": "order: not JSON"}
+
+
+def test_a_leg_along_the_fence_edge_is_checked_on_the_ellipsoid(
+    by_operator: tuple[Path, dict[str, tuple[int, list[dict[str, Any]], str]], bytes, int],
+) -> None:
+    """The fence's edges are geodesics, and a leg is checked as PX4 and ArduPilot fly it."""
+    _, runs, _, _ = by_operator
+    for name in ("edge", "rhumb"):
+        code, lines, _ = runs[name]
+        assert code == 1
+        assert [line["status"] for line in lines] == ["received", "rejected"]
+        assert lines[-1]["check"] == "geofence"
+    assert runs["edge"][1][-1]["reason"] == (
+        "the route leaves the geofence at 65.00080, 20.20000 (lat, lon), 194 m outside"
+    )
+    assert runs["rhumb"][1][-1]["reason"] == (
+        "the route leaves the geofence at 65.00400, 22.00000 (lat, lon), 1047 m outside,"
+        " on the leg 65.00400, 20.10000 to 65.00400, 23.90000 flown as the rhumb line"
+    )

@@ -47,7 +47,8 @@ airframes:
 processors:
   - name: fusion
     type: fusion
-    options: {{update_interval_s: 0.2, tick_s: 0.2}}
+    # One detection is a track here (the radio path is under test, not M-of-N confirmation).
+    options: {{update_interval_s: 0.2, tick_s: 0.2, confirm_hits: 1, confirm_window: 1}}
 sinks:
   - name: radio
     type: ra180

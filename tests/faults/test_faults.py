@@ -49,36 +49,37 @@ def detection(n: int) -> Detection:
     )
 
 
-async def good_sink_latency_s(tmp_path: Path, *, with_hung: bool) -> float:
-    """Mean ingest→delivery latency of a healthy sink while frames flow."""
-    sinks: list[dict[str, object]] = [{"name": "good", "type": "memory"}]
-    if with_hung:
-        sinks.append({"name": "hung", "type": "memory", "send_timeout_s": 0.05})
+@pytest.mark.anyio
+async def test_a_hung_sink_holds_up_no_other_sink(tmp_path: Path) -> None:
+    """A sink whose send never returns (and whose deadline is an hour) leaves the others
+    delivering everything: live telemetry and durable detections. How fast they deliver is
+    measured in bench/, not asserted here (a loaded machine would make any bound flaky)."""
+    sinks: list[dict[str, object]] = [
+        {"name": "good", "type": "memory"},
+        {"name": "hung", "type": "memory", "send_timeout_s": 3600},
+    ]
     good, hung = MemorySink("good"), MemorySink("hung")
     hung.hang = True
-    given = {"good": good, "hung": hung} if with_hung else {"good": good}
-    gateway = Gateway(gateway_config(tmp_path, sinks), sinks=given)
+    gateway = Gateway(gateway_config(tmp_path, sinks), sinks={"good": good, "hung": hung})
     sim = SimulatedAirframe(1)
-    async with anyio.create_task_group() as tg:
-        await tg.start(gateway.run)
-        await sim.run_udp("127.0.0.1", port(gateway), duration_s=1.0, speed=4.0)
-        for n in range(20):
-            gateway.bus.publish(detection(n))
-        await eventually(lambda: sum(isinstance(e, Detection) for e in good.events) == 20)
-        gateway.shutdown()
-    child = gateway.instruments.sink_latency.labels("good")
-    return child.sum / child.count
-
-
-@pytest.mark.anyio
-async def test_hung_sink_leaves_other_sinks_latency_unchanged(tmp_path: Path) -> None:
-    baseline, with_hung = [], []
     with anyio.fail_after(60):
-        for _ in range(3):  # interleaved, so a noisy neighbour hits both alike
-            baseline.append(await good_sink_latency_s(tmp_path, with_hung=False))
-            with_hung.append(await good_sink_latency_s(tmp_path, with_hung=True))
-    # The best of three is robust to interference; 10 % plus 0.2 ms of scheduling noise.
-    assert min(with_hung) <= min(baseline) * 1.1 + 0.0002
+        async with anyio.create_task_group() as tg:
+            await tg.start(gateway.run)
+            await sim.run_udp("127.0.0.1", port(gateway), duration_s=1.0, speed=4.0)
+            for n in range(20):
+                gateway.bus.publish(detection(n))
+            await eventually(lambda: sum(isinstance(e, Detection) for e in good.events) == 20)
+            final = sim.sent_positions[-1]
+            await eventually(
+                lambda: any(
+                    isinstance(e, Telemetry)
+                    and e.position is not None
+                    and e.position.lat_deg == final.lat_e7 / 1e7
+                    for e in good.events
+                )
+            )
+            assert hung.events == []  # still inside its first send
+            gateway.shutdown()
 
 
 @pytest.mark.anyio

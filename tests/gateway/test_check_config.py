@@ -292,3 +292,60 @@ def test_a_dem_source_whose_every_tile_is_unreadable_is_a_warning_and_disabled(
     result = cli("check-config", str(config))
     assert result.returncode == 0
     assert "every tile is unreadable" in result.stderr
+
+
+def test_a_passthrough_must_state_its_uplink_and_keep_its_own_key(tmp_path: Path) -> None:
+    """Issue 21: no default uplink; the fix is in the message; a ground station never holds
+    the airframe's own signing key; beyond loopback only when stated. ``run`` refuses the
+    same file with the same lines."""
+    airframe_key = key(tmp_path / "sig.key")
+    config = tmp_path / "c.yaml"
+    config.write_text(
+        "airframes:\n"
+        "  - id: A\n    sysid: 1\n"
+        "    passthrough: udp://127.0.0.1:14560\n"
+        "    links: [{uri: 'udp://127.0.0.1:14550', security: unsecured}]\n"
+        "  - id: B\n    sysid: 2\n"
+        "    passthrough: {uri: 'udp://127.0.0.1:14561'}\n"
+        "    links: [{uri: 'udp://127.0.0.1:14551', security: unsecured}]\n"
+        "  - id: C\n    sysid: 3\n"
+        f"    signing: {{key_file: '{airframe_key}'}}\n"
+        f"    passthrough: {{uri: 'udp://127.0.0.1:14562', uplink: signed,\n"
+        f"                  key_file: '{airframe_key}'}}\n"
+        "    links: [{uri: 'udp://127.0.0.1:14552', security: signed}]\n"
+        "  - id: D\n    sysid: 4\n"
+        "    passthrough: {uri: 'udp://0.0.0.0:14563', uplink: none}\n"
+        "    links: [{uri: 'udp://127.0.0.1:14553', security: unsecured}]\n"
+        # Nor another airframe's: it could sign straight to C around the policy.
+        "  - id: E\n    sysid: 5\n"
+        "    passthrough: {uri: 'udp://127.0.0.1:14564', uplink: signed,\n"
+        f"                  key_file: '{airframe_key}'}}\n"
+        "    links: [{uri: 'udp://127.0.0.1:14554', security: unsecured}]\n"
+    )
+    result = cli("check-config", "--no-environment", str(config))
+    assert result.returncode == 2
+    assert f"{config}:4 airframes[0].passthrough: the passthrough must state" in result.stderr
+    assert "uplink: none|signed|open" in result.stderr
+    assert f"{config}:8 airframes[1].passthrough.uplink: missing required key" in result.stderr
+    assert f"{config}:18 airframes[3].passthrough.uri: '0.0.0.0' is beyond loopback" in (
+        result.stderr
+    )
+    # On the node (and so at ``run``), once the file itself is good: the key check.
+    text = config.read_text()
+    text = text.replace(
+        "passthrough: udp://127.0.0.1:14560",
+        "passthrough: {uri: 'udp://127.0.0.1:14560', uplink: none}",
+    )
+    text = text.replace(
+        "{uri: 'udp://127.0.0.1:14561'}", "{uri: 'udp://127.0.0.1:14561', uplink: open}"
+    )
+    text = text.replace("0.0.0.0:14563", "127.0.0.1:14563")
+    config.write_text(text)
+    for command in ("check-config", "run"):
+        args = ("--config", str(config)) if command == "run" else (str(config),)
+        result = cli(command, *args)
+        assert result.returncode == 2, result.stderr
+        assert f"{config}:14 airframes[2].passthrough.key_file:" in result.stderr
+        assert "is the airframe's signing key" in result.stderr
+        assert f"{config}:23 airframes[4].passthrough.key_file:" in result.stderr
+        assert "is airframe C's signing key" in result.stderr

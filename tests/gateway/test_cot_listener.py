@@ -18,6 +18,7 @@ from pydantic import ValidationError
 from gateway.app import Gateway
 from gateway.codecs.cot.validate import parse_cot
 from gateway.config import Config
+from gateway.domain.peertext import Provenance
 from gateway.events import BlueForce, Event
 from gateway.testing import MemorySink, eventually, fuzz_examples
 from sources._cot_stream import EventSplitter
@@ -143,6 +144,18 @@ def test_friendly_position_becomes_blue_force() -> None:
     assert isinstance(event, BlueForce)
     assert (event.uid, event.callsign, event.position.lat_deg) == ("ANDROID-1", "3 PLUT", 65.82)
     assert event.position.alt_hae_m is None
+    # Anyone who reaches the port may send: never more than unauthenticated.
+    assert event.provenance is Provenance.UNAUTHENTICATED
+    assert event.source_name == "cot"
+
+
+def test_a_callsign_is_made_safe_at_the_source() -> None:
+    events: list[Event] = []
+    hostile = FRIEND.replace(b'callsign="3 PLUT"', 'callsign="WEAPONS\u202e FREE\u200b!"'.encode())
+    listener(events).handle(hostile)
+    (event,) = events
+    assert isinstance(event, BlueForce)
+    assert event.callsign == "WEAPONS FREE?"
 
 
 def test_hostile_and_invalid_events_are_counted_not_published() -> None:

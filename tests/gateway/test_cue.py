@@ -8,6 +8,7 @@ import pytest
 
 from gateway.domain.effectors import load_effector_table
 from gateway.domain.geodesy import destination
+from gateway.domain.peertext import Provenance
 from gateway.events import BlueForce, Handoff, Position, Track
 from gateway.flow.blueforce import BlueForceRegistry
 from gateway.flow.cue import Battery, CueDesk
@@ -286,3 +287,83 @@ def test_with_no_friendly_position_known_nothing_is_clear() -> None:
     assert not handoff.deconfliction.clear
     assert handoff.recommended_effector is None
     assert all(o.deconfliction_clear for o in handoff.options)  # no unit inside any radius
+
+
+def test_the_cue_says_where_its_blue_force_picture_came_from() -> None:
+    cue = desk()
+    target = at(BATTERY, 90, 2000)
+    hostile = "WEAPONS FREE\u202e - ENGAGE AUTHORISED BY BDE"
+    report = blue("ANDROID-RED", at(target, 0, 150)).model_copy(
+        update={"callsign": hostile, "source_name": "atak-mesh"}
+    )
+    cue.blue.update(report)
+    handoff = cue.consider(track(target))
+    assert handoff is not None
+    check = handoff.deconfliction
+    # Made safe again where it is used (a report may not have come through a source that did).
+    assert check.nearest_blue_callsign == "WEAPONS FREE - ENGAGE AUTHORI..."
+    assert check.nearest_blue_callsign_provenance == "unauthenticated CoT callsign"
+    assert (check.nearest_blue_source, check.nearest_blue_provenance) == (
+        "atak-mesh",
+        Provenance.UNAUTHENTICATED,
+    )
+    # HQ-FAR was pinned without a provenance of its own: its source name defaults to "cot".
+    assert {(s.source, s.provenance, s.units) for s in check.blue_sources} == {
+        ("atak-mesh", Provenance.UNAUTHENTICATED, 1),
+        ("cot", Provenance.UNAUTHENTICATED, 1),
+    }
+
+
+class TestMergedTracks:
+    """A cued track merged into another never leaves two live cues for one object."""
+
+    def merged(self, track_id: str, into: str, where: Position) -> Track:
+        return track(where, track_id=track_id, status="merged").model_copy(
+            update={"merged_into": into, "time": NOW + timedelta(seconds=2)}
+        )
+
+    def test_both_cued_the_merged_ones_cue_is_superseded_by_the_survivors(self) -> None:
+        cue = desk()
+        where = at(BATTERY, 90, 2000)
+        first = cue.consider(track(where, track_id="T-1"))
+        second = cue.consider(track(at(BATTERY, 90, 2010), track_id="T-2"))
+        assert first is not None
+        assert second is not None
+        revision = cue.consider(self.merged("T-2", "T-1", where))
+        assert revision is not None
+        assert revision.handoff_id == second.handoff_id
+        assert revision.revision == 1
+        assert revision.event_id == f"{second.handoff_id}-r1"
+        assert revision.status == "superseded"
+        assert revision.superseded_by == first.handoff_id
+        assert revision.recommended_effector is None
+        assert "merged into T-1" in revision.note
+        assert cue.counts.superseded == 1
+        # The merged track is gone from the desk; the survivor's cue stands unchanged.
+        assert cue.consider(track(where, track_id="T-1")) is None
+
+    def test_only_the_merged_one_cued_its_cue_carries_on_with_the_survivor(self) -> None:
+        cue = desk(min_confidence=0.9)
+        where = at(BATTERY, 90, 2000)
+        assert cue.consider(track(where, track_id="T-1", confidence=0.5)) is None  # not yet
+        young = cue.consider(track(where, track_id="T-2"))
+        assert young is not None
+        assert cue.consider(self.merged("T-2", "T-1", where)) is None
+        assert cue.counts.carried_on == 1
+        survivor = track(where, track_id="T-1").model_copy(
+            update={"time": NOW + timedelta(seconds=3)}
+        )
+        revision = cue.consider(survivor)
+        assert revision is not None
+        assert revision.handoff_id == young.handoff_id  # one cue id for the object
+        assert revision.revision == 1
+        assert revision.status == "active"
+        assert revision.track.track_id == "T-1"
+        assert "now follows T-1" in revision.note
+        assert cue.counts.handed_off == 1
+        # Said once: the next update with nothing new sends nothing.
+        assert cue.consider(survivor) is None
+
+    def test_a_merged_track_never_cued_sends_nothing(self) -> None:
+        cue = desk()
+        assert cue.consider(self.merged("T-9", "T-1", at(BATTERY, 90, 2000))) is None

@@ -37,7 +37,10 @@ async def test_mavsdk_gets_position_and_battery_through_the_passthrough() -> Non
                     "id": "F26E-001",
                     "sysid": 1,
                     "links": [{"uri": "udp://127.0.0.1:0", "security": "unsecured"}],
-                    "passthrough": f"udp://127.0.0.1:{gcs_port}?mode=connect",
+                    "passthrough": {
+                        "uri": f"udp://127.0.0.1:{gcs_port}?mode=connect",
+                        "uplink": "open",
+                    },
                 }
             ],
         }

@@ -126,6 +126,12 @@ class TestTunnel:
         with pytest.raises(ConfigError, match="mode is 640"):
             read_key_file(path)
 
+    def test_a_key_of_the_wrong_length_names_both_forms(self, tmp_path: Path) -> None:
+        """A passphrase written where its SHA-256 belongs: the message says what fits."""
+        path = write_key(tmp_path / "gcs.key", b"a-passphrase")
+        with pytest.raises(ConfigError, match=r"exactly 32 key bytes \(raw, or written as 64 hex"):
+            read_key_file(path, exact=True)
+
     def test_tunnel_link_without_a_master_key_is_a_config_error(self, tmp_path: Path) -> None:
         cfg = tmp_path / "c.yaml"
         cfg.write_text(

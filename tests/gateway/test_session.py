@@ -116,3 +116,44 @@ async def test_in_progress_stops_resending_and_a_foreign_ack_is_not_ours() -> No
     assert len(sent) == 1
     assert done.is_accepted
     assert done.attempts == 1
+
+
+class TestMessageHandlers:
+    """``on`` adds a handler beside the others; it never silently replaces one."""
+
+    def test_several_handlers_of_one_message_each_get_it_in_order(self) -> None:
+        session = gateway().sessions["F26E-001"]
+        seen: list[tuple[str, str, object]] = []
+        session.on("SCALED_PRESSURE", lambda _s, label, m: seen.append(("first", label, m)))
+        session.on("SCALED_PRESSURE", lambda _s, label, m: seen.append(("second", label, m)))
+        msg = object()
+        session.dispatch("l", "SCALED_PRESSURE", msg)  # type: ignore[arg-type]
+        assert seen == [("first", "l", msg), ("second", "l", msg)]
+        assert len(session.handlers("SCALED_PRESSURE")) == 2
+        # What ingest and the commander register is there once each: nothing was replaced.
+        assert len(session.handlers("HEARTBEAT")) == 1
+        assert len(session.handlers("COMMAND_ACK")) == 1
+
+    def test_registering_the_same_handler_twice_is_an_error(self) -> None:
+        session = gateway().sessions["F26E-001"]
+
+        def handler(_session: object, _label: str, _msg: object) -> None:
+            pass
+
+        session.on("FISCHER_HOP_EVENT", handler)
+        with pytest.raises(ValueError, match="already handles FISCHER_HOP_EVENT"):
+            session.on("FISCHER_HOP_EVENT", handler)
+        assert session.handlers("FISCHER_HOP_EVENT").count(handler) == 1
+
+    def test_a_failing_handler_keeps_the_message_from_no_other(self) -> None:
+        session = gateway().sessions["F26E-001"]
+        seen: list[str] = []
+
+        def broken(_session: object, _label: str, _msg: object) -> None:
+            raise KeyError("a bug in a handler")
+
+        session.on("SCALED_PRESSURE", broken)
+        session.on("SCALED_PRESSURE", lambda _s, _l, _m: seen.append("after"))
+        with pytest.raises(KeyError, match="a bug in a handler"):
+            session.dispatch("l", "SCALED_PRESSURE", object())  # type: ignore[arg-type]
+        assert seen == ["after"]

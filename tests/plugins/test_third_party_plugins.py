@@ -1,25 +1,62 @@
-"""A third-party processor and source, each with its own entry point, through ``run``.
+"""A third-party sink, processor and source, each with its own entry point, through ``run``.
 
 ``tests/plugins/fake_plugins`` is laid out as an installed distribution (a module and its
-``.dist-info`` with ``entry_points.txt``); the daemon finds both through the entry-point
+``.dist-info`` with ``entry_points.txt``); the daemon finds all three through the entry-point
 groups once that directory is on its ``PYTHONPATH``, exactly as it would a pip-installed one.
+Each passes its contract checker (``gateway.contract``), as its author would check it; and
+with the distribution installed, the project's tests that loop over plugins see only ours.
 """
 
 from __future__ import annotations
 
+import importlib
 import json
 import os
 import socket
 from pathlib import Path
+from types import ModuleType
 
 import pytest
 from daemon_support import Airframe, archive_events, free_udp_port, running, wait_until
+from own_plugins import own_types
 
+from gateway.c2.plugins import GROUP, PROCESSOR_GROUP, SOURCE_GROUP, available
+from gateway.contract import check_processor, check_sink, check_source
+from gateway.events import BlueForce, Track
 from gateway.fleet.dialect import CLASS_NAMES
 
 PACKAGE = Path(__file__).resolve().parent / "fake_plugins"
 
 pytestmark = pytest.mark.timeout(60)
+
+
+@pytest.fixture
+def installed(monkeypatch: pytest.MonkeyPatch) -> ModuleType:
+    """The fake distribution installed in this process (on ``sys.path``); its module."""
+    monkeypatch.syspath_prepend(str(PACKAGE))
+    return importlib.import_module("fake_plugins")
+
+
+def test_each_passes_its_contract_checker(installed: ModuleType, tmp_path: Path) -> None:
+    tally = tmp_path / "tally.txt"
+    check_sink(installed.Tally, {"path": str(tally)})
+    assert tally.read_text().splitlines() == ["detection c-det", "track c-trk", "blue_force c-bf"]
+    source = check_source(installed.Ticker, {"interval_s": 0.01, "callsign": "BRAVO"})
+    assert source.published
+    assert all(isinstance(e, BlueForce) and e.callsign == "BRAVO" for e in source.published)
+    processor = check_processor(installed.Doubler, {"prefix": "X"})
+    (track,) = processor.published
+    assert isinstance(track, Track)
+    assert track.detection_ids == ("c-det",)
+
+
+def test_installed_third_party_plugins_are_not_enumerated_as_ours(installed: ModuleType) -> None:
+    assert available()["tally"] == "fake-plugins"
+    for group, theirs in ((GROUP, "tally"), (PROCESSOR_GROUP, "doubler"), (SOURCE_GROUP, "ticker")):
+        ours = own_types(group)
+        assert ours
+        assert theirs not in ours
+    assert {"jsonl", "memory"} <= set(own_types(GROUP))
 
 
 def test_a_third_party_processor_and_source_plug_in_through_config(
@@ -30,6 +67,7 @@ def test_a_third_party_processor_and_source_plug_in_through_config(
     )
     port = free_udp_port()
     archive = tmp_path / "archive.jsonl"
+    tally = tmp_path / "tally.txt"
     config = tmp_path / "node.yaml"
     config.write_text(
         f"""
@@ -43,8 +81,10 @@ processors:
   - {{name: twin, type: doubler, options: {{prefix: TW}}}}
 sinks:
   - {{name: archive, type: jsonl, options: {{path: '{archive}'}}}}
+  - {{name: counted, type: tally, options: {{path: '{tally}'}}}}
 routes:
   - {{sinks: [archive]}}
+  - {{kinds: [track, blue_force], sinks: [counted]}}
 """
     )
     plane = Airframe(3)
@@ -75,6 +115,12 @@ routes:
     ticks = [e for e in archive_events(archive) if e["kind"] == "blue_force"]
     assert all(t["callsign"] == "ALPHA" for t in ticks)
     assert json.dumps(ticks[0])  # archived whole
+    # The third-party sink got what its route sends it, from the third-party plugins.
+    counted = [line.split() for line in tally.read_text().splitlines()]
+    assert {kind for kind, _ in counted} == {"track", "blue_force"}
+    assert {event_id for kind, event_id in counted if kind == "track"} == {
+        t["event_id"] for t in tracks
+    }
 
 
 def test_a_bad_plugin_option_is_a_config_error_with_its_line(

@@ -11,6 +11,7 @@ import anyio
 import pytest
 
 from gateway.domain.geodesy import destination
+from gateway.domain.peertext import Provenance
 from gateway.events import BlueForce, Event, Handoff, Position, Track
 from processors.counter_uas import CounterUasConfig, CounterUasProcessor
 
@@ -79,6 +80,7 @@ async def test_fixed_friends_are_announced_and_each_track_is_handed_off_once() -
     assert isinstance(published[0], BlueForce)
     assert published[0].uid == "PLT-1"
     assert published[0].source == "config:cuas"
+    assert (published[0].source_name, published[0].provenance) == ("cuas", Provenance.CONFIGURED)
     handoffs = [e for e in published if isinstance(e, Handoff)]
     assert [h.track.track_id for h in handoffs] == ["T-1", "T-2"]
     assert handoffs[0].deconfliction.clear

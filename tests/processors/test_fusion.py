@@ -13,6 +13,7 @@ from pydantic import ValidationError
 
 from gateway.events import Detection, Event, Position, Sensor, Track
 from processors.fusion import FusionConfig, FusionProcessor
+from tracking import TrackerSettings
 
 T0 = datetime(2026, 3, 1, 12, 0, tzinfo=UTC)
 
@@ -21,11 +22,23 @@ class TestFusionConfig:
     """Options validated at load, every error naming its option."""
 
     def test_defaults_match_the_tracker(self) -> None:
-        settings = FusionConfig().settings()
-        assert settings.gate_sigma == 3.0
-        assert settings.lost_after_s == 30.0
-        assert settings.max_tracks == 5000
-        assert settings.index == "grid"
+        settings, default = FusionConfig().settings(), TrackerSettings()
+        for name in ("gate_sigma", "max_gap_s", "coast_after_s", "lost_after_s", "confirm_hits",
+                     "confirm_window", "max_tracks", "update_interval_s", "merge_sigma",
+                     "merge_after", "report_velocity_sigma_mps", "index", "cell_m"):  # fmt: skip
+            assert getattr(settings, name) == getattr(default, name), name
+        for name in default.priors.names():
+            assert settings.priors[name] == default.priors[name], name
+
+    def test_class_priors_and_the_speed_floor_reach_the_tracker(self) -> None:
+        config = FusionConfig.model_validate(
+            {"class_priors": {"tank": {"max_speed_mps": 15, "accel_mps2": 0.5}},
+             "max_speed_mps": 18}
+        )  # fmt: skip
+        priors = config.settings().priors
+        assert priors["tank"].max_speed_mps == 18.0  # raised to the floor
+        assert priors["tank"].accel_mps2 == 0.5
+        assert priors["uav"].max_speed_mps == TrackerSettings().priors["uav"].max_speed_mps
 
     @pytest.mark.parametrize(
         ("options", "where"),
@@ -36,6 +49,8 @@ class TestFusionConfig:
             ({"classes": ["tank", "tank"]}, "classes"),
             ({"classes": ["tank", "other"]}, "classes"),
             ({"gate_sigm": 3}, "gate_sigm"),
+            ({"confirm_hits": 6, "confirm_window": 5}, "confirm_hits"),
+            ({"class_priors": {"tank": {"max_speed_mps": -1, "accel_mps2": 1}}}, "max_speed_mps"),
         ],
     )
     def test_a_bad_option_is_named(self, options: dict[str, object], where: str) -> None:
@@ -67,7 +82,7 @@ class TestFusionConfig:
 
 @pytest.mark.anyio
 async def test_run_ages_tracks_without_input() -> None:
-    """One detection, then silence: the tick alone reports the track lost."""
+    """A confirmed track, then silence: the tick alone reports it lost."""
     processor = FusionProcessor(
         "fusion",
         FusionConfig(lost_after_s=5.0, tick_s=0.01),
@@ -86,18 +101,19 @@ async def test_run_ages_tracks_without_input() -> None:
     with anyio.fail_after(5):
         async with anyio.create_task_group() as tg:
             await tg.start(processor.run, receive, publish)
-            await send.send(
-                Detection(
-                    event_id="d1",
-                    airframe="A",
-                    time=T0,
-                    sensor=Sensor.EO,
-                    object_class="uav",
-                    confidence=0.7,
-                    position=Position(lat_deg=65.8, lon_deg=21.7),
-                    sigma_h_m=5.0,
+            for n in range(3):  # three detections confirm it (M of N)
+                await send.send(
+                    Detection(
+                        event_id=f"d{n}",
+                        airframe="A",
+                        time=T0 + timedelta(seconds=n),
+                        sensor=Sensor.EO,
+                        object_class="uav",
+                        confidence=0.7,
+                        position=Position(lat_deg=65.8, lon_deg=21.7),
+                        sigma_h_m=5.0,
+                    )
                 )
-            )
             await lost.wait()
             send.close()
     assert [t.status for t in published] == ["created", "lost"]

@@ -224,7 +224,8 @@ class TestChecks:
         assert isinstance(got, Plan)
         refusal = check(got, telemetry(), None, limits())
         assert refusal == Refusal(
-            "geofence", "the route leaves the geofence at 64.50000, 21.00000 (lat, lon)"
+            "geofence",
+            "the route leaves the geofence at 64.50000, 21.00000 (lat, lon), 56.9 km outside",
         )
 
     def test_below_the_terrain_floor_names_floor_ground_and_sigma(self, tmp_path: Path) -> None:
@@ -481,3 +482,39 @@ async def test_track_target_naming_a_live_track_flies_to_the_track() -> None:
     )
     ((_, items),) = commander.uploads
     assert {(i.lat_deg, i.lon_deg) for i in items} == {(65.87, 21.15)}
+
+
+@pytest.mark.anyio
+async def test_track_target_naming_a_merged_track_flies_to_its_survivor() -> None:
+    commander = Commander()
+
+    def seen(track_id: str, lat: float, **extra: object) -> Track:
+        return Track.model_validate(
+            {
+                "event_id": f"{track_id}-{extra.get('status', 'updated')}",
+                "track_id": track_id,
+                "time": NOW,
+                "object_class": "tank",
+                "confidence": 0.9,
+                "position": {"lat_deg": lat, "lon_deg": 21.15},
+                "cep50_m": 10.0,
+                "cep90_m": 20.0,
+                "first_seen": NOW,
+                "last_seen": NOW,
+                **extra,
+            }
+        )
+
+    events = [
+        telemetry(),
+        seen("T-7", 65.87),
+        seen("T-8", 65.871),
+        seen("T-8", 65.871, status="merged", merged_into="T-7"),
+        seen("T-7", 65.872),
+        order(task=OrderTask.TRACK_TARGET, track_id="T-8"),
+    ]
+    await run_orders(
+        commander, events, until=lambda s: any(x.status is OrderState.EXECUTING for x in s)
+    )
+    ((_, items),) = commander.uploads
+    assert {(i.lat_deg, i.lon_deg) for i in items} == {(65.872, 21.15)}

@@ -148,7 +148,24 @@ class TestText:
             " at 65.82520,21.68860 alt 250.0 m MSL cep50 10 m"
         )
         assert blue == (
-            "12:00:01.234Z blue_force ANDROID-1 - at 65.82520,21.68860 alt 250.0 m MSL via cot"
+            '12:00:01.234Z blue_force uid "ANDROID-1" - at 65.82520,21.68860 alt 250.0 m MSL'
+            " via cot"
+        )
+
+    def test_a_callsign_is_shown_safe_and_marked_by_provenance(self) -> None:
+        blue = BlueForce(
+            event_id="2",
+            uid="ANDROID-RED",
+            time=T0,
+            position=HERE,
+            source="cot",
+            source_name="atak-mesh",
+            callsign="WEAPONS FREE\u202e - ENGAGE AUTHORISED BY BDE",
+        )
+        assert describe(blue) == (
+            '12:00:01.234Z blue_force uid "ANDROID-RED" "WEAPONS FREE - ENGAGE AUTHORI..."'
+            " (unauthenticated CoT callsign, source atak-mesh)"
+            " at 65.82520,21.68860 alt 250.0 m MSL via cot"
         )
 
     def test_describe_is_the_text_format(self) -> None:

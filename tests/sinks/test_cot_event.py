@@ -135,6 +135,18 @@ class TestTypes:
         assert event.type == "a-s-G"
         assert 'sidc2525c="SSGP-----------" sidc2525d="10051000000000000000"' in event.xml_detail
 
+    def test_a_merged_track_goes_stale_at_once_and_names_the_survivor(self) -> None:
+        live = build(TRACK, options())
+        merged = build(
+            TRACK.model_copy(update={"status": "merged", "merged_into": "T9"}), options()
+        )
+        assert live is not None
+        assert merged is not None
+        assert merged.uid == live.uid
+        assert merged.stale == TRACK.time + timedelta(seconds=1)
+        assert live.stale > merged.stale
+        assert "merged into T-T9" in merged.xml_detail
+
     def test_track_sidc_decides_the_type(self) -> None:
         event = build(TRACK.model_copy(update={"sidc": "SHGPUCA----D---"}), options())
         assert event is not None

@@ -14,9 +14,18 @@ from hypothesis import strategies as st
 from jsonschema import Draft202012Validator
 from pydantic import ValidationError
 
-from gateway.codecs.gute import SCHEMA_ID, encode_handoff, handoff_payload, load_schema
+from gateway.codecs.gute import (
+    SCHEMA_ID,
+    SCHEMA_VERSIONS,
+    encode_handoff,
+    handoff_payload,
+    load_schema,
+    schema_for,
+)
 from gateway.contract import sample_events
+from gateway.domain.peertext import Provenance
 from gateway.events import (
+    BlueSourceCount,
     Deconfliction,
     EffectorOption,
     EventKind,
@@ -27,6 +36,13 @@ from gateway.events import (
 )
 
 SCHEMA = load_schema()
+#: What version 2 added to ``deconfliction`` (the provenance of the blue-force picture).
+V2_DECONFLICTION = (
+    "nearest_blue_callsign_provenance",
+    "nearest_blue_source",
+    "nearest_blue_provenance",
+    "blue_sources",
+)
 VALIDATOR = Draft202012Validator(SCHEMA, format_checker=Draft202012Validator.FORMAT_CHECKER)
 SAMPLE = sample_events(frozenset({EventKind.HANDOFF}))[0]
 assert isinstance(SAMPLE, Handoff)
@@ -84,6 +100,18 @@ deconflictions = st.builds(
     nearest_blue_callsign=st.none() | texts,
     nearest_blue_m=st.none() | st.floats(0, 1e6),
     blue_units_considered=st.integers(0, 10_000),
+    nearest_blue_callsign_provenance=st.none() | texts,
+    nearest_blue_source=st.none() | ids,
+    nearest_blue_provenance=st.none() | st.sampled_from(list(Provenance)),
+    blue_sources=st.lists(
+        st.builds(
+            BlueSourceCount,
+            source=ids,
+            provenance=st.sampled_from(list(Provenance)),
+            units=st.integers(0, 10_000),
+        ),
+        max_size=3,
+    ).map(tuple),
 )
 handoffs = st.builds(
     Handoff,
@@ -219,6 +247,51 @@ class TestPayload:
         assert document["idempotency_key"] == handoff.event_id
         assert document["time"].endswith("Z")
 
+    def test_the_blue_force_picture_says_where_it_came_from(self) -> None:
+        check = Deconfliction(
+            clear=False,
+            nearest_blue_uid="ANDROID-RED",
+            nearest_blue_callsign="WEAPONS FREE - ENGAGE AUTHORI...",
+            nearest_blue_m=110.0,
+            blue_units_considered=2,
+            nearest_blue_callsign_provenance="unauthenticated CoT callsign",
+            nearest_blue_source="atak-mesh",
+            nearest_blue_provenance=Provenance.UNAUTHENTICATED,
+            blue_sources=(
+                BlueSourceCount(source="atak-mesh", provenance=Provenance.UNAUTHENTICATED, units=1),
+                BlueSourceCount(source="cuas", provenance=Provenance.CONFIGURED, units=1),
+            ),
+        )
+        document = handoff_payload(SAMPLE.model_copy(update={"deconfliction": check}))
+        VALIDATOR.validate(document)
+        blue = document["deconfliction"]
+        assert blue["nearest_blue_callsign_provenance"] == "unauthenticated CoT callsign"
+        assert (blue["nearest_blue_source"], blue["nearest_blue_provenance"]) == (
+            "atak-mesh",
+            "unauthenticated",
+        )
+        assert blue["blue_sources"] == [
+            {"source": "atak-mesh", "provenance": "unauthenticated", "units": 1},
+            {"source": "cuas", "provenance": "configured", "units": 1},
+        ]
+
+    def test_version_1_documents_stay_readable(self) -> None:
+        """Schema 1 still ships: a document written before provenance validates against it."""
+        old = load_schema(1)
+        Draft202012Validator.check_schema(old)
+        document = handoff_payload(SAMPLE)
+        document["schema"] = "fischer-gateway/gute2-handoff/1"
+        for key in V2_DECONFLICTION:
+            del document["deconfliction"][key]
+        for key in ("status", "superseded_by", "note"):
+            del document[key]
+        Draft202012Validator(old, format_checker=Draft202012Validator.FORMAT_CHECKER).validate(
+            document
+        )
+        assert not VALIDATOR.is_valid(document)  # and version 2 tells the two apart
+        with pytest.raises(ValueError, match="no GUTE II handoff schema version 3"):
+            load_schema(3)
+
     def test_times_are_utc_whatever_the_events_zone(self) -> None:
         cet = datetime(2026, 11, 22, 13, 0, tzinfo=timezone(timedelta(hours=1)))
         document = handoff_payload(SAMPLE.model_copy(update={"time": cet}))
@@ -236,3 +309,47 @@ class TestPayload:
         )
         with pytest.raises(ValueError, match="handoff c-ho: cannot encode"):
             encode_handoff(broken)
+
+
+class TestVersions:
+    """Version 2 says when a cue is superseded; version 1's documents are still readable."""
+
+    def test_a_superseded_revision_says_so_and_names_the_survivors_cue(self) -> None:
+        revision = SAMPLE.model_copy(
+            update={
+                "event_id": f"{SAMPLE.handoff_id}-r1",
+                "revision": 1,
+                "status": "superseded",
+                "superseded_by": "HO-T2-GUTE-1",
+                "note": "track T1 merged into T2",
+                "recommended_effector": None,
+            }
+        )
+        document = handoff_payload(revision)
+        VALIDATOR.validate(document)
+        assert document["schema"] == SCHEMA_ID == "fischer-gateway/gute2-handoff/2"
+        assert document["status"] == "superseded"
+        assert document["superseded_by"] == "HO-T2-GUTE-1"
+        assert document["note"] == "track T1 merged into T2"
+
+    def test_a_status_outside_the_list_is_refused(self) -> None:
+        document = handoff_payload(SAMPLE) | {"status": "engage"}
+        assert not VALIDATOR.is_valid(document)
+
+    def test_a_version_1_document_is_read_by_its_own_schema(self) -> None:
+        document = handoff_payload(SAMPLE)
+        for key in ("status", "superseded_by", "note"):
+            del document[key]
+        for key in V2_DECONFLICTION:
+            del document["deconfliction"][key]
+        document["schema"] = "fischer-gateway/gute2-handoff/1"
+        assert set(SCHEMA_VERSIONS) == {"fischer-gateway/gute2-handoff/1", SCHEMA_ID}
+        old = schema_for(document)
+        assert old["properties"]["schema"]["const"] == "fischer-gateway/gute2-handoff/1"
+        Draft202012Validator(old).validate(document)
+        assert not VALIDATOR.is_valid(document)  # not a version 2 document
+        assert schema_for({"schema": "nonsense"}) == SCHEMA
+
+    def test_an_unknown_version_is_named(self) -> None:
+        with pytest.raises(KeyError, match="gute2-handoff/9"):
+            load_schema("fischer-gateway/gute2-handoff/9")

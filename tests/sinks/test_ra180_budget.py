@@ -173,6 +173,12 @@ class TestWhatIsWorthSending:
         assert b.held == 0
         assert b.wait_s(0.0) is None
 
+    def test_a_merged_track_drops_its_held_message_like_a_lost_one(self) -> None:
+        b = budget(burst_bytes=100, bytes_per_minute=200)
+        b.offer(track(1))
+        assert b.offer(track(1, status="merged")) == "dropped_lost"
+        assert b.held == 0
+
     def test_hostilities_not_reported_are_counted_not_held(self) -> None:
         b = budget(report=frozenset({"hostile"}))
         assert b.offer(track(1, hostility="suspect")) == "not_reported"

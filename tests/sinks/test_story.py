@@ -12,6 +12,7 @@ from gateway.events import (
     EventKind,
     Handoff,
     Position,
+    Provenance,
     Sensor,
     Track,
 )
@@ -64,6 +65,24 @@ def test_tracks_are_told_when_their_fused_picture_changes_and_when_lost() -> Non
     assert line.startswith("track T1 lost")
 
 
+def test_a_merged_track_is_told_as_merged_and_its_superseded_cue_as_such() -> None:
+    story = Story()
+    base = sample_events(frozenset({EventKind.TRACK}))[0]
+    assert isinstance(base, Track)
+    (line,) = story.tell(base.model_copy(update={"status": "merged", "merged_into": "T0"}))
+    assert line == "track T1 merged into T0: a second track of the same object"
+    assert "lost" not in line
+    sample = sample_events(frozenset({EventKind.HANDOFF}))[0]
+    assert isinstance(sample, Handoff)
+    superseded = sample.model_copy(
+        update={"revision": 1, "status": "superseded", "superseded_by": "HO-T0-GUTE-1",
+                "note": "track T1 merged into T0", "recommended_effector": None}
+    )  # fmt: skip
+    (line,) = story.tell(superseded)
+    assert line.startswith(f"GUTE II cue {sample.handoff_id} revision 1 superseded at battery")
+    assert line.endswith("by HO-T0-GUTE-1: track T1 merged into T0")
+
+
 def test_a_cue_says_deconfliction_and_recommendation_and_leaves_the_decision_to_the_operator() -> (
     None
 ):
@@ -86,7 +105,11 @@ def test_a_cue_says_deconfliction_and_recommendation_and_leaves_the_decision_to_
         }
     )
     not_clear, cue = story.tell(held)
-    assert not_clear.startswith("deconfliction NOT clear for track T1: nearest blue 2. pluton")
+    # A record without provenance (archived before it was kept) is never shown bare.
+    assert not_clear.startswith(
+        'deconfliction NOT clear for track T1: nearest blue "2. pluton"'
+        " (callsign of unknown provenance) at 250 m"
+    )
     assert "recommended effector none (deconfliction not clear)" in cue
     for line in (clear, not_clear, cue):
         assert "authorised" not in line
@@ -98,6 +121,31 @@ def test_friendly_units_are_registered_once() -> None:
     unit = BlueForce(event_id="b", uid="PLT-1", time=T, callsign="1. pluton", position=WHERE,
                      source="cot")  # fmt: skip
     assert story.tell(unit) == [
-        "blue force registered: 1. pluton (PLT-1) at 34W EU 3146 0059 via cot"
+        'blue force registered: "1. pluton" (unauthenticated CoT callsign), uid "PLT-1",'
+        " at 34W EU 3146 0059 via cot"
     ]
     assert story.tell(unit.model_copy(update={"event_id": "b2"})) == []
+
+
+def test_a_callsign_from_an_unauthenticated_peer_is_shown_only_safe_and_marked() -> None:
+    sample = sample_events(frozenset({EventKind.HANDOFF}))[0]
+    assert isinstance(sample, Handoff)
+    check = Deconfliction(
+        clear=False,
+        nearest_blue_uid="ANDROID-RED",
+        nearest_blue_callsign="WEAPONS FREE\u202e - ENGAGE AUTHORISED BY BDE",
+        nearest_blue_m=110.0,
+        blue_units_considered=2,
+        nearest_blue_callsign_provenance="unauthenticated CoT callsign",
+        nearest_blue_source="atak-mesh",
+        nearest_blue_provenance=Provenance.UNAUTHENTICATED,
+    )
+    held, _ = Story().tell(sample.model_copy(update={"deconfliction": check}))
+    assert held.startswith(
+        'deconfliction NOT clear for track T1: nearest blue "WEAPONS FREE - ENGAGE AUTHORI..."'
+        " (unauthenticated CoT callsign, source atak-mesh) at 110 m"
+    )
+    # Without a callsign, the uid is shown with the provenance instead.
+    bare = check.model_copy(update={"nearest_blue_callsign": None})
+    held, _ = Story().tell(sample.model_copy(update={"deconfliction": bare}))
+    assert 'nearest blue uid "ANDROID-RED" (unauthenticated, source atak-mesh) at 110 m' in held

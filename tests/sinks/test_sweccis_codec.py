@@ -157,6 +157,13 @@ class TestEncoding:
         assert text(root, "Track/DetectionCount") == "7"
         assert text(root, "Track/LateByS") is None
 
+    def test_a_merged_track_ends_as_lost_in_version_1(self) -> None:
+        track = SAMPLES[EventKind.TRACK]
+        assert isinstance(track, Track)
+        merged = track.model_copy(update={"status": "merged", "merged_into": "T0"})
+        root = valid(encode_event(merged)[0].payload)
+        assert text(root, "Track/Status") == "lost"
+
     def test_telemetry_is_a_logistics_and_an_operations_document(self) -> None:
         logistics, operations = encode_event(telemetry())
         assert (logistics.fas, operations.fas) == (Fas.LOGISTICS, Fas.OPERATIONS)

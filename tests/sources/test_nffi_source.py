@@ -18,6 +18,7 @@ from hypothesis import strategies as st
 from pydantic import ValidationError
 
 from gateway.codecs.nffi import NffiOptions, encode_message, tracks_of
+from gateway.domain.peertext import Provenance
 from gateway.events import BlueForce, Event, Position
 from gateway.testing import fuzz_examples
 from sources.nffi import NffiSource, NffiSourceConfig
@@ -97,6 +98,8 @@ class TestTracks:
         assert b"<speed>900</speed>" in report()
         assert (event.course_deg, event.position.alt_msl_m) == (45.0, 3000.0)
         assert nffi.counts == {"accepted": 1}
+        # Plain TCP from an allow-listed address: an address check, not authentication.
+        assert (event.source_name, event.provenance) == ("nffi_in", Provenance.ADDRESS_ONLY)
 
     def test_old_future_repeated_unfixed_and_hostile_tracks_are_counted_not_published(
         self,
@@ -231,6 +234,9 @@ async def test_tls_needs_a_client_certificate_from_the_ca(tmp_path: Path) -> Non
             await stream.send(report("member"))
             await wait(lambda: len(published) == 1, "the report over TLS")
     assert [e.uid for e in published if isinstance(e, BlueForce)] == ["SWE.JAS39-RELAY.member"]
+    assert [e.provenance for e in published if isinstance(e, BlueForce)] == [
+        Provenance.AUTHENTICATED
+    ]
 
 
 @pytest.mark.anyio

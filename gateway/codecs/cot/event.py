@@ -277,13 +277,18 @@ def _track(event: Track, opts: CotOptions, own_types: Mapping[str, str]) -> CotE
     if event.velocity is not None:
         north, east = event.velocity.north_mps, event.velocity.east_mps
         course, speed = _course(north, east), math.hypot(north, east)
+    stale = event.time + timedelta(seconds=opts.stale.track_s)
+    if event.status == "merged":
+        # A second track of an object another uid shows: stale at once, so the map drops it.
+        remarks += f"; merged into T-{event.merged_into}"
+        stale = event.time + timedelta(seconds=1)
     return CotEvent(
         uid=_uid(opts.uid_prefix, "trk-", event.track_id),
         type=symbol.cot_type,
         how="m-f",
         time=event.time,
         start=event.time,
-        stale=event.time + timedelta(seconds=opts.stale.track_s),
+        stale=stale,
         lat=event.position.lat_deg,
         lon=event.position.lon_deg,
         hae=_num(hae),
@@ -305,7 +310,11 @@ def _blue_force(event: BlueForce, opts: CotOptions) -> CotEvent:
         cot_type = cot_type[:2] + "f" + cot_type[3:]
     hae, _ = _hae(event.position, opts.geoid)
     callsign = xml_safe(event.callsign or event.uid)
-    detail = _element("remarks", f"Blue force relay ({event.source.upper()})")
+    # The callsign shown on ATAK is the relayed unit's; the remarks say how far its sender
+    # was checked ("Blue force relay (NFFI, address_only)"), so nobody takes it for ours.
+    detail = _element(
+        "remarks", f"Blue force relay ({event.source.upper()}, {event.provenance.value})"
+    )
     if event.sidc:
         affiliation = cot_type[2]
         detail = (

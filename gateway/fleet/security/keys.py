@@ -72,7 +72,11 @@ def read_key_file(path: Path, *, min_bytes: int = 32, exact: bool = False) -> by
         key = data
     if len(key) < min_bytes or (exact and len(key) != min_bytes):
         wanted = f"exactly {min_bytes}" if exact else f"at least {min_bytes}"
-        raise _problem(path, f"expected {wanted} key bytes, found {len(key)}")
+        raise _problem(
+            path,
+            f"expected {wanted} key bytes (raw, or written as {2 * min_bytes} hex digits), "
+            f"found {len(key)}",
+        )
     return key
 
 

@@ -1,32 +1,33 @@
-"""A third-party processor and a third-party source, as another package would ship them.
+"""A third-party processor, source and sink, as another package would ship them.
 
 ``Doubler`` (processor ``doubler``) consumes Detections and publishes, for each, a Track at
 the same position: the smallest processor that shows the contract end to end. ``Ticker``
-(source ``ticker``) publishes one BlueForce event every ``interval_s``.
+(source ``ticker``) publishes one BlueForce event every ``interval_s``. ``Tally`` (sink
+``tally``) appends one ``KIND EVENT_ID`` line per event to a file. They import only the public
+surface: ``gateway`` and ``gateway.events``.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from datetime import datetime
 from typing import Any, ClassVar
 
 import anyio
 import anyio.abc
 from anyio.streams.memory import MemoryObjectReceiveStream
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
+from gateway import ProcessorConfig, Publish, SinkConfig, SourceConfig
 from gateway.events import BlueForce, Detection, Event, EventKind, Position, Track
 
 
-class DoublerConfig(BaseModel):
-    model_config = ConfigDict(frozen=True, extra="forbid")
-
+class DoublerConfig(ProcessorConfig):
     prefix: str = Field(default="T", description="Start of every track id.")
 
 
 class Doubler:
-    config_model: ClassVar[type[BaseModel]] = DoublerConfig
+    config_model: ClassVar[type[DoublerConfig]] = DoublerConfig
 
     def __init__(self, name: str, config: DoublerConfig) -> None:
         self.name = name
@@ -39,7 +40,7 @@ class Doubler:
     async def run(
         self,
         events: MemoryObjectReceiveStream[Event],
-        publish: Callable[[Event], None],
+        publish: Publish,
         *,
         task_status: anyio.abc.TaskStatus[None] = anyio.TASK_STATUS_IGNORED,
     ) -> None:
@@ -68,22 +69,20 @@ class Doubler:
                 )
 
 
-class TickerConfig(BaseModel):
-    model_config = ConfigDict(frozen=True, extra="forbid")
-
+class TickerConfig(SourceConfig):
     interval_s: float = Field(default=0.2, gt=0, description="Seconds between reports.")
     callsign: str = Field(default="TICK", description="The unit reported.")
     crash_every: int | None = Field(default=None, description="Raise after this many ticks.")
 
 
 class Ticker:
-    config_model: ClassVar[type[BaseModel]] = TickerConfig
+    config_model: ClassVar[type[TickerConfig]] = TickerConfig
 
     def __init__(
         self,
         name: str,
         config: TickerConfig,
-        publish: Callable[[Event], None],
+        publish: Publish,
         *,
         clock: Callable[[], datetime],
     ) -> None:
@@ -116,3 +115,38 @@ class Ticker:
 
     def status(self) -> dict[str, Any]:
         return {"source": self.name, "type": "ticker", "sent": self.sent}
+
+
+class TallyConfig(SinkConfig):
+    path: str = Field(description="The file the lines are appended to.")
+    kinds: frozenset[EventKind] = Field(
+        default=frozenset({EventKind.DETECTION, EventKind.TRACK, EventKind.BLUE_FORCE}),
+        description="The kinds it takes.",
+    )
+
+
+class Tally:
+    config_model: ClassVar[type[TallyConfig]] = TallyConfig
+
+    def __init__(self, name: str, config: TallyConfig) -> None:
+        self.name = name
+        self.config = config
+        self._file: anyio.AsyncFile[str] | None = None
+
+    @property
+    def kinds(self) -> frozenset[EventKind]:
+        return self.config.kinds
+
+    async def open(self) -> None:
+        self._file = await anyio.open_file(self.config.path, "a", encoding="utf-8")
+
+    async def send(self, batch: Sequence[Event]) -> None:
+        if self._file is None:
+            raise RuntimeError("not open")
+        await self._file.write("".join(f"{e.kind.value} {e.event_id}\n" for e in batch))
+        await self._file.flush()
+
+    async def aclose(self) -> None:
+        if self._file is not None:
+            file, self._file = self._file, None
+            await file.aclose()
