@@ -8,7 +8,7 @@ once a second of data time, as ``processors.fusion.FusionProcessor`` does live, 
 ``linger_s`` after the last detection so lost tracks are reported.
 
 The core never imports a plugin (tests/test_layers.py): the caller passes the fuser, e.g.
-``FusionProcessor("fusion", FusionConfig()).tracker`` from bench/tracking.py and the tests.
+``FusionProcessor("fusion", FusionConfig()).tracker`` from bench/track_quality.py and the tests.
 """
 
 from __future__ import annotations

@@ -1,11 +1,9 @@
 """Every shipped scenario offline through the fusion processor's tracker, scored against truth.
 
 This is the CI half of issue #22's acceptance (the through-``run`` half at speeds 1 and 4 is
-``python bench/tracking.py --run``). The simulator's truth and the detections it would send
+``python bench/track_quality.py --run``). The simulator's truth and the detections it would send
 go through ``FusionProcessor("fusion", FusionConfig()).tracker`` (the shipped options), and
-``gateway.scoring.score`` measures the picture. The thresholds are the issue's target; the
-greedy tracker of today misses them, so that test is a strict xfail that flips (and fails)
-once the #22 tracker lands, to have its mark removed.
+``gateway.scoring.score`` measures the picture against the issue's rules.
 """
 
 from __future__ import annotations
@@ -65,7 +63,6 @@ def failures(name: str, s: Score) -> list[str]:
     return broken
 
 
-@pytest.mark.xfail(strict=True, reason="greedy tracker until the #22 tracker lands")
 def test_the_picture_meets_the_issue_22_rules(scores: dict[str, Score]) -> None:
     broken = [line for name, s in scores.items() for line in failures(name, s)]
     assert broken == []

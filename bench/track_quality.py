@@ -1,6 +1,6 @@
 """Tracking benchmark: our tracker against Stone Soup's GNN and JPDA on the scenario set.
 
-Reproducible: ``python bench/tracking.py`` (``--help`` for options; needs the test extra
+Reproducible: ``python bench/track_quality.py`` (``--help`` for options; needs the test extra
 for Stone Soup). Prints a Markdown table, one row per scenario and tracker.
 
 **Offline (the default).** For each scenario (every shipped one by default) the simulator's
