@@ -1,5 +1,5 @@
 """The ``fischer-gateway`` command: run, demo, check-config, config-schema, replay, simulate,
-keys, selftest and files.
+score, keys, selftest and files.
 
 This is the only module that configures logging. Exit codes: 0 success, 1 runtime failure
 (a link that cannot be opened, ...), 2 a config error (systemd does not restart on it).
@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
 import anyio
+import anyio.to_thread
 import structlog
 
 from gateway.app import Gateway
@@ -47,6 +48,8 @@ from gateway.transports.listener import raise_open_files_limit
 if TYPE_CHECKING:
     from gateway.sim.airframe import SimulatedAirframe
     from gateway.sim.resend import ResendPolicy
+    from gateway.sim.runner import PlayStats
+    from gateway.sim.scenario import Scenario
 
 __all__ = ["main"]
 
@@ -141,11 +144,19 @@ def _parser() -> argparse.ArgumentParser:
     simulate.add_argument(
         "--scenario",
         default=None,
-        help="a scenario YAML file, or a shipped one by name (brigade, danger-close, "
-        "loitering-munitions, t72-column)",
+        help="a scenario YAML file, or a shipped one by name (brigade, crossing-columns, "
+        "danger-close, loitering-munitions, parked-vehicles, shared-target, swarm, t72-column)",
     )
     simulate.add_argument(
         "--cot", default=None, help="udp://HOST:PORT of the gateway's CoT source (friendly units)"
+    )
+    simulate.add_argument(
+        "--truth",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="write the scenario's ground truth (every target each second, JSON lines; "
+        "docs/tracking.md) to FILE as the run starts",
     )
     simulate.add_argument("--speed", type=_positive, default=1.0, help="sim time runs X times real")
     simulate.add_argument(
@@ -211,6 +222,27 @@ def _parser() -> argparse.ArgumentParser:
             default=None,
             help="airframe id(s) whose day keys seal the frames (one per simulated airframe)",
         )
+    scorer = sub.add_parser(
+        "score", help="score the tracks of a JSONL archive against a truth file (GOSPA, ...)"
+    )
+    scorer.add_argument("--truth", type=Path, required=True, help="from simulate --truth")
+    scorer.add_argument(
+        "--tracks",
+        type=Path,
+        action="append",
+        required=True,
+        help="a JSONL archive (repeat for rotated files, oldest first)",
+    )
+    scorer.add_argument("--c", type=_positive, default=100.0, help="GOSPA cutoff, m (100)")
+    scorer.add_argument("--p", type=_positive, default=2.0, help="GOSPA order, >= 1 (2)")
+    scorer.add_argument(
+        "--max-age",
+        type=_positive,
+        default=30.0,
+        metavar="S",
+        help="a track without a report for S seconds leaves the picture (30)",
+    )
+    scorer.add_argument("--json", action="store_true", help="one JSON object instead of text")
     spool = sub.add_parser("spool", help="look into the spool; list and re-queue dead letters")
     spool_sub = spool.add_subparsers(dest="spool_command", required=True)
     spool_status = spool_sub.add_parser("status", help="size, events owed per sink, dead letters")
@@ -501,6 +533,8 @@ def _simulate(args: argparse.Namespace) -> int:
         return _simulate_scenario(args, host, port)
     if args.cot is not None:
         raise _usage_error("--cot", "friendly units come from a scenario: add --scenario")
+    if args.truth is not None:
+        raise _usage_error("--truth", "ground truth comes from a scenario: add --scenario")
     fleet = build_demo_fleet(args.airframes or 2, resend=_resend_policy(args))
     if args.hop_ignore < 0:
         raise _usage_error("--hop-ignore", f"expected 0 or more, got {args.hop_ignore}")
@@ -556,22 +590,26 @@ def _simulate_scenario(args: argparse.Namespace, host: str, port: int) -> int:
         duration_s=args.duration or scenario.duration_s,
         speed=args.speed,
     )
+    play = partial(
+        play_scenario,
+        scenario,
+        host,
+        port,
+        cot=cot,
+        duration_s=args.duration,
+        speed=args.speed,
+        sealers=sealers,
+        stats=stats,
+        resend=resend,
+        linger_s=args.linger,
+    )
+    # Opened before the run, so a path that cannot be written fails before anything is sent.
+    truth = args.truth.open("w", encoding="utf-8") if args.truth is not None else None
     try:
-        _run_async(
-            lambda: play_scenario(
-                scenario,
-                host,
-                port,
-                cot=cot,
-                duration_s=args.duration,
-                speed=args.speed,
-                sealers=sealers,
-                stats=stats,
-                resend=resend,
-                linger_s=args.linger,
-            )
-        )
+        _run_async(_play_with_truth, play, truth, scenario, args, stats)
     finally:
+        if truth is not None:
+            truth.close()
         _print_summaries(stats.airframes)
     log.info(
         "scenario_finished",
@@ -581,6 +619,55 @@ def _simulate_scenario(args: argparse.Namespace, host: str, port: int) -> int:
         blue_force_reports=stats.reports,
         blue_force_reports_refused=stats.reports_refused,
     )
+    return EXIT_OK
+
+
+async def _play_with_truth(
+    play: Callable[..., Coroutine[Any, Any, Any]],
+    truth: TextIO | None,
+    scenario: Scenario,
+    args: argparse.Namespace,
+    stats: PlayStats,
+) -> None:
+    """Run ``play``; once its airframes have started, write the truth on their clock."""
+    from gateway.sim.truth import write_truth
+
+    async with anyio.create_task_group() as tg:
+        await tg.start(play)
+        if truth is None:
+            return
+        start = min(flyer.boot_unix_s for flyer in stats.airframes.values())
+        records = await anyio.to_thread.run_sync(
+            partial(
+                write_truth,
+                truth,
+                scenario,
+                start,
+                speed=args.speed,
+                duration_s=args.duration,
+            )
+        )
+        truth.flush()
+        log.info("truth_written", file=str(args.truth), records=records)
+
+
+def _score(args: argparse.Namespace) -> int:
+    from gateway.errors import ScoreInputError
+    from gateway.scoring.files import read_archive, read_truth
+    from gateway.scoring.report import score_json, score_text
+    from gateway.scoring.score import ScoreSettings, score
+
+    if args.p < 1:
+        print(f"--p: expected a number >= 1, got {args.p:g}", file=sys.stderr)  # noqa: T201
+        return EXIT_CONFIG
+    try:
+        truth = read_truth(args.truth)
+        tracks = read_archive(args.tracks, truth.plane)
+    except ScoreInputError as exc:
+        print(exc, file=sys.stderr)  # noqa: T201 - the output
+        return EXIT_CONFIG
+    result = score(truth, tracks, ScoreSettings(c_m=args.c, p=args.p, max_age_s=args.max_age))
+    print(score_json(result) if args.json else score_text(result))  # noqa: T201 - the output
     return EXIT_OK
 
 
@@ -659,6 +746,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return run_selftest(sys.stdout)
     if args.command == "spool":
         return _spool(args)
+    if args.command == "score":
+        return _score(args)
     if args.command == "order":
         return order_command(args, sys.stdout, sys.stderr)
     if args.command == "keys":

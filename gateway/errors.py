@@ -18,7 +18,8 @@ translated once, at the boundary where they enter, with ``raise ... from exc``::
     │   ├── PermanentSinkError       these events will never be accepted (dead-lettered)
     │   └── SinkLoadError            the sink named in config cannot be loaded or configured
     ├── SpoolError                   the spool database cannot be opened or written
-    └── OrderRejected                an order failed its acceptance checks
+    ├── OrderRejected                an order failed its acceptance checks
+    └── ScoreInputError              a truth file or archive given to the scorer is unusable
 
 Errors carry structured attributes (``key_path``, ``line``, ``airframe``, ``sink``, ``link``)
 so a log line can bind them instead of parsing the message.
@@ -43,6 +44,7 @@ __all__ = [
     "Oversize",
     "PermanentSinkError",
     "Replayed",
+    "ScoreInputError",
     "SinkError",
     "SinkLoadError",
     "SinkOptionsInvalid",
@@ -193,6 +195,16 @@ class OrderRejected(GatewayError):
     def __init__(self, message: str, *, airframe: str | None = None) -> None:
         self.airframe = airframe
         super().__init__(message)
+
+
+class ScoreInputError(GatewayError, ValueError):
+    """Raised when ``fischer-gateway score`` cannot use a file: it names the file and line."""
+
+    def __init__(self, source: str, line: int | None, message: str) -> None:
+        self.source = source
+        self.line = line
+        where = f"{source}:{line}" if line is not None else source
+        super().__init__(f"{where}: {message}")
 
 
 def os_reason(exc: BaseException) -> str:

@@ -87,7 +87,7 @@ class FusionConfig(ProcessorConfig):
         default=1.0, gt=0, le=100, description="Speed limits × this (a sim played faster)."
     )
     report_velocity_sigma_mps: float = Field(
-        default=1.2, gt=0, le=100, description="Velocity published once σ ≤ this + 6 % speed."
+        default=1.6, gt=0, le=100, description="Velocity published once σ ≤ this + 6 % speed."
     )
     merge_sigma: float = Field(
         default=3.0, gt=0, le=10, description="Two tracks this close (σ) are merge candidates."

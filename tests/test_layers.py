@@ -53,6 +53,7 @@ LAYERS: dict[str, tuple[int, str]] = {
     "gateway.configschema": (4, "assembly"),
     "gateway.reload": (4, "assembly"),
     "gateway.demo": (4, "assembly"),
+    "gateway.scoring": (4, "scoring"),
     "gateway.cli": (5, "entry"),
     "gateway.ordercli": (5, "entry"),
     "gateway.__main__": (5, "entry"),

@@ -39,7 +39,7 @@ class TrackerSettings:
     update_interval_s: float = 1.0
     speed_scale: float = 1.0
     speed_prior_sigma: float = 0.2
-    report_velocity_sigma_mps: float = 1.2
+    report_velocity_sigma_mps: float = 1.6
     merge_sigma: float = 3.0
     merge_after: int = 2
     priors: Priors = field(default_factory=load_priors)

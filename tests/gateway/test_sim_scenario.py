@@ -169,7 +169,16 @@ class TestShipped:
 
     def test_all_load(self) -> None:
         names = shipped_scenarios()
-        assert names == ["brigade", "danger-close", "loitering-munitions", "t72-column"]
+        assert names == [
+            "brigade",
+            "crossing-columns",
+            "danger-close",
+            "loitering-munitions",
+            "parked-vehicles",
+            "shared-target",
+            "swarm",
+            "t72-column",
+        ]
         for name in names:
             assert load_scenario(name).name == name
             assert load_scenario(f"{name}.yaml").name == name
@@ -234,6 +243,48 @@ def simulate(*args: str) -> subprocess.CompletedProcess[str]:
     """The CLI in a child process: it configures logging, which a test process must not."""
     command = [sys.executable, "-m", "gateway", "simulate", "--to", "udp://127.0.0.1:9", *args]
     return subprocess.run(command, capture_output=True, text=True, timeout=60, check=False)
+
+    def test_swarm_is_six_munitions_80_to_150_m_apart(self) -> None:
+        tracks = target_tracks(load_scenario("swarm"))
+        assert [t.target.object_class for t in tracks] == ["loitering_munition"] * 6
+        for t_s in (0.0, 45.0, 90.0):
+            where = [t.position(t_s) for t in tracks]
+            gaps = [
+                distance_bearing(a[0], a[1], b[0], b[1])[0]
+                for a, b in itertools.pairwise(w for w in where if w is not None)
+            ]
+            assert len(gaps) == 5
+            assert all(78 < gap < 152 for gap in gaps), gaps
+
+    def test_parked_vehicles_stand_30_m_apart_seen_with_sigma_15_to_20(self) -> None:
+        s = load_scenario("parked-vehicles")
+        tracks = target_tracks(s)
+        where = [t.position(50.0) for t in tracks]
+        assert where == [t.position(0.0) for t in tracks]  # stationary
+        gaps = [
+            distance_bearing(a[0], a[1], b[0], b[1])[0]
+            for a, b in itertools.pairwise(w for w in where if w is not None)
+        ]
+        assert gaps == pytest.approx([30.0] * 4, abs=0.5)
+        assert {sensor.sigma_h_m for a in s.airframes for sensor in a.sensors} == {15, 20}
+
+    def test_shared_target_is_seen_by_three_airframes(self) -> None:
+        seen = {
+            e.airframe
+            for e in schedule(load_scenario("shared-target"))
+            if isinstance(e, SimDetection)
+        }
+        assert seen == {"F26E-001", "F26E-002", "F26E-003"}
+
+    def test_crossing_columns_meet_at_the_junction(self) -> None:
+        tracks = {t.id: t for t in target_tracks(load_scenario("crossing-columns"))}
+        closest = min(
+            distance_bearing(a[0], a[1], b[0], b[1])[0]
+            for t in range(1500)
+            if (a := tracks["EAST-1"].position(t / 10)) is not None
+            and (b := tracks["NORTH-1"].position(t / 10)) is not None
+        )
+        assert closest < 50
 
 
 class TestCli:

@@ -4,7 +4,7 @@ The scenario's detections (``gateway.sim.schedule``: the same noise the simulato
 ``Detection`` events at sim time from a fixed epoch; the truth is each target's position on
 its path (``TargetTrack.position``) and its velocity from a 0.2 s central difference. Each
 published track event is matched to the nearest true target at its time (within 150 m).
-A helper for tests and for ``bench``; not the formal scorer (``bench/tracking.py``).
+A helper for tests and for ``bench``; not the formal scorer (``bench/track_quality.py``).
 """
 
 from __future__ import annotations
