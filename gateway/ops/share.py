@@ -35,6 +35,7 @@ DESCRIPTIONS = {
     "hopping.md": "AD9361 hop plans: checks, upload, acknowledgement, hop events",
     "klv.md": "STANAG 4609 / MISB ST 0601 KLV metadata over UDP and MPEG-TS",
     "orders.md": "five-line orders to the airframes: checks, missions, statuses",
+    "tracking.md": "scoring tracks against ground truth: truth files, GOSPA, the scenarios",
     "README.md": "what works today",
 }
 
