@@ -23,7 +23,7 @@ Track events, which is its output).
 
 **Through the daemon (``--run``).** ``--run --speed 1 --speed 4`` plays each scenario with
 ``fischer-gateway simulate --scenario X --truth T`` into ``fischer-gateway run`` (one link,
-the ``fusion`` processor with ``max_speed_mps`` raised for the speed, ``counter_uas`` with the
+the ``fusion`` processor with ``speed_scale`` set to the speed, ``counter_uas`` with the
 scenario's batteries, a jsonl archive, an ``ra180`` sink to a UDP port this script listens on
 as the radio net) on loopback, then scores the archive with ``fischer-gateway score`` and
 counts the Ra 180 "new target" messages per hostile target: the numbers an operator gets.
@@ -283,15 +283,15 @@ def _node_config(
         else ""
     )
     config = workdir / f"{name}-x{speed:g}.yaml"
-    # --speed compresses time: targets appear that many times faster (docs/counter-uas.md).
-    max_speed = min(1000.0, 100.0 * speed)
+    # --speed compresses time: targets appear that many times faster, so the tracker's speed
+    # priors and time constants are scaled with it (speed_scale, docs/counter-uas.md).
     config.write_text(
         f"""gateway: {{shutdown_deadline_s: 3}}
 health: {{port: 0}}
 airframes:
 {airframes}
 processors:
-  - {{name: fusion, type: fusion, options: {{max_speed_mps: {max_speed:g}}}}}
+  - {{name: fusion, type: fusion, options: {{speed_scale: {speed:g}}}}}
 {cuas}sinks:
   - {{name: archive, type: jsonl, options: {{path: '{archive}'}}}}
   - {{name: radio, type: ra180, options: {{udp: {{host: 127.0.0.1, port: {radio_port}}}}}}}
