@@ -147,7 +147,13 @@ def _parser() -> argparse.ArgumentParser:
     simulate.add_argument(
         "--cot", default=None, help="udp://HOST:PORT of the gateway's CoT source (friendly units)"
     )
-    simulate.add_argument("--speed", type=_positive, default=1.0, help="sim time runs X times real")
+    simulate.add_argument(
+        "--speed",
+        type=_positive,
+        default=1.0,
+        help="sim time runs X times real; targets then appear X times faster, so the "
+        "gateway's fusion processor needs options: {speed_scale: X} (the demo sets it)",
+    )
     simulate.add_argument(
         "--no-resend",
         action="store_true",
