@@ -158,7 +158,13 @@ def _parser() -> argparse.ArgumentParser:
         help="write the scenario's ground truth (every target each second, JSON lines; "
         "docs/tracking.md) to FILE as the run starts",
     )
-    simulate.add_argument("--speed", type=_positive, default=1.0, help="sim time runs X times real")
+    simulate.add_argument(
+        "--speed",
+        type=_positive,
+        default=1.0,
+        help="sim time runs X times real; targets then appear X times faster, so the "
+        "gateway's fusion processor needs options: {speed_scale: X} (the demo sets it)",
+    )
     simulate.add_argument(
         "--no-resend",
         action="store_true",

@@ -84,7 +84,11 @@ class FusionConfig(ProcessorConfig):
         default=None, gt=0, le=1000, description="Raise every class's speed limit to this."
     )
     speed_scale: float = Field(
-        default=1.0, gt=0, le=100, description="Speed limits × this (a sim played faster)."
+        default=1.0,
+        gt=0,
+        le=100,
+        description="A sim played this much faster: speed limits and the velocity threshold × "
+        "this, manoeuvre noise × its cube.",
     )
     report_velocity_sigma_mps: float = Field(
         default=1.6, gt=0, le=100, description="Velocity published once σ ≤ this + 6 % speed."

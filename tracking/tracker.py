@@ -276,7 +276,11 @@ class Tracker:
     def _q(self, state: TrackState) -> float:
         q = self._qs.get(state.object_class)
         if q is None:
-            q = self._qs[state.object_class] = self.settings.priors[state.object_class].q
+            # Time played X times faster: the white-noise acceleration's spectral density
+            # q (m²/s³) is X³ larger, as velocities are X times and seconds 1/X as long.
+            q = self._qs[state.object_class] = (
+                self.settings.priors[state.object_class].q * self.settings.speed_scale**3
+            )
         return q
 
     def _limit(self, name: str) -> float:
@@ -503,6 +507,6 @@ class Tracker:
             when,
             hostile_classes=s.hostile_classes,
             loitering_munition=s.loitering_munition,
-            report_velocity_sigma_mps=s.report_velocity_sigma_mps,
+            report_velocity_sigma_mps=s.report_velocity_sigma_mps * s.speed_scale,
             merged_into=merged_into,
         )

@@ -114,3 +114,16 @@ def test_scenario_reaches_the_archive_through_the_daemon(tmp_path: Path) -> None
     assert {e["uid"] for e in blue} == {"BLUE-1", "BLUE-2"}
     telemetry = {e.get("airframe") for e in events if e["kind"] == "telemetry"}
     assert telemetry >= {"F26E-001", "F26E-002"}
+
+
+def test_simulate_help_tells_a_user_to_scale_the_fusion_speed_limits() -> None:
+    """A node fed by ``simulate --speed X`` needs the fusion's ``speed_scale: X``: the user
+    reading ``simulate --help`` learns it there, not only in docs/counter-uas.md."""
+    shown = subprocess.run(
+        [sys.executable, "-m", "gateway", "simulate", "--help"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=True,
+    ).stdout
+    assert "speed_scale: X" in " ".join(shown.split())
