@@ -236,4 +236,5 @@ class FusionProcessor:
             "refused_full": counts.refused_full,
             "total_conflict": counts.total_conflict,
             "lost": counts.lost,
+            "overload_refused": counts.overload_refused,
         }

@@ -63,3 +63,5 @@ class TrackerCounts:
     coasting: int = 0
     lost: int = 0
     merged: int = 0
+    #: Detections refused because their frame used up its pair budget (``MAX_FRAME_PAIRS``).
+    overload_refused: int = 0

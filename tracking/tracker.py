@@ -59,6 +59,13 @@ __all__ = ["Tracker"]
 
 #: A frame holding more detections than this is processed at once (memory stays bounded).
 MAX_FRAME = 1000
+#: Detection-track pairs one frame may examine (each a few µs of Python on the event loop):
+#: a real frame needs far fewer (50 detections near 50 tracks: 2,500), while a crafted one
+#: (1,000 detections 2 m apart among 1,000 tracks) would cost a million and stall the node
+#: for seconds. The detections of a frame past the budget are refused and counted
+#: (``overload_refused``), in the frame's canonical order, so the outcome does not depend on
+#: the order they came in.
+MAX_FRAME_PAIRS = 20_000
 
 
 @lru_cache(maxsize=4096)
@@ -189,7 +196,12 @@ class Tracker:
         columns: dict[str, int] = {}
         fused: dict[tuple[int, int], tuple[MassFunction, float] | None] = {}
         masses: list[MassFunction] = []
+        examined = 0
         for i, d in enumerate(detections):
+            if examined >= MAX_FRAME_PAIRS:
+                self.counts.overload_refused += len(detections) - i
+                detections = detections[:i]
+                break
             name = d.object_class if d.object_class in self.frame else OTHER
             mass = _support(self.frame, name, d.confidence)
             masses.append(mass)
@@ -198,6 +210,7 @@ class Tracker:
             conflicted = False
             widen = s.gate_sigma * sigma
             for track_id in self._candidates(lat, lon, sigma):
+                examined += 1
                 state = self._tracks[track_id]
                 dt = at_s - state.updated_s
                 if abs(dt) > s.max_gap_s:

@@ -390,3 +390,42 @@ def test_grid_and_all_pairs_give_identical_tracks_with_strictly_newer_times(
     for event in events:
         assert event.time > last.get(event.track_id, datetime.min.replace(tzinfo=UTC))
         last[event.track_id] = event.time
+
+
+def spot(n: int) -> dict[str, float]:
+    return {"east_m": (n % 20) * 100.0, "north_m": (n // 20) * 100.0}
+
+
+class TestCrowdedFrames:
+    """A crafted frame cannot make the tracker examine more than its pair budget."""
+
+    def test_a_frame_past_the_pair_budget_refuses_the_rest_and_counts_them(self) -> None:
+        from tracking import tracker as module
+
+        tracker = Tracker(TrackerSettings(confirm_hits=1, max_tracks=5000))
+        # 300 tracks 100 m apart in a 2 x 1.5 km block, one frame each (other airframes).
+        for n in range(300):
+            tracker.update_frame([detection(**spot(n), sensor=Sensor.IR, airframe=f"B{n}")])
+        assert len(tracker) == 300
+        # One frame of 300 detections on them: every detection is a candidate for every track.
+        crowd = [detection(t_s=1, **spot(n)) for n in range(300)]
+        tracker.update_frame(crowd)
+        # Each detection is a candidate for the tracks of its grid cells (2 km): most of them.
+        assert 0 < tracker.counts.overload_refused < 300
+        assert module.MAX_FRAME_PAIRS < 300 * 300
+        # What was refused is the end of the frame's canonical order, whatever the arrival order.
+        again = Tracker(TrackerSettings(confirm_hits=1, max_tracks=5000))
+        for n in range(300):
+            again.update_frame([detection(**spot(n), sensor=Sensor.IR, airframe=f"B{n}")])
+        again.update_frame(list(reversed([d.model_copy() for d in crowd])))
+        assert again.counts.overload_refused == tracker.counts.overload_refused
+        assert sorted(again.confirmed_ids) == sorted(tracker.confirmed_ids)
+
+    def test_a_real_frame_is_far_inside_the_budget(self) -> None:
+        from tracking import tracker as module
+
+        tracker = Tracker(TrackerSettings(confirm_hits=1))
+        for t in range(3):  # a column of 20 vehicles 50 m apart, seen whole each second
+            tracker.update_frame([detection(t_s=t, east_m=50.0 * n + 10.0 * t) for n in range(20)])
+        assert tracker.counts.overload_refused == 0
+        assert module.MAX_FRAME_PAIRS > 20 * 20
