@@ -85,23 +85,26 @@ class NodeCheck:
                 except ConfigError as exc:
                     yield loc, "; ".join(issue.message for issue in exc.issues), True
         airframes = _items(data.get("airframes"))
-        signing_keys = [
-            (str(airframe.get("id", i)), _mapping(airframe.get("signing")).get("key_file"))
-            for i, airframe in enumerate(airframes)
-        ]
+        # Each key file is read once: its problem reported, its bytes kept for the comparison.
+        signing_keys: list[tuple[str, bytes | None]] = []
         for i, airframe in enumerate(airframes):
-            key_file = signing_keys[i][1]
+            key_file = _mapping(airframe.get("signing")).get("key_file")
+            key = None
             if isinstance(key_file, str):
                 loc = ("airframes", i, "signing", "key_file")
-                yield from _key_problem(loc, Path(key_file), exact=True)
+                key, found = _read_key(loc, Path(key_file))
+                yield from found
+            signing_keys.append((str(airframe.get("id", i)), key))
+        for i, airframe in enumerate(airframes):
             gcs_key_file = _mapping(airframe.get("passthrough")).get("key_file")
-            if isinstance(gcs_key_file, str):
-                loc = ("airframes", i, "passthrough", "key_file")
-                yield from _key_problem(loc, Path(gcs_key_file), exact=True)
-                for j, (other, other_key_file) in enumerate(signing_keys):
-                    yield from _same_key(
-                        loc, gcs_key_file, other_key_file, None if j == i else other
-                    )
+            if not isinstance(gcs_key_file, str):
+                continue
+            loc = ("airframes", i, "passthrough", "key_file")
+            gcs_key, found = _read_key(loc, Path(gcs_key_file))
+            yield from found
+            for j, (other, key) in enumerate(signing_keys):
+                if gcs_key is not None and gcs_key == key:
+                    yield _same_key(loc, None if j == i else other)
 
     def _devices(self, data: dict[str, Any]) -> Iterator[Finding]:
         for i, airframe in enumerate(_items(data.get("airframes"))):
@@ -262,36 +265,30 @@ def _component(
 
 
 def _key_problem(loc: Loc, path: Path, *, exact: bool) -> Iterator[Finding]:
+    yield from _read_key(loc, path, exact=exact)[1]
+
+
+def _read_key(loc: Loc, path: Path, *, exact: bool = True) -> tuple[bytes | None, list[Finding]]:
+    """The key and no finding, or None and what is wrong with its file."""
     try:
-        read_key_file(path, exact=exact)
+        return read_key_file(path, exact=exact), []
     except ConfigError as exc:
-        yield loc, f"{path}: " + "; ".join(issue.message for issue in exc.issues), True
+        return None, [(loc, f"{path}: " + "; ".join(i.message for i in exc.issues), True)]
 
 
-def _same_key(
-    loc: Loc, gcs_key_file: str, airframe_key_file: object, other: str | None
-) -> Iterator[Finding]:
+def _same_key(loc: Loc, other: str | None) -> Finding:
     """A ground station holding an airframe's signing key could command it around the policy.
 
     ``other`` names the airframe whose key it is when that is not the passthrough's own.
     """
-    if not isinstance(airframe_key_file, str):
-        return
-    try:
-        same = read_key_file(Path(gcs_key_file), exact=True) == read_key_file(
-            Path(airframe_key_file), exact=True
-        )
-    except ConfigError:
-        return  # reported on its own key
-    if same:
-        whose = "the airframe's" if other is None else f"airframe {other}'s"
-        yield (
-            loc,
-            f"the ground station's key is {whose} signing key: with it a ground "
-            "station could sign commands to that airframe directly, around the gateway's "
-            "command policy; give it a key of its own",
-            True,
-        )
+    whose = "the airframe's" if other is None else f"airframe {other}'s"
+    return (
+        loc,
+        f"the ground station's key is {whose} signing key: with it a ground "
+        "station could sign commands to that airframe directly, around the gateway's "
+        "command policy; give it a key of its own",
+        True,
+    )
 
 
 def _mapping(value: object) -> dict[str, Any]:

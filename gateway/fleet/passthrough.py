@@ -38,7 +38,7 @@ from gateway.errors import FrameError, GatewayError
 from gateway.fleet.links import UdpLink
 from gateway.fleet.mavlink import MavlinkParser, crc_extra, dialect
 from gateway.fleet.security.signing import OutboundSigner, SigningVerifier
-from gateway.fleet.uplinkpolicy import Refusal, check
+from gateway.fleet.uplinkpolicy import COMMAND_MSGS, MISSION_ITEM_MSGS, Refusal, check
 from gateway.ops.logsetup import RateLimit
 from gateway.ops.metrics import Counter as MetricCounter
 
@@ -56,10 +56,6 @@ MAX_GCS_PEERS = 4
 #: A ground station's datagram holds a few frames at most; anything longer is refused.
 MAX_DATAGRAM_BYTES = 2048
 _STX_V2 = 0xFD
-_COMMAND_MSGS = frozenset({dialect.MAVLINK_MSG_ID_COMMAND_LONG, dialect.MAVLINK_MSG_ID_COMMAND_INT})
-_ITEM_MSGS = frozenset(
-    {dialect.MAVLINK_MSG_ID_MISSION_ITEM, dialect.MAVLINK_MSG_ID_MISSION_ITEM_INT}
-)
 _AUTOPILOT_COMPID = 1
 
 Peer = tuple[str, int]
@@ -234,10 +230,12 @@ class Passthrough:
 
     def _reserialise(self, msg: Any) -> bytes:
         """A new MAVLink 2 frame from the message's parsed fields (unsigned, CRC recomputed)."""
+        return self._pack(msg, msg.get_srcSystem(), msg.get_srcComponent(), msg.get_seq())
+
+    def _pack(self, msg: Any, sysid: int, compid: int, seq: int = 0) -> bytes:
+        """``msg`` as a MAVLink 2 frame from ``sysid``/``compid``."""
         packer = self._packer
-        packer.srcSystem = msg.get_srcSystem()
-        packer.srcComponent = msg.get_srcComponent()
-        packer.seq = msg.get_seq()
+        packer.srcSystem, packer.srcComponent, packer.seq = sysid, compid, seq
         return bytes(msg.pack(packer))
 
     async def _relay(self, peer: Peer, frame: bytes) -> bool:
@@ -263,12 +261,11 @@ class Passthrough:
         src, src_comp = msg.get_srcSystem(), msg.get_srcComponent()
         compid = getattr(msg, "target_component", 0) or _AUTOPILOT_COMPID
         packer = self._packer
-        packer.srcSystem, packer.srcComponent, packer.seq = self.sysid, compid, 0
-        if msgid in _COMMAND_MSGS:
+        if msgid in COMMAND_MSGS:
             answer = packer.command_ack_encode(
                 msg.command, dialect.MAV_RESULT_DENIED, 0, 0, src, src_comp
             )
-        elif msgid in _ITEM_MSGS:
+        elif msgid in MISSION_ITEM_MSGS:
             mission_type = int(getattr(msg, "mission_type", 0))
             answer = packer.mission_ack_encode(
                 src, src_comp, dialect.MAV_MISSION_DENIED, mission_type
@@ -276,15 +273,13 @@ class Passthrough:
             if self.uplink != "none":
                 # The airframe is waiting for this item: cancel the upload on the
                 # station's behalf rather than leave it to time out.
-                packer.srcSystem, packer.srcComponent = src, src_comp
                 cancel = packer.mission_ack_encode(
                     self.sysid, compid, dialect.MAV_MISSION_OPERATION_CANCELLED, mission_type
                 )
-                await self._relay(peer, bytes(cancel.pack(packer)))
-                packer.srcSystem, packer.srcComponent = self.sysid, compid
+                await self._relay(peer, self._pack(cancel, src, src_comp))
         else:
             return
-        frame = bytes(answer.pack(packer))
+        frame = self._pack(answer, self.sysid, compid)
         if self._signer is not None:
             frame = self._signer.sign(frame)
         try:

@@ -39,10 +39,12 @@ from gateway.fleet.hopdialect import MAVLINK_MSG_ID_FISCHER_HOP_SCHEDULE
 __all__ = [
     "BROADCAST_OK",
     "COMMANDS",
+    "COMMAND_MSGS",
     "EFFECTOR_COMMANDS",
     "FTP_READ_OPCODES",
     "GATEWAY_ONLY",
     "MISSION_ITEMS",
+    "MISSION_ITEM_MSGS",
     "OUTPUT_PARAMS",
     "RELAYED",
     "SIGNED_ONLY_COMMANDS",
@@ -108,8 +110,9 @@ BROADCAST_OK: Final = _ids(
     prefix="MAVLINK_MSG_ID_",
 )
 
-_COMMAND_MSGS: Final = _ids("COMMAND_LONG", "COMMAND_INT", prefix="MAVLINK_MSG_ID_")
-_MISSION_ITEM_MSGS: Final = _ids("MISSION_ITEM", "MISSION_ITEM_INT", prefix="MAVLINK_MSG_ID_")
+#: The messages that carry a command, and those that carry a mission item.
+COMMAND_MSGS: Final = _ids("COMMAND_LONG", "COMMAND_INT", prefix="MAVLINK_MSG_ID_")
+MISSION_ITEM_MSGS: Final = _ids("MISSION_ITEM", "MISSION_ITEM_INT", prefix="MAVLINK_MSG_ID_")
 _PARAM_SET_MSGS: Final = _ids("PARAM_SET", "PARAM_EXT_SET", prefix="MAVLINK_MSG_ID_")
 _SET_MODE: Final = int(m.MAVLINK_MSG_ID_SET_MODE)
 _FTP: Final = int(m.MAVLINK_MSG_ID_FILE_TRANSFER_PROTOCOL)
@@ -326,11 +329,11 @@ def _safety_setting(msg: Any, msgid: int) -> str | None:
         return "the geofence or rally points"
     if msgid == _REQUEST_DATA_STREAM and not int(msg.start_stop):
         return "a telemetry stream (stopped)"
-    if msgid in _COMMAND_MSGS or msgid in _MISSION_ITEM_MSGS:
+    if msgid in COMMAND_MSGS or msgid in MISSION_ITEM_MSGS:
         command = int(msg.command)
         if command in _HOME_COMMANDS:
             return "the home position"
-        if command == _SET_MESSAGE_INTERVAL and msgid in _COMMAND_MSGS and float(msg.param2) < 0:
+        if command == _SET_MESSAGE_INTERVAL and msgid in COMMAND_MSGS and float(msg.param2) < 0:
             return "a telemetry stream (disabled)"
     return None
 
@@ -380,15 +383,15 @@ def check(
             return Refusal("signed_only", f"{name} changes {setting}: needs a signed uplink")
     if msgid in RELAYED:
         return None
-    if msgid in _COMMAND_MSGS:
+    if msgid in COMMAND_MSGS:
         return _command(int(msg.command), float(msg.param1), uplink)
     if msgid == _SET_MODE:
-        if int(msg.base_mode) & _SIGNED_MODE_FLAGS and uplink != "signed":
+        if may_arm(float(msg.base_mode)) and uplink != "signed":
             return Refusal(
                 "signed_only", "SET_MODE with the armed, test or HIL flag needs a signed uplink"
             )
         return None
-    if msgid in _MISSION_ITEM_MSGS:
+    if msgid in MISSION_ITEM_MSGS:
         command = int(msg.command)
         if command in MISSION_ITEMS:
             return None

@@ -9,9 +9,8 @@ over pairs closer than c. Computed as the minimum-cost assignment of the smaller
 larger on the costs min(d, c)^p, plus c^p / 2 for every point of the larger set left over: a
 pair at c or farther costs c^p, the same as one miss and one false estimate.
 
-``assign`` is the Hungarian algorithm with potentials (O(n²m)), in pure Python so the
-gateway needs no numerical library; the tests check it against SciPy and the whole metric
-against Stone Soup's ``GOSPAMetric``.
+``assign`` is SciPy's ``linear_sum_assignment`` (the tracker's too); the tests check the
+whole metric against Stone Soup's ``GOSPAMetric``.
 """
 
 from __future__ import annotations
@@ -19,6 +18,8 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+
+from scipy.optimize import linear_sum_assignment
 
 __all__ = ["GospaFrame", "assign", "gospa"]
 
@@ -37,45 +38,10 @@ def assign(cost: Sequence[Sequence[float]]) -> list[int]:
     m = len(cost[0])
     if any(len(row) != m for row in cost) or n > m:
         raise ValueError(f"expected rows of equal length and rows <= columns, got {n} x {m}")
-    u = [0.0] * (n + 1)
-    v = [0.0] * (m + 1)
-    owner = [0] * (m + 1)  # owner[j]: the row (1-based) holding column j; 0 for none
-    way = [0] * (m + 1)
-    for i in range(1, n + 1):
-        owner[0] = i
-        j0 = 0
-        best = [math.inf] * (m + 1)
-        used = [False] * (m + 1)
-        while True:
-            used[j0] = True
-            i0 = owner[j0]
-            row = cost[i0 - 1]
-            delta, j1 = math.inf, 0
-            for j in range(1, m + 1):
-                if used[j]:
-                    continue
-                reduced = row[j - 1] - u[i0] - v[j]
-                if reduced < best[j]:
-                    best[j], way[j] = reduced, j0
-                if best[j] < delta:
-                    delta, j1 = best[j], j
-            for j in range(m + 1):
-                if used[j]:
-                    u[owner[j]] += delta
-                    v[j] -= delta
-                else:
-                    best[j] -= delta
-            j0 = j1
-            if owner[j0] == 0:
-                break
-        while j0:
-            j1 = way[j0]
-            owner[j0] = owner[j1]
-            j0 = j1
+    rows, columns = linear_sum_assignment(cost)
     result = [-1] * n
-    for j in range(1, m + 1):
-        if owner[j]:
-            result[owner[j] - 1] = j - 1
+    for row, column in zip(rows, columns, strict=True):
+        result[int(row)] = int(column)
     return result
 
 

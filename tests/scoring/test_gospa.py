@@ -61,7 +61,7 @@ class TestGospa:
 
 
 class TestAssign:
-    """The pure-Python Hungarian algorithm finds SciPy's optimum."""
+    """The assignment is an optimum, every row with its own column."""
 
     def test_matches_scipy_on_random_matrices(self) -> None:
         rng = random.Random(22)
