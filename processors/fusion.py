@@ -74,7 +74,13 @@ class FusionConfig(ProcessorConfig):
         default=5000, ge=1, le=1_000_000, description="Live tracks at most; more are refused."
     )
     update_interval_s: float = Field(
-        default=1.0, ge=0, le=60, description="Updates of one track at most this often."
+        default=1.0, ge=0, le=60, description="Updates of one track at most this often..."
+    )
+    max_drift_m: float = Field(
+        default=5.0,
+        ge=0,
+        le=10_000,
+        description="...or sooner, when dead-reckoning its last update is off by more (m).",
     )
     class_priors: dict[str, ClassPriorOption] = Field(
         default_factory=dict,
@@ -155,6 +161,7 @@ class FusionConfig(ProcessorConfig):
             confirm_window=self.confirm_window,
             max_tracks=self.max_tracks,
             update_interval_s=self.update_interval_s,
+            max_drift_m=self.max_drift_m,
             speed_scale=self.speed_scale,
             report_velocity_sigma_mps=self.report_velocity_sigma_mps,
             merge_sigma=self.merge_sigma,

@@ -8,13 +8,15 @@ be paired, then has the least total cost. Pairs not given are not allowed (outsi
 or in total class conflict). Ties are broken by the order of rows and columns, which the
 tracker fixes canonically, so the outcome never depends on the order detections arrived in.
 
-Solved by ``scipy.optimize.linear_sum_assignment`` on each connected group of the gated pairs
-(usually one detection and one track, solved without scipy).
+Solved on each connected group of the gated pairs: one detection or one track by the cheapest
+pair, up to three detections against up to three tracks by trying every matching (faster than
+a call into scipy for such a group), larger ones by ``scipy.optimize.linear_sum_assignment``.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
+from itertools import product
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
@@ -26,6 +28,27 @@ __all__ = ["assign"]
 _FORBIDDEN = 1e9
 #: Added to every allowed cost before solving, so a matching with more pairs always wins.
 _PAIRED_BONUS = 1e6
+#: Groups with at most this many detections and tracks are solved by trying every matching.
+_SMALL = 3
+
+
+def _exhaustive(
+    rows: list[int], cols: list[int], pairs: Mapping[tuple[int, int], float]
+) -> dict[int, int]:
+    """The best matching of a small group by enumeration: most pairs, then least cost; the
+    first found in row-major order of the choices wins a tie."""
+    options = [[None, *(c for c in cols if (r, c) in pairs)] for r in rows]
+    best: tuple[int, float] | None = None
+    chosen: tuple[int | None, ...] = ()
+    for choice in product(*options):
+        taken = [c for c in choice if c is not None]
+        if len(taken) != len(set(taken)):
+            continue
+        cost = sum(pairs[(r, c)] for r, c in zip(rows, choice, strict=True) if c is not None)
+        rank = (-len(taken), cost)
+        if best is None or rank < best:
+            best, chosen = rank, choice
+    return {r: c for r, c in zip(rows, chosen, strict=True) if c is not None}
 
 
 def _groups(pairs: Mapping[tuple[int, int], float]) -> list[tuple[list[int], list[int]]]:
@@ -62,6 +85,9 @@ def assign(pairs: Mapping[tuple[int, int], float]) -> dict[int, int]:
                 key=lambda rc: (pairs[rc], rc),
             )
             out[row] = col
+            continue
+        if len(rows) <= _SMALL and len(cols) <= _SMALL:
+            out.update(_exhaustive(rows, cols, pairs))
             continue
         matrix = np.full((len(rows), len(cols)), _FORBIDDEN)
         for i, row in enumerate(rows):

@@ -64,6 +64,8 @@ def track_event(
         velocity = Velocity(north_mps=north, east_mps=east, down_mps=0.0)
         speed, course = state.speed_mps, state.course_deg
     sigma = state.sigma_m
+    shown_v = (velocity.east_mps, velocity.north_mps) if velocity is not None else (0.0, 0.0)
+    state.shown = (state.lat_deg, state.lon_deg, *shown_v, state.updated_s)
     return Track(
         event_id=event_id(state.track_id, state.sequence),
         track_id=state.track_id,

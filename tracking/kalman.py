@@ -76,30 +76,37 @@ class Estimate:
 
     def predicted(self, dt: float, q: float) -> Estimate:
         """The estimate ``dt`` seconds on (never backwards: a negative Δt is taken as 0)."""
-        dt = max(0.0, dt)
-        x, p = self.x, self.p
-        if dt == 0.0:
+        if not dt > 0.0:
             return self.copy()
-        nx = [x[0] + dt * x[2], x[1] + dt * x[3], x[2], x[3]]
-        # A = F·P: rows 0 and 1 gain dt × rows 2 and 3.
-        a = list(p)
-        for j in range(4):
-            a[j] += dt * p[8 + j]
-            a[4 + j] += dt * p[12 + j]
-        # F·P·Fᵀ: columns 0 and 1 gain dt × columns 2 and 3.
-        for i in range(4):
-            a[4 * i] += dt * a[4 * i + 2]
-            a[4 * i + 1] += dt * a[4 * i + 3]
-        qpp, qpv, qvv = q * dt**3 / 3.0, q * dt * dt / 2.0, q * dt
-        a[0] += qpp
-        a[5] += qpp
-        a[2] += qpv
-        a[8] += qpv
-        a[7] += qpv
-        a[13] += qpv
-        a[10] += qvv
-        a[15] += qvv
-        return Estimate(nx, a)
+        x0, x1, x2, x3 = self.x
+        (p00, p01, p02, p03, _, p11, p12, p13, _, _, p22, p23, _, _, _, p33) = self.p
+        # F·P·Fᵀ written out (P symmetric; F adds dt × velocity to position), plus Q.
+        dt2 = dt * dt
+        qpp, qpv, qvv = q * dt2 * dt / 3.0, q * dt2 / 2.0, q * dt
+        a00 = p00 + 2.0 * dt * p02 + dt2 * p22 + qpp
+        a11 = p11 + 2.0 * dt * p13 + dt2 * p33 + qpp
+        a01 = p01 + dt * (p03 + p12) + dt2 * p23
+        a02 = p02 + dt * p22 + qpv
+        a03 = p03 + dt * p23
+        a12 = p12 + dt * p23
+        a13 = p13 + dt * p33 + qpv
+        a22, a23, a33 = p22 + qvv, p23, p33 + qvv
+        return Estimate(
+            [x0 + dt * x2, x1 + dt * x3, x2, x3],
+            [a00, a01, a02, a03, a01, a11, a12, a13, a02, a12, a22, a23, a03, a13, a23, a33],
+        )
+
+    def position_var_max_after(self, dt: float, q: float) -> float:
+        """``predicted(dt, q).position_var_max``, without building the estimate."""
+        if not dt > 0.0:
+            return self.position_var_max
+        p = self.p
+        dt2 = dt * dt
+        qpp = q * dt2 * dt / 3.0
+        a = p[0] + 2.0 * dt * p[2] + dt2 * p[10] + qpp
+        d = p[5] + 2.0 * dt * p[7] + dt2 * p[15] + qpp
+        b = p[1] + dt * (p[3] + p[6]) + dt2 * p[11]
+        return 0.5 * (a + d) + math.sqrt(0.25 * (a - d) ** 2 + b * b)
 
     def innovation(
         self, ze: float, zn: float, r00: float, r01: float, r11: float, pair: tuple[int, int]
@@ -123,23 +130,32 @@ class Estimate:
         i, j = pair
         p = self.p
         si00, si01, si11 = inn.s11 / det, -inn.s01 / det, inn.s00 / det
-        # K = P·Hᵀ·S⁻¹ (4×2); P·Hᵀ is columns i and j of P.
-        k = []
-        for r in range(4):
-            ci, cj = p[4 * r + i], p[4 * r + j]
-            k.append((ci * si00 + cj * si01, ci * si01 + cj * si11))
-        for r in range(4):
-            self.x[r] += k[r][0] * inn.ye + k[r][1] * inn.yn
-        # P ← P − K·(H·P), H·P being rows i and j of P; then made exactly symmetric.
-        hp_i, hp_j = p[4 * i : 4 * i + 4], p[4 * j : 4 * j + 4]
-        new = [
-            p[4 * r + c] - k[r][0] * hp_i[c] - k[r][1] * hp_j[c] for r in range(4) for c in range(4)
-        ]
-        for r in range(4):
-            for c in range(r + 1, 4):
-                mean = 0.5 * (new[4 * r + c] + new[4 * c + r])
-                new[4 * r + c] = new[4 * c + r] = mean
-        self.p = new
+        # P·Hᵀ is columns i and j of P; as P is symmetric, H·P is the same numbers as rows.
+        c0, c1, c2, c3 = p[i], p[4 + i], p[8 + i], p[12 + i]
+        d0, d1, d2, d3 = p[j], p[4 + j], p[8 + j], p[12 + j]
+        # K = P·Hᵀ·S⁻¹ (4×2), columns k and l.
+        k0, k1, k2, k3 = (c0 * si00 + d0 * si01, c1 * si00 + d1 * si01,
+                          c2 * si00 + d2 * si01, c3 * si00 + d3 * si01)  # fmt: skip
+        l0, l1, l2, l3 = (c0 * si01 + d0 * si11, c1 * si01 + d1 * si11,
+                          c2 * si01 + d2 * si11, c3 * si01 + d3 * si11)  # fmt: skip
+        ye, yn = inn.ye, inn.yn
+        x = self.x
+        x[0] += k0 * ye + l0 * yn
+        x[1] += k1 * ye + l1 * yn
+        x[2] += k2 * ye + l2 * yn
+        x[3] += k3 * ye + l3 * yn
+        # P ← P − K·(H·P): the upper triangle, mirrored (exactly symmetric).
+        n00 = p[0] - k0 * c0 - l0 * d0
+        n01 = p[1] - k0 * c1 - l0 * d1
+        n02 = p[2] - k0 * c2 - l0 * d2
+        n03 = p[3] - k0 * c3 - l0 * d3
+        n11 = p[5] - k1 * c1 - l1 * d1
+        n12 = p[6] - k1 * c2 - l1 * d2
+        n13 = p[7] - k1 * c3 - l1 * d3
+        n22 = p[10] - k2 * c2 - l2 * d2
+        n23 = p[11] - k2 * c3 - l2 * d3
+        n33 = p[15] - k3 * c3 - l3 * d3
+        self.p = [n00, n01, n02, n03, n01, n11, n12, n13, n02, n12, n22, n23, n03, n13, n23, n33]
 
     def shift(self, east_m: float, north_m: float) -> None:
         """Move the anchor by (east, north): positions become relative to the new anchor."""

@@ -37,6 +37,7 @@ class TrackerSettings:
     confirm_window: int = 5
     max_tracks: int = 5000
     update_interval_s: float = 1.0
+    max_drift_m: float = 5.0
     speed_scale: float = 1.0
     speed_prior_sigma: float = 0.2
     report_velocity_sigma_mps: float = 1.6

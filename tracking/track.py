@@ -86,6 +86,13 @@ class TrackState:
     emitted_class: str = ""
     published: datetime | None = None
     reach_m: float = math.inf
+    #: The filter's process noise as a multiple of its class's (``Tracker`` adapts it to the
+    #: track's recent normalised innovations) and their running mean (2 when the model fits).
+    q_scale: float = 1.0
+    nis: float = 2.0
+    #: What receivers were last shown: (lat, lon, v_east, v_north, UNIX time), from which they
+    #: dead-reckon until the next event (``Tracker`` publishes early when that drifts).
+    shown: tuple[float, float, float, float, float] | None = None
 
     def predicted(self, at_s: float, q: float) -> Estimate:
         """The filter carried to ``at_s`` (never backwards)."""

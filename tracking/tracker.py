@@ -50,7 +50,7 @@ from gateway.flow.localplane import offset_m
 from tracking.assign import assign
 from tracking.emit import Status, track_event
 from tracking.index import TrackIndex
-from tracking.kalman import POSITION, VELOCITY, Estimate
+from tracking.kalman import POSITION, VELOCITY, Estimate, Innovation
 from tracking.merge import agree, elder, fold
 from tracking.settings import OTHER, TrackerCounts, TrackerSettings
 from tracking.track import MIN_SIGMA_M, Source, TrackState, fuse_sources
@@ -66,6 +66,13 @@ MAX_FRAME = 1000
 #: (``overload_refused``), in the frame's canonical order, so the outcome does not depend on
 #: the order they came in.
 MAX_FRAME_PAIRS = 20_000
+#: Adaptive process noise (a continuous noise-level adjustment): after ``_NIS_AFTER`` hits a
+#: track's q is its class's times the running mean of its normalised innovation squared (NIS,
+#: weight ``_NIS_WEIGHT``) over its expected value 2, kept within ``_Q_SCALE``: a target
+#: driving straight is followed closely, one that manoeuvres widens its own filter.
+_NIS_AFTER = 3
+_NIS_WEIGHT = 0.3
+_Q_SCALE = (0.5, 4.0)
 
 
 @lru_cache(maxsize=4096)
@@ -195,6 +202,7 @@ class Tracker:
         pairs: dict[tuple[int, int], float] = {}
         columns: dict[str, int] = {}
         fused: dict[tuple[int, int], tuple[MassFunction, float] | None] = {}
+        innovations: dict[tuple[int, int], Innovation] = {}
         masses: list[MassFunction] = []
         examined = 0
         for i, d in enumerate(detections):
@@ -235,6 +243,7 @@ class Tracker:
                 key = (i, columns.setdefault(track_id, len(columns)))
                 pairs[key] = innovation.cost
                 fused[key] = evidence
+                innovations[key] = innovation
             if conflicted:
                 self.counts.total_conflict += 1
         ids = sorted(columns)  # canonical column order: the same whatever came first
@@ -243,6 +252,7 @@ class Tracker:
             remap = {columns[t]: order[t] for t in ids}
             pairs = {(i, remap[j]): cost for (i, j), cost in pairs.items()}
             fused = {(i, remap[j]): ev for (i, j), ev in fused.items()}
+            innovations = {(i, remap[j]): inn for (i, j), inn in innovations.items()}
         if len(detections) == 1:  # one row: the cheapest pair is the whole answer
             matched = {0: min(pairs, key=lambda ij: (pairs[ij], ij))[1]} if pairs else {}
         else:
@@ -259,7 +269,9 @@ class Tracker:
             if evidence is not None:
                 state.set_classes({**state.sources, source: masses[i]}, *evidence)
             self.counts.associated += 1
-            hit[state.track_id] = self._hit(state, d, at_s, source, predicted[state.track_id])
+            hit[state.track_id] = self._hit(
+                state, d, at_s, source, predicted[state.track_id], innovations[(i, j)]
+            )
         for track_id, was_coasting in sorted(hit.items()):
             still = self._tracks.get(track_id)
             if still is None:
@@ -287,6 +299,9 @@ class Tracker:
         return fuse_sources({**state.sources, source: mass})
 
     def _q(self, state: TrackState) -> float:
+        return self._class_q(state) * state.q_scale
+
+    def _class_q(self, state: TrackState) -> float:
         q = self._qs.get(state.object_class)
         if q is None:
             # Time played X times faster: the white-noise acceleration's spectral density
@@ -302,16 +317,23 @@ class Tracker:
     # -- track life ------------------------------------------------------------------------
 
     def _hit(
-        self, state: TrackState, d: Detection, at_s: float, source: Source, estimate: Estimate
+        self,
+        state: TrackState,
+        d: Detection,
+        at_s: float,
+        source: Source,
+        estimate: Estimate,
+        innovation: Innovation,
     ) -> bool:
-        """Fold ``d`` into ``state``; whether the track was coasting before it."""
+        """Fold ``d`` (``innovation`` against ``estimate``, the prediction to ``at_s``) into
+        ``state``; whether the track was coasting before it."""
         s = self.settings
         was_coasting = state.stage == "coasting" or at_s - state.updated_s > s.coast_after_s
         estimate = estimate.copy()
-        estimate.update(
-            state.innovation(estimate, d.position.lat_deg, d.position.lon_deg, d.sigma_h_m),
-            POSITION,
-        )
+        if state.hits >= _NIS_AFTER:
+            state.nis += _NIS_WEIGHT * (min(innovation.d2, self._gate2) - state.nis)
+            state.q_scale = min(_Q_SCALE[1], max(_Q_SCALE[0], state.nis / 2.0))
+        estimate.update(innovation, POSITION)
         self._speed_prior(state, estimate)
         state.adopt(estimate, at_s)
         self._record(state, d, source)
@@ -469,8 +491,8 @@ class Tracker:
         own σ (the query adds it)."""
         s = self.settings
         horizon = self._horizon_s if horizon_s is None else horizon_s
-        later = state.estimate.predicted(horizon, self._q(state))
-        widest = max(state.estimate.position_var_max, later.position_var_max)
+        later = state.estimate.position_var_max_after(horizon, self._q(state))
+        widest = max(state.estimate.position_var_max, later)
         return s.gate_sigma * math.sqrt(max(widest, 0.0)) + state.speed_mps * horizon
 
     def _file(self, state: TrackState) -> None:
@@ -499,11 +521,23 @@ class Tracker:
 
     def _updated(self, state: TrackState, at_s: float) -> list[Track]:
         is_due = at_s - state.emitted_s >= self.settings.update_interval_s
-        if state.object_class != state.emitted_class or is_due:
+        if state.object_class != state.emitted_class or is_due or self._drifted(state, at_s):
             self._pending.discard(state.track_id)
             return [self._emit(state, "updated", at_s)]
         self._pending.add(state.track_id)
         return []
+
+    def _drifted(self, state: TrackState, at_s: float) -> bool:
+        """Whether receivers, dead-reckoning the last event, now show the track further from
+        its estimate than ``max_drift_m`` and than the estimate's own σ (a shift within its
+        uncertainty is not news)."""
+        if state.shown is None:
+            return True
+        lat, lon, ve, vn, shown_s = state.shown
+        dt = at_s - shown_s
+        east, north = offset_m(lat, lon, state.lat_deg, state.lon_deg)
+        drift = math.hypot(east - ve * dt, north - vn * dt)
+        return drift > max(self.settings.max_drift_m, state.sigma_m)
 
     def _emit(self, state: TrackState, status: Status, at_s: float) -> Track:
         state.emitted_s = max(state.emitted_s, at_s)
