@@ -8,7 +8,8 @@ be paired, then has the least total cost. Pairs not given are not allowed (outsi
 or in total class conflict). Ties are broken by the order of rows and columns, which the
 tracker fixes canonically, so the outcome never depends on the order detections arrived in.
 
-Solved on each connected group of the gated pairs: one detection or one track by the cheapest
+When every detection's cheapest track is a different track, that is the answer. Otherwise it
+is solved on each connected group of the gated pairs: one detection or one track by the cheapest
 pair, up to three detections against up to three tracks by trying every matching (faster than
 a call into scipy for such a group), larger ones by ``scipy.optimize.linear_sum_assignment``.
 """
@@ -74,8 +75,23 @@ def _groups(pairs: Mapping[tuple[int, int], float]) -> list[tuple[list[int], lis
     return [(sorted(rows), sorted(cols)) for rows, cols in members.values()]
 
 
+def _each_to_its_best(pairs: Mapping[tuple[int, int], float]) -> dict[int, int] | None:
+    """Every row's cheapest column, when no two rows share one (then that matching pairs every
+    row at the least cost each row could have: it is optimal); else None."""
+    best: dict[int, tuple[float, int]] = {}
+    for (row, col), cost in pairs.items():
+        held = best.get(row)
+        if held is None or (cost, col) < held:
+            best[row] = (cost, col)
+    chosen = {row: col for row, (_, col) in best.items()}
+    return chosen if len(set(chosen.values())) == len(chosen) else None
+
+
 def assign(pairs: Mapping[tuple[int, int], float]) -> dict[int, int]:
     """Row (detection) → column (track) for the best one-to-one matching of ``pairs``."""
+    easy = _each_to_its_best(pairs)
+    if easy is not None:
+        return easy  # the usual frame: detections of objects far apart in their gates' terms
     out: dict[int, int] = {}
     for rows, cols in _groups(pairs):
         if len(rows) == 1 or len(cols) == 1:

@@ -10,16 +10,19 @@ a speed from two fixes is noise, and a C2 net must not hear it as a tank doing 2
 
 from __future__ import annotations
 
+import math
 from datetime import datetime, timedelta
 from functools import cache
-from typing import Literal
+from typing import Literal, TypeVar
 
 from gateway.domain.sidc import Hostility, symbol_codes
-from gateway.domain.targeting import cep50_m, cep90_m
-from gateway.events import Position, Track, Velocity, event_id
+from gateway.domain.targeting import CEP50_FACTOR, CEP90_FACTOR
+from gateway.events import Position, Sensor, Track, Velocity
 from tracking.track import TrackState
 
 __all__ = ["Status", "track_event"]
+
+T = TypeVar("T", str, Sensor)
 
 Status = Literal["created", "updated", "lost", "merged"]
 
@@ -59,15 +62,16 @@ def track_event(
     state.sequence += 1
     hostility: Hostility = "hostile" if state.object_class in hostile_classes else "suspect"
     velocity = speed = course = None
-    if state.estimate.velocity_sigma <= report_velocity_sigma_mps + 0.06 * state.speed_mps:
-        east, north = state.velocity
+    east, north = state.velocity
+    now_speed = math.hypot(east, north)
+    if state.estimate.velocity_sigma <= report_velocity_sigma_mps + 0.06 * now_speed:
         velocity = Velocity(north_mps=north, east_mps=east, down_mps=0.0)
-        speed, course = state.speed_mps, state.course_deg
-    sigma = state.sigma_m
-    shown_v = (velocity.east_mps, velocity.north_mps) if velocity is not None else (0.0, 0.0)
+        speed, course = now_speed, state.course_deg
+    sigma = state.sigma_m  # ≥ 0: a square root
+    shown_v = (east, north) if velocity is not None else (0.0, 0.0)
     state.shown = (state.lat_deg, state.lon_deg, *shown_v, state.updated_s)
     return Track(
-        event_id=event_id(state.track_id, state.sequence),
+        event_id=f"{state.track_id}-{state.sequence}",  # gateway.events.event_id's form
         track_id=state.track_id,
         time=_stamp(state, when),
         status=status,
@@ -77,17 +81,21 @@ def track_event(
         confidence=state.confidence,
         class_conflict=state.class_conflict,
         position=Position(lat_deg=state.lat_deg, lon_deg=state.lon_deg, alt_msl_m=state.alt_msl_m),
-        cep50_m=cep50_m([sigma]),
-        cep90_m=cep90_m([sigma]),
+        cep50_m=CEP50_FACTOR * sigma,
+        cep90_m=CEP90_FACTOR * sigma,
         velocity=velocity,
         speed_mps=speed,
         course_deg=course,
         detection_ids=tuple(state.detection_ids),
         detection_count=state.detection_count,
-        airframes=tuple(sorted(state.airframes)),
-        sensors=tuple(sorted(state.sensors)),
+        airframes=_sorted(state.airframes),
+        sensors=_sorted(state.sensors),
         first_seen=state.first_seen,
         last_seen=state.last_seen,
         hostility=hostility,
         sidc=_sidc(state.object_class, hostility, loitering_munition),
     )
+
+
+def _sorted(items: set[T]) -> tuple[T, ...]:
+    return (next(iter(items)),) if len(items) == 1 else tuple(sorted(items))

@@ -10,8 +10,9 @@ track is a candidate (for tests and the benchmark to compare).
 
 The largest reach is kept without a scan: each fresh track's reach is counted in a bucket of
 a geometric ladder (10 % steps), and the query uses the top of the highest bucket in use, so
-one wide track raises it only while it is fresh. Expiry is a heap of (deadline, id, update
-time), its stale entries bounded. Every operation costs O(log n) or less in live tracks.
+one wide track raises it only while it is fresh. Expiry is a heap holding one (deadline, id)
+entry per fresh track, pushed again with the new deadline when found early. Every operation
+costs O(log n) or less in live tracks. Up to ``_FEW`` live tracks, every one is a candidate.
 """
 
 from __future__ import annotations
@@ -28,6 +29,8 @@ __all__ = ["TrackIndex"]
 
 #: Radii up to this (m) use a cached stretch of the plane; larger ones are computed.
 _CACHED_RADIUS_M = 50_000.0
+#: Up to this many live tracks every one is a candidate (cheaper than a grid query).
+_FEW = 16
 #: The reach ladder's step: each bucket's top is 10 % above the one below.
 _STEP = 1.1
 _LOG_STEP = math.log(_STEP)
@@ -46,7 +49,8 @@ class TrackIndex:
         self._plane: GridPlane | None = None
         self._stretch: dict[int, float] = {}
         self._wide: set[str] = set()
-        self._expiry: list[tuple[float, str, float]] = []
+        self._expiry: list[tuple[float, str]] = []  # (deadline, track id) per queued track
+        self._queued: set[str] = set()
         self._bucket_of: dict[str, int] = {}  # fresh track → its reach's bucket
         self._buckets: dict[int, int] = {}  # bucket → fresh tracks in it
         self._top = -1  # the highest bucket in use, -1 when none
@@ -58,6 +62,11 @@ class TrackIndex:
 
     def _count(self, track_id: str, reach_m: float | None) -> None:
         """Move the track's reach to the bucket of ``reach_m`` (None: out of the ladder)."""
+        bucket = None
+        if reach_m is not None:
+            bucket = max(0, math.ceil(math.log(max(reach_m, 1.0)) / _LOG_STEP))
+            if self._bucket_of.get(track_id) == bucket:
+                return  # the usual case: the reach changed by less than a step
         old = self._bucket_of.pop(track_id, None)
         if old is not None:
             left = self._buckets[old] - 1
@@ -65,8 +74,7 @@ class TrackIndex:
                 self._buckets[old] = left
             else:
                 del self._buckets[old]
-        if reach_m is not None:
-            bucket = max(0, math.ceil(math.log(max(reach_m, 1.0)) / _LOG_STEP))
+        if bucket is not None:
             self._bucket_of[track_id] = bucket
             self._buckets[bucket] = self._buckets.get(bucket, 0) + 1
             self._top = max(self._top, bucket)
@@ -88,21 +96,17 @@ class TrackIndex:
         else:
             self._grid.insert(state.track_id, x, y)
         self._wide.discard(state.track_id)
-        heapq.heappush(
-            self._expiry, (state.updated_s + self.horizon_s, state.track_id, state.updated_s)
-        )
-        if len(self._expiry) > 4 * len(self._tracks) + 64:  # stale entries stay bounded
-            self._expiry = [
-                (st.updated_s + self.horizon_s, track_id, st.updated_s)
-                for track_id, st in self._tracks.items()
-                if track_id not in self._wide
-            ]
-            heapq.heapify(self._expiry)
+        if state.track_id not in self._queued:
+            # One entry per track: an entry found early at its deadline (the track was updated
+            # since) is pushed again with the new one, so an update costs no heap operation.
+            self._queued.add(state.track_id)
+            heapq.heappush(self._expiry, (state.updated_s + self.horizon_s, state.track_id))
 
     def remove(self, track_id: str) -> None:
         """Forget the track (if filed)."""
         if track_id in self._grid:
             self._grid.remove(track_id)
+        self._queued.discard(track_id)  # its heap entry is skipped when it comes up
         self._wide.discard(track_id)
         self._count(track_id, None)
 
@@ -115,18 +119,24 @@ class TrackIndex:
         """The tracks that went silent beyond the horizon by ``at_s``, now checked whole."""
         out: list[str] = []
         while self._expiry and self._expiry[0][0] <= at_s:
-            _, track_id, stamp = heapq.heappop(self._expiry)
+            _, track_id = heapq.heappop(self._expiry)
             state = self._tracks.get(track_id)
-            if state is not None and state.updated_s == stamp and track_id not in self._wide:
-                self._wide.add(track_id)
-                self._count(track_id, None)
-                out.append(track_id)
+            if state is None or track_id not in self._queued:
+                continue  # removed (and perhaps filed again: then it has a newer entry)
+            deadline = state.updated_s + self.horizon_s
+            if deadline > at_s:
+                heapq.heappush(self._expiry, (deadline, track_id))
+                continue
+            self._queued.discard(track_id)
+            self._wide.add(track_id)
+            self._count(track_id, None)
+            out.append(track_id)
         return out
 
     def candidates(self, lat: float, lon: float, widen_m: float) -> list[str]:
         """Every track whose gate could pass a detection at (lat, lon) ``widen_m`` wide."""
-        if self._exhaustive or self._plane is None:
-            return list(self._tracks)
+        if self._exhaustive or self._plane is None or len(self._tracks) <= _FEW:
+            return list(self._tracks)  # a handful: checking each beats querying the grid
         x, y = self._plane.forward(lat, lon)
         near = self._grid.within(x, y, self._plane_radius(lat, self.reach_m + widen_m + 1.0))
         if not self._wide:

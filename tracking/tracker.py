@@ -205,6 +205,7 @@ class Tracker:
         innovations: dict[tuple[int, int], Innovation] = {}
         masses: list[MassFunction] = []
         examined = 0
+        gate2 = self._gate2
         for i, d in enumerate(detections):
             if examined >= MAX_FRAME_PAIRS:
                 self.counts.overload_refused += len(detections) - i
@@ -214,6 +215,7 @@ class Tracker:
             mass = _support(self.frame, name, d.confidence)
             masses.append(mass)
             sigma = max(d.sigma_h_m, MIN_SIGMA_M)
+            r = sigma * sigma
             lat, lon = d.position.lat_deg, d.position.lon_deg
             conflicted = False
             widen = s.gate_sigma * sigma
@@ -231,9 +233,17 @@ class Tracker:
                 estimate = predicted.get(track_id)
                 if estimate is None:
                     estimate = predicted[track_id] = state.predicted(at_s, self._q(state))
-                innovation = state.offset_innovation(estimate, east, north, sigma)
-                if innovation.d2 > self._gate2:
+                # The gate, written out (``Innovation.d2``); the pair's Innovation is built
+                # only when it passes.
+                x, p = estimate.x, estimate.p
+                ye, yn = east - x[0], north - x[1]
+                s00, s01, s11 = p[0] + r, p[1], p[5] + r
+                det = s00 * s11 - s01 * s01
+                if not (
+                    det > 0.0 and s11 * ye * ye - 2.0 * s01 * ye * yn + s00 * yn * yn <= gate2 * det
+                ):
                     continue
+                innovation = Innovation(ye, yn, s00, s01, s11)
                 near.add(track_id)
                 try:
                     evidence = self._evidence(state, source, mass)
@@ -440,7 +450,7 @@ class Tracker:
         two objects (a frame sees an object once): never merged then.
         """
         s = self.settings
-        if was_coasting:
+        if was_coasting or state.hits < 2 or len(near) < 2:
             return state, []  # a coasting estimate is too wide to tell two objects apart
         mine = state.estimate
         for other_id in sorted(near):
@@ -449,9 +459,14 @@ class Tracker:
                 continue
             if min(state.hits, other.hits) < 2:
                 continue  # nor is one fix with no velocity yet
-            key = (min(state.track_id, other_id), max(state.track_id, other_id))
+            key = (
+                (state.track_id, other_id)
+                if state.track_id < other_id
+                else (other_id, state.track_id)
+            )
             if other_id in hit:
-                self._streaks.pop(key, None)
+                if self._streaks:
+                    self._streaks.pop(key, None)
                 continue
             if abs(at_s - other.updated_s) > s.coast_after_s:
                 continue
