@@ -102,6 +102,7 @@ class Tracker:
             self._tracks, s.cell_m, self._horizon_s, exhaustive=s.index == "all_pairs"
         )
         self._qs: dict[str, float] = {}
+        self._limits: dict[str, float] = {}
         self._gate2 = s.gate_sigma**2
         self._merge2 = s.merge_sigma**2
 
@@ -322,7 +323,12 @@ class Tracker:
         return q
 
     def _limit(self, name: str) -> float:
-        return self.settings.priors[name].max_speed_mps * self.settings.speed_scale
+        limit = self._limits.get(name)
+        if limit is None:
+            limit = self._limits[name] = (
+                self.settings.priors[name].max_speed_mps * self.settings.speed_scale
+            )
+        return limit
 
     # -- track life ------------------------------------------------------------------------
 
@@ -385,11 +391,14 @@ class Tracker:
             state.subtypes[name] = d.subtype
         state.detection_ids.append(d.event_id)
         state.detection_count += 1
-        state.airframes.add(d.airframe)
-        state.sensors.add(d.sensor)
-        state.seen_by.add(source)
-        state.first_seen = min(state.first_seen, d.time)
-        state.last_seen = max(state.last_seen, d.time)
+        if source not in state.seen_by:
+            state.airframes.add(d.airframe)
+            state.sensors.add(d.sensor)
+            state.seen_by.add(source)
+        if d.time > state.last_seen:
+            state.last_seen = d.time
+        elif d.time < state.first_seen:
+            state.first_seen = d.time
 
     def _start(self, d: Detection, at_s: float, source: Source, mass: MassFunction) -> list[Track]:
         s = self.settings
