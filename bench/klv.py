@@ -5,12 +5,12 @@ Reproducible: ``python bench/klv.py`` (``--help`` for options). Prints Markdown 
 The same ``--packets`` VideoFrameMetadata events (the seed example's values, moving) are
 turned into ST 0601 packets, in the same run, by:
 
-* **ours**: ``gateway.codecs.klv.uas.frame_packet`` (event → tags → bytes), what the klv
+* **ours**: ``sinks.klv.uas.frame_packet`` (event → tags → bytes), what the klv
   sink does per event;
 * **stanag4609**: ``stanag4609.st0601.encode_uas_local_set`` (0.4.0, pure Python) from the
   same ``{tag: value}`` dictionary (built beforehand, so it is not charged for the mapping).
 
-and decoded by ``gateway.codecs.klv.st0601.decode``, ``stanag4609.st0601.decode_uas_local_set``
+and decoded by ``sinks.klv.st0601.decode``, ``stanag4609.st0601.decode_uas_local_set``
 and ``klvdata.StreamParser`` (0.0.3). Each is the best of ``--repeat`` runs. The last line is
 the share of one core that ``--airframes`` airframes at ``--rate`` metadata packets a second
 would take to encode with ours.
@@ -26,9 +26,9 @@ from collections.abc import Callable
 from datetime import UTC, datetime, timedelta
 from typing import Any
 
-from gateway.codecs.klv.st0601 import Value, decode
-from gateway.codecs.klv.uas import frame_packet, frame_values
 from gateway.events import Position, VideoFrameMetadata
+from sinks.klv.st0601 import Value, decode
+from sinks.klv.uas import frame_packet, frame_values
 
 T0 = datetime(2026, 11, 22, 10, 15, 30, 250000, tzinfo=UTC)
 

@@ -5,7 +5,7 @@ Reproducible: ``python bench/nffi.py`` (``--help`` for options). Prints a Markdo
 The same pre-built ``Telemetry`` events (``--tracks`` per document, ``--documents`` of them)
 are, in the same run:
 
-* **encode**: ``gateway.codecs.nffi`` (``tracks_of`` + ``encode_message``: strings, every value
+* **encode**: ``sinks.nffi.codec`` (``tracks_of`` + ``encode_message``: strings, every value
   fitted to the schema) against **lxml** building the same elements with ``SubElement`` and
   serialising them (the peer: a C tree builder, no fitting);
 * **decode**: ``parse_message`` (defusedxml with DTDs and entities refused, every track
@@ -27,9 +27,9 @@ from datetime import UTC, datetime, timedelta
 
 from lxml import etree
 
-from gateway.codecs.nffi import NAMESPACE, NffiOptions, encode_message, parse_message, tracks_of
-from gateway.codecs.nffi_stream import MessageSplitter
 from gateway.events import Event, Position, Telemetry, Velocity
+from sinks.nffi.codec import NAMESPACE, NffiOptions, encode_message, parse_message, tracks_of
+from sinks.nffi.stream import MessageSplitter
 
 T0 = datetime(2026, 11, 25, 12, 0, tzinfo=UTC)
 OPTS = NffiOptions(system="FISCHER-GW", country="SWE", sec_classification="UNCLASSIFIED")

@@ -25,9 +25,9 @@ from pathlib import Path
 
 import mgrs
 
-from gateway.codecs.ra180 import Cdm, MessageType, compose
 from gateway.events import Position, Track
-from sinks._ra180_budget import Budget
+from sinks.ra180.budget import Budget
+from sinks.ra180.cdm import Cdm, MessageType, compose
 
 T0 = datetime(2026, 3, 1, 12, 0, tzinfo=UTC)
 

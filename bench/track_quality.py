@@ -48,7 +48,6 @@ from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
 
-from gateway.codecs.ra180 import CdmError, parse_cdm
 from gateway.domain.geodesy import from_mgrs
 from gateway.events import Detection
 from gateway.scoring.files import read_truth, tracks_from_events
@@ -57,6 +56,7 @@ from gateway.scoring.replay import frames, replay, scenario_detections, scenario
 from gateway.scoring.score import Score, announcements_per_target, score
 from gateway.sim.scenario import load_scenario, shipped_scenarios
 from processors.fusion import FusionConfig, FusionProcessor
+from sinks.ra180.cdm import CdmError, parse_cdm
 
 TRACKERS = ("ours", "gnn", "jpda")
 

@@ -7,7 +7,7 @@ daemon's own, root's, or one of ``allowed_uids``; anything else is closed unansw
 counted ``refused_peer``.
 
 One order per connection, as one line of JSON in SLB's order format
-(``gateway.codecs.slb_order``, schema ``slb-order.schema.json``; ``fischer-gateway order``
+(``sinks.slb.order``, schema ``slb-order.schema.json``; ``fischer-gateway order``
 writes it), at most ``max_line_bytes``, within ``timeout_s``. The answer is JSON lines:
 ``{"order_id": .., "status": "received", "event_id": "local-order-<order_id>"}`` once the
 order is held durably (``{"status": "rejected", "reason": ..}`` for a malformed one,
@@ -38,10 +38,10 @@ from pydantic import Field
 
 from gateway.c2.source import SourceConfig
 from gateway.clock import utc_now
-from gateway.codecs.slb_order import read_order
 from gateway.errors import OrderRejected
 from gateway.events import Event, OrderState, OrderStatus
 from gateway.ops.logsetup import RateLimit
+from sinks.slb.order import read_order
 
 __all__ = ["LocalOrderSource", "LocalOrderSourceConfig"]
 

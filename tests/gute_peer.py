@@ -33,7 +33,7 @@ from typing import Any
 from https_peer import Answer, Head, HttpsPeer, Request
 from jsonschema import Draft202012Validator
 
-from gateway.codecs.gute import SCHEMA_ID, SCHEMA_VERSIONS, load_schema
+from sinks.gute2.codec import SCHEMA_ID, SCHEMA_VERSIONS, load_schema
 
 __all__ = ["PATH", "GutePeer", "Request"]
 

@@ -31,8 +31,8 @@ from urllib.parse import unquote
 from https_peer import Answer, Head, HttpsPeer
 from jsonschema import Draft202012Validator
 
-from gateway.codecs.jc3iedm import load_schema
-from gateway.codecs.slb_order import load_order_schema
+from sinks.slb.jc3iedm import load_schema
+from sinks.slb.order import load_order_schema
 
 __all__ = ["BASE", "SlbPeer"]
 

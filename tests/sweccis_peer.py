@@ -46,7 +46,7 @@ from anyio.streams.buffered import BufferedByteReceiveStream
 from https_peer import AlertingTLSStream
 from lxml import etree
 
-from gateway.codecs.sweccis_xml import NAMESPACE, load_schema
+from sinks.sweccis.fasxml import NAMESPACE, load_schema
 
 NS = f"{{{NAMESPACE}}}"
 DATA_FAS = ("Intel", "Logistics", "Operations")

@@ -22,6 +22,10 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 
+#: The integrations, each a package under ``sinks`` that imports only the core (``c2``, the
+#: public face and the layers below): never another integration.
+INTEGRATIONS = ("cot", "gute2", "klv", "nffi", "ra180", "slb", "sweccis")
+
 #: (layer, part) for each module prefix; the longest matching prefix wins.
 LAYERS: dict[str, tuple[int, str]] = {
     "gateway.errors": (0, "base"),
@@ -33,7 +37,6 @@ LAYERS: dict[str, tuple[int, str]] = {
     "gateway.domain": (1, "domain"),
     "gateway.config": (2, "config"),
     "gateway.configfile": (2, "config"),
-    "gateway.codecs": (2, "codecs"),
     "gateway.transports": (2, "transports"),
     "gateway.ops": (2, "ops"),
     "gateway.spool": (2, "spool"),
@@ -44,8 +47,11 @@ LAYERS: dict[str, tuple[int, str]] = {
     "gateway.testing": (3, "c2"),
     # The plugin contracts and their checkers: names the sink, source and processor sides.
     "gateway.contract": (3, "contract"),
+    # The generic sinks (console, jsonl, the example) and the local order source...
     "sinks": (3, "sinks"),
     "sources": (3, "sources"),
+    # ...and one package per integration: codec, link, sink and source together.
+    **{f"sinks.{name}": (3, name) for name in INTEGRATIONS},
     "processors": (3, "processors"),
     "tracking": (3, "tracking"),
     "gateway.app": (4, "assembly"),
@@ -64,15 +70,18 @@ LAYERS: dict[str, tuple[int, str]] = {
 
 #: Parts of one layer that may import each other, in this direction only.
 ALLOWED_ACROSS: set[tuple[str, str]] = {
-    ("codecs", "transports"),
     ("ops", "transports"),
     ("ops", "config"),
-    ("codecs", "config"),
     ("sim", "fleet"),
+    # The simulator plays ATAK's SA mesh with the CoT integration's codec.
+    ("sim", "cot"),
     ("sinks", "c2"),
     ("sources", "c2"),
     ("sinks", "public"),
     ("sources", "public"),
+    # The local order source reads the order document the SLB integration defines.
+    ("sources", "slb"),
+    *((name, side) for name in INTEGRATIONS for side in ("c2", "public")),
     ("processors", "flow"),
     ("processors", "tracking"),
     ("tracking", "flow"),
@@ -191,6 +200,13 @@ def test_imports_run_down_the_layers_and_the_sides_stay_apart() -> None:
     assert broken == []
 
 
+#: Core modules that may name a plugin, and why.
+PLAYS_A_PEER = {
+    # The simulator plays ATAK's SA mesh: it writes CoT with the CoT integration's codec.
+    "gateway.sim.runner": {"sinks.cot.codec", "sinks.cot.event", "sinks.cot.validate"},
+}
+
+
 def test_the_core_never_imports_a_plugin() -> None:
     known = frozenset(_modules())
     offenders = [
@@ -199,8 +215,38 @@ def test_the_core_never_imports_a_plugin() -> None:
         if module.split(".")[0] == "gateway"
         for imported in _imports(module, path, known)
         if imported.split(".")[0] in ("sinks", "sources", "processors")
+        and imported not in PLAYS_A_PEER.get(module, set())
     ]
     assert offenders == []
+
+
+def test_each_integration_is_one_package_that_imports_only_the_core() -> None:
+    """Changing one integration touches one package: no integration imports another, and
+    nothing outside an integration names its modules (but the peers the simulator plays and
+    the order document the local source reads)."""
+    known = frozenset(_modules())
+    allowed = {("sources.local", "sinks.slb.order")} | {
+        (module, imported) for module, names in PLAYS_A_PEER.items() for imported in names
+    }
+    crossing = []
+    for module, path in sorted(_modules().items()):
+        mine = module.split(".")[1] if module.startswith("sinks.") else None
+        for imported in sorted(_imports(module, path, known)):
+            parts = imported.split(".")
+            if parts[0] != "sinks" or len(parts) < 2 or parts[1] not in INTEGRATIONS:
+                continue
+            if (
+                parts[1] != (mine if mine in INTEGRATIONS else None)
+                and (
+                    module,
+                    imported,
+                )
+                not in allowed
+            ):
+                crossing.append(f"{module} -> {imported}")
+    assert crossing == []
+    for name in INTEGRATIONS:  # each is a package with a face
+        assert (ROOT / "sinks" / name / "__init__.py").is_file(), name
 
 
 class TestInjectedViolations:
@@ -234,6 +280,7 @@ class TestInjectedViolations:
             ),
             ("sinks.injected", "__import__('gateway.cli')\n", "sinks.injected -> gateway.cli"),
             ("gateway.errors", "from gateway.fleet import session\n", "runs up from layer 0"),
+            ("sinks.nffi.injected", "from sinks.cot import codec\n", "nffi may not import cot"),
         ],
     )
     def test_is_caught(self, module: str, source: str, expected: str, tmp_path: Path) -> None:
@@ -252,5 +299,5 @@ class TestInjectedViolations:
 
     def test_the_core_importing_a_plugin_by_name_is_seen(self, tmp_path: Path) -> None:
         path = tmp_path / "injected.py"
-        path.write_text("import importlib\nimportlib.import_module('sinks.cot')\n")
-        assert "sinks.cot" in _imports("gateway.app", path, frozenset(_modules()))
+        path.write_text("import importlib\nimportlib.import_module('sinks.cot.sink')\n")
+        assert "sinks.cot.sink" in _imports("gateway.app", path, frozenset(_modules()))

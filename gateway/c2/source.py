@@ -2,7 +2,7 @@
 
 A source is found through the entry-point group ``fischer_gateway.sources`` and configured
 under ``sources:`` (``name``, ``type`` and its own options beside them). Built in: ``cot``
-(``sources/cot.py``: friendly positions from ATAK/WinTAK/iTAK); NFFI, order intake and NATS
+(``sinks/cot/source.py``: friendly positions from ATAK/WinTAK/iTAK); NFFI, order intake and NATS
 come the same way. A source binds in ``run`` and calls ``task_status.started()`` once bound;
 it publishes events with the given ``publish`` (synchronous, never blocks; True once the event
 is held durably, False if the spool refused it, so a source whose peer can send again

@@ -3,7 +3,7 @@
 Each scenario airframe is a ``SimulatedAirframe`` flying its orbit (real telemetry) with the
 scenario's detections for it fed into the same MAVLink stream as FISCHER_DETECTION frames,
 ``time_usec`` the UTC time the observation is sent. Friendly units' reports go as CoT XML
-datagrams (``gateway.codecs.cot``: what ATAK sends on its SA mesh) to the gateway's CoT source.
+datagrams (``sinks.cot``: what ATAK sends on its SA mesh) to the gateway's CoT source.
 Sim time ``t`` is played at ``start + t / speed``. Each airframe keeps the detections it sent
 until the gateway acknowledges them, re-sending as its ``ResendPolicy`` says.
 """
@@ -21,14 +21,14 @@ import anyio
 import anyio.abc
 import structlog
 
-from gateway.codecs.cot.codec import to_xml
-from gateway.codecs.cot.event import CotEvent
-from gateway.codecs.cot.validate import UNKNOWN
 from gateway.domain.geoid import bundled_geoid
 from gateway.fleet.dialect import fischer_detection
 from gateway.sim.airframe import SimulatedAirframe
 from gateway.sim.resend import ResendPolicy
 from gateway.sim.schedule import BlueReport, SimDetection, blue_reports, detections
+from sinks.cot.codec import to_xml
+from sinks.cot.event import CotEvent
+from sinks.cot.validate import UNKNOWN
 
 if TYPE_CHECKING:
     from gateway.fleet.security.tunnel import Sealer

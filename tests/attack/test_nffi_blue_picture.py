@@ -22,8 +22,8 @@ from typing import Any
 import pytest
 from daemon_support import Daemon, free_tcp_port, free_udp_port, running, wait_until
 
-from gateway.codecs.nffi import NffiOptions, encode_message, tracks_of
 from gateway.events import BlueForce, Position
+from sinks.nffi.codec import NffiOptions, encode_message, tracks_of
 
 pytestmark = pytest.mark.timeout(120)
 

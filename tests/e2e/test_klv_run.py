@@ -26,8 +26,8 @@ import pytest
 from daemon_support import free_udp_port, running, wait_until
 from tools import skip_without
 
-from gateway.codecs.klv.ber import split_packets
-from gateway.codecs.klv.st0601 import decode
+from sinks.klv.ber import split_packets
+from sinks.klv.st0601 import decode
 
 FFMPEG = shutil.which("ffmpeg") or "ffmpeg"
 FFPROBE = shutil.which("ffprobe") or "ffprobe"

@@ -46,11 +46,11 @@ from lxml import etree
 from slb_peer import SlbPeer
 from sweccis_peer import SweccisPeer, order_document
 
-from gateway.codecs.cot.proto import read_varint
-from gateway.codecs.nffi import NffiOptions, encode_message, parse_message, tracks_of
-from gateway.codecs.nffi_stream import MessageSplitter
-from gateway.codecs.ra180 import parse_cdm
 from gateway.events import BlueForce, Position
+from sinks.cot.proto import read_varint
+from sinks.nffi.codec import NffiOptions, encode_message, parse_message, tracks_of
+from sinks.nffi.stream import MessageSplitter
+from sinks.ra180.cdm import parse_cdm
 
 takproto = pytest.importorskip("takproto")
 
@@ -192,7 +192,6 @@ def nffi_xsd() -> etree.XMLSchema | None:
     """NATO's NFFI 1.3 XSD from the shared corpus (never shipped: its licence), if there."""
     for root in (
         Path(__file__).resolve().parents[3] / "shared" / "corpus",
-        Path("/work/shared/corpus"),
     ):
         if (root / NFFI_XSD).is_file():
             return etree.XMLSchema(etree.parse(str(root / NFFI_XSD)))
@@ -798,7 +797,7 @@ class TestKlv:
     """STANAG 4609 metadata: the camera of F26E-001 as ST 0601 KLV over UDP."""
 
     def test_packets_decode_alike_in_ours_and_stanag4609(self, matrix: MatrixRun) -> None:
-        from gateway.codecs.klv.st0601 import decode
+        from sinks.klv.st0601 import decode
 
         stanag = pytest.importorskip("stanag4609.st0601")
         packets = matrix.datagrams["klv"]

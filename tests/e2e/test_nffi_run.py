@@ -26,9 +26,9 @@ import pytest
 from daemon_support import free_tcp_port, free_udp_port, running, wait_until
 from lxml import etree
 
-from gateway.codecs.nffi import NffiOptions, encode_message, parse_message, tracks_of
-from gateway.codecs.nffi_stream import MessageSplitter
 from gateway.events import BlueForce, Position
+from sinks.nffi.codec import NffiOptions, encode_message, parse_message, tracks_of
+from sinks.nffi.stream import MessageSplitter
 
 takproto = pytest.importorskip("takproto")
 pytestmark = pytest.mark.timeout(120)
@@ -39,7 +39,6 @@ XSD_NAME = "nffi/nffi13_sip3/SIP3_Service_ReqRes.xsd_1.xsd"
 def nffi_xsd() -> etree.XMLSchema | None:
     for root in (
         Path(__file__).resolve().parents[2] / ".." / "shared" / "corpus",
-        Path("/work/shared/corpus"),
     ):
         if (root / XSD_NAME).is_file():
             return etree.XMLSchema(etree.parse(str(root / XSD_NAME)))

@@ -26,8 +26,8 @@ from typing import Any
 import pytest
 from daemon_support import Airframe, Daemon, free_udp_port, running, wait_until
 
-from gateway.codecs.ra180 import parse_cdm
 from gateway.fleet.dialect import fischer_detection
+from sinks.ra180.cdm import parse_cdm
 
 pytestmark = pytest.mark.timeout(90)
 

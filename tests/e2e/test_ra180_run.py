@@ -23,8 +23,8 @@ import pytest
 from daemon_support import Airframe, free_udp_port, running, wait_until
 from geographiclib.geodesic import Geodesic
 
-from gateway.codecs.ra180 import parse_cdm
 from gateway.fleet.dialect import fischer_detection
+from sinks.ra180.cdm import parse_cdm
 
 pytestmark = pytest.mark.timeout(90)
 

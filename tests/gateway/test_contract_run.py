@@ -30,7 +30,7 @@ from gateway.contract import (
 )
 from gateway.events import BlueForce, Event, EventKind, Position, Telemetry
 from gateway.testing import eventually
-from sources.cot import CotSource
+from sinks.cot.source import CotSource
 
 #: While FRIEND is current (between its start and its stale).
 NOW = datetime(2026, 11, 22, 10, 1, tzinfo=UTC)

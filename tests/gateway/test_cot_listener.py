@@ -16,13 +16,13 @@ from hypothesis import strategies as st
 from pydantic import ValidationError
 
 from gateway.app import Gateway
-from gateway.codecs.cot.validate import parse_cot
 from gateway.config import Config
 from gateway.domain.peertext import Provenance
 from gateway.events import BlueForce, Event
 from gateway.testing import MemorySink, eventually, fuzz_examples
-from sources._cot_stream import EventSplitter
-from sources.cot import NO_FIX_DEG, CotSource, CotSourceConfig
+from sinks.cot.source import NO_FIX_DEG, CotSource, CotSourceConfig
+from sinks.cot.stream import EventSplitter
+from sinks.cot.validate import parse_cot
 
 CORPUS = Path(__file__).resolve().parents[2].parent / "shared" / "corpus" / "cot"
 METRICS = CORPUS / "freetakserver_example_metrics" / "cot"
@@ -354,8 +354,8 @@ class TestCurrency:
         assert source.counts == {"accepted": 6, "older": 1}
 
     def test_a_mesh_takcontrol_is_counted_as_control_not_invalid(self) -> None:
-        from gateway.codecs.cot.codec import tak_control
-        from gateway.codecs.cot.proto import mesh_frame
+        from sinks.cot.codec import tak_control
+        from sinks.cot.proto import mesh_frame
 
         events: list[Event] = []
         source = listener(events)

@@ -11,7 +11,6 @@ from pathlib import Path
 
 import pytest
 
-from gateway.codecs.cot.validate import parse_cot
 from gateway.domain.geodesy import distance_bearing
 from gateway.errors import ConfigError
 from gateway.sim.runner import DetectionFeed, blue_force_cot
@@ -26,6 +25,7 @@ from gateway.sim.schedule import (
     schedule,
     target_tracks,
 )
+from sinks.cot.validate import parse_cot
 
 BASE = """\
 name: test

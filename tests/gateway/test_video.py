@@ -11,9 +11,6 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
-from gateway.codecs.klv.imapb import Special
-from gateway.codecs.klv.st0601 import decode
-from gateway.codecs.klv.uas import frame_packet
 from gateway.config import AirframeConfig, LinkConfig
 from gateway.domain.geodesy import distance_bearing
 from gateway.events import Event, VideoFrameMetadata
@@ -23,6 +20,9 @@ from gateway.fleet.video import CameraView
 from gateway.ops.instruments import Instruments
 from gateway.sim.airframe import SimProfile, SimulatedAirframe
 from gateway.testing import fuzz_examples
+from sinks.klv.imapb import Special
+from sinks.klv.st0601 import decode
+from sinks.klv.uas import frame_packet
 
 stanag = pytest.importorskip("stanag4609.st0601")
 T0 = datetime(2026, 11, 22, 12, 0, tzinfo=UTC)

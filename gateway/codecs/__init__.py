@@ -1,1 +1,0 @@
-"""Wire formats shared by sinks and sources."""

@@ -1,1 +1,0 @@
-"""Cursor-on-Target: building, encoding, parsing and validating events."""
