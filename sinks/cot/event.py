@@ -20,8 +20,6 @@ from datetime import datetime, timedelta
 from xml.sax.saxutils import escape, quoteattr
 
 from gateway.domain.sidc import Hostility
-from gateway.domain.targeting import CEP50_FACTOR
-from gateway.events import BlueForce, Detection, Event, Position, Telemetry, Track
 from gateway.domain.symbols import (
     LoiteringMunition,
     Symbol,
@@ -29,6 +27,8 @@ from gateway.domain.symbols import (
     object_symbol,
     own_symbol,
 )
+from gateway.domain.targeting import CEP50_FACTOR
+from gateway.events import BlueForce, Detection, Event, Position, Telemetry, Track
 from sinks.cot.validate import UNKNOWN
 
 __all__ = [

@@ -29,9 +29,9 @@ from xml.sax.saxutils import escape, quoteattr
 from defusedxml import DefusedXmlException
 from defusedxml.ElementTree import fromstring
 
+from gateway.domain.symbols import own_symbol
 from gateway.errors import FrameError
 from gateway.events import BlueForce, Event, Position, Telemetry
-from gateway.domain.symbols import own_symbol
 
 __all__ = [
     "KMH_PER_MPS",

@@ -190,9 +190,7 @@ NFFI_XSD = "nffi/nffi13_sip3/SIP3_Service_ReqRes.xsd_1.xsd"
 
 def nffi_xsd() -> etree.XMLSchema | None:
     """NATO's NFFI 1.3 XSD from the shared corpus (never shipped: its licence), if there."""
-    for root in (
-        Path(__file__).resolve().parents[3] / "shared" / "corpus",
-    ):
+    for root in (Path(__file__).resolve().parents[3] / "shared" / "corpus",):
         if (root / NFFI_XSD).is_file():
             return etree.XMLSchema(etree.parse(str(root / NFFI_XSD)))
     return None

@@ -37,9 +37,7 @@ XSD_NAME = "nffi/nffi13_sip3/SIP3_Service_ReqRes.xsd_1.xsd"
 
 
 def nffi_xsd() -> etree.XMLSchema | None:
-    for root in (
-        Path(__file__).resolve().parents[2] / ".." / "shared" / "corpus",
-    ):
+    for root in (Path(__file__).resolve().parents[2] / ".." / "shared" / "corpus",):
         if (root / XSD_NAME).is_file():
             return etree.XMLSchema(etree.parse(str(root / XSD_NAME)))
     return None

@@ -10,6 +10,7 @@ import pytest
 import yaml
 
 from gateway.domain.geoid import GeoidGrid, bundled_geoid
+from gateway.domain.symbols import cot_type_from_sidc, object_symbol, own_symbol
 from gateway.events import (
     BlueForce,
     Detection,
@@ -22,7 +23,6 @@ from gateway.events import (
 )
 from sinks.cot.codec import to_xml
 from sinks.cot.event import CotOptions, StaleTimes, build
-from gateway.domain.symbols import cot_type_from_sidc, object_symbol, own_symbol
 from sinks.cot.validate import UNKNOWN
 
 T0 = datetime(2026, 11, 22, 10, 15, 30, 250000, tzinfo=UTC)

@@ -43,9 +43,7 @@ OPTS = NffiOptions(
 
 
 def corpus_file(name: str) -> Path | None:
-    for root in (
-        Path(__file__).resolve().parents[3] / ".." / "shared" / "corpus",
-    ):
+    for root in (Path(__file__).resolve().parents[3] / ".." / "shared" / "corpus",):
         if (root / name).is_file():
             return root / name
     return None
