@@ -301,3 +301,13 @@ class TestInjectedViolations:
         path = tmp_path / "injected.py"
         path.write_text("import importlib\nimportlib.import_module('sinks.cot.sink')\n")
         assert "sinks.cot.sink" in _imports("gateway.app", path, frozenset(_modules()))
+
+
+def test_the_import_graph_in_the_architecture_page_is_the_codes() -> None:
+    import import_graph
+
+    page = import_graph.DOC.read_text(encoding="utf-8")
+    assert import_graph.START in page
+    assert import_graph.END in page
+    expected = import_graph.page_with(page, import_graph.section())
+    assert page == expected, "run: python tests/import_graph.py --write"
