@@ -126,10 +126,6 @@ class CueDesk:
         self.counts = CueCounts()
         self._cued: OrderedDict[str, _Cue] = OrderedDict()  # by track id
 
-    def forget(self, track_id: str) -> None:
-        """The track no longer holds a place among the cued (no revision is sent)."""
-        self._cued.pop(track_id, None)
-
     def consider(self, track: Track) -> Handoff | None:
         """The handoff (or revision) for ``track`` if one is due now; None otherwise."""
         if track.status == "lost":
