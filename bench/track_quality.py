@@ -27,11 +27,16 @@ the ``fusion`` processor with ``speed_scale`` set to the speed, ``counter_uas`` 
 scenario's batteries, a jsonl archive, an ``ra180`` sink to a UDP port this script listens on
 as the radio net) on loopback, then scores the archive with ``fischer-gateway score`` and
 counts the Ra 180 "new target" messages per hostile target: the numbers an operator gets.
+Each message is traced to the track it announces (its target number, grid reference and
+time against the archive's Track events, ``gateway.scoring.announce``) and counts for the
+target the scorer matched that track to; the count by nearest position alone (10 m grid
+references, 300 m radius) is in the JSON as ``ra180_new_by_position``, for comparison.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
@@ -47,16 +52,18 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
+from typing import Literal
 
 from gateway.domain.geodesy import from_mgrs
 from gateway.events import Detection
-from gateway.scoring.files import read_truth, tracks_from_events
+from gateway.scoring.announce import announcements_by_track
+from gateway.scoring.files import archive_tracks, read_truth, tracks_from_events
 from gateway.scoring.model import Plane, TrackReport, Tracks, TruthRun
 from gateway.scoring.replay import frames, replay, scenario_detections, scenario_truth
 from gateway.scoring.score import Score, announcements_per_target, score
 from gateway.sim.scenario import load_scenario, shipped_scenarios
 from processors.fusion import FusionConfig, FusionProcessor
-from sinks.ra180.cdm import CdmError, parse_cdm
+from sinks.ra180.cdm import Cdm, CdmError, parse_cdm
 
 TRACKERS = ("ours", "gnn", "jpda")
 
@@ -362,6 +369,7 @@ class RadioNet:
         self.sock.settimeout(0.2)
         self.port = int(self.sock.getsockname()[1])
         self.heard: list[tuple[float, str]] = []
+        self.precision_m: Literal[1, 10] = 10  # the ra180 sink's default mgrs_precision_m
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._listen, daemon=True)
         self._thread.start()
@@ -380,20 +388,40 @@ class RadioNet:
         self._thread.join(5)
         self.sock.close()
 
-    def new_targets(self, truth: TruthRun) -> tuple[dict[str, int], int]:
-        """ "MAL" (new target) messages per hostile target, and those matching none (within
-        300 m: the net hears a position up to a budget's delay old)."""
-        heard = []
+    def messages(self) -> list[tuple[float, Cdm]]:
+        """Every CDM heard, with the time it was heard."""
+        out = []
         for when, text in self.heard:
-            try:
-                cdm = parse_cdm(text)
-            except CdmError:
-                continue
-            if cdm.type != "MAL":
-                continue
-            where = from_mgrs(cdm.mgrs)
-            heard.append((when, *truth.plane.xy(where.lat_deg, where.lon_deg)))
+            with contextlib.suppress(CdmError):
+                out.append((when, parse_cdm(text)))
+        return out
+
+    def new_by_position(self, truth: TruthRun) -> tuple[dict[str, int], int]:
+        """ "MAL" (new target) messages per hostile target by the target nearest each one's
+        grid reference (within 300 m: the net hears a position up to a budget's delay old),
+        and those matching none. Coarse: a 10 m reference of a track's early estimate can
+        be nearer a neighbour 30 m away."""
+        heard = []
+        for when, cdm in self.messages():
+            if cdm.type == "MAL":
+                where = from_mgrs(cdm.mgrs)
+                heard.append((when, *truth.plane.xy(where.lat_deg, where.lon_deg)))
         return announcements_per_target(truth, heard, 300.0)
+
+    def new_by_track(
+        self, truth: TruthRun, archive: Path, tracks_of_target: dict[str, list[str]]
+    ) -> tuple[dict[str, int], int]:
+        """ "MAL" messages per hostile target, each traced to the track it announces; and
+        those not traced to a track matched to a target."""
+        hostile = {t.target for f in truth.frames for t in f.targets if t.affiliation == "hostile"}
+        counted = announcements_by_track(
+            [cdm for _, cdm in self.messages()],
+            archive_tracks([archive]),
+            tracks_of_target,
+            hostile,
+            self.precision_m,
+        )
+        return counted.per_target, counted.untraced + counted.false_track
 
 
 def through_run(name: str, speed: float, workdir: Path) -> dict[str, object]:
@@ -431,9 +459,15 @@ def through_run(name: str, speed: float, workdir: Path) -> dict[str, object]:
     result: dict[str, object] = json.loads(scored.stdout)
     if not load_scenario(name).batteries:
         result["cues_per_munition"] = {}  # no battery, no counter_uas: no cue expected
-    news, unmatched = radio.new_targets(read_truth(truth))
+    run_truth = read_truth(truth)
+    tracks_of = result.get("tracks_of_target")
+    assert isinstance(tracks_of, dict)
+    news, unmatched = radio.new_by_track(run_truth, archive, tracks_of)
     result["ra180_new_per_target"] = news
     result["ra180_new_unmatched"] = unmatched
+    near, far = radio.new_by_position(run_truth)
+    result["ra180_new_by_position"] = near
+    result["ra180_new_by_position_unmatched"] = far
     return result
 
 

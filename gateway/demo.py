@@ -143,6 +143,14 @@ def _free_udp_port() -> int:
 
 
 def _on_handoff(document: dict[str, Any]) -> None:
+    status = document.get("status") or "active"
+    if status != "active":  # superseded or withdrawn: the battery drops the cue
+        say(
+            f"published: GUTE II battery {(document.get('battery') or {}).get('id')} received cue"
+            f" {document.get('handoff_id')} revision {document.get('revision')} over HTTPS:"
+            f" {status}: {document.get('note') or '-'}"
+        )
+        return
     check = document.get("deconfliction") or {}
     asks = str(document.get("operator_authorisation_required")).lower()
     verdict = "deconfliction clear" if check.get("clear") else "deconfliction NOT clear"

@@ -367,7 +367,8 @@ class Handoff(BaseModel):
 
     ``status`` says what the battery should do with the cue: ``active`` (it stands),
     ``superseded`` (its track merged into another that has its own cue, ``superseded_by``;
-    drop this one) or ``withdrawn``. ``note`` says in words why a revision was sent.
+    drop this one) or ``withdrawn`` (its track was lost: the node no longer tracks the
+    object; drop this one). ``note`` says in words why a revision was sent.
     """
 
     model_config = _FROZEN

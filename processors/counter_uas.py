@@ -253,4 +253,5 @@ class CounterUasProcessor:
             "below_confidence": counts.below_confidence,
             "superseded": counts.superseded,
             "carried_on": counts.carried_on,
+            "withdrawn": counts.withdrawn,
         }

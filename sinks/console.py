@@ -126,6 +126,13 @@ def describe(event: Event) -> str:
             f" via {event.source}"
         )
     if isinstance(event, Handoff):
+        if event.status != "active":
+            return (
+                f"{head} {event.handoff_id} r{event.revision} {event.status.upper()}"
+                f" (track {event.track.track_id}) at {event.battery}"
+                + (f" by {event.superseded_by}" if event.superseded_by else "")
+                + (f": {event.note}" if event.note else "")
+            )
         blue = event.deconfliction
         nearest = (
             "no blue force known"

@@ -46,9 +46,11 @@ from anyio.streams.buffered import BufferedByteReceiveStream
 from https_peer import AlertingTLSStream
 from lxml import etree
 
-from sinks.sweccis.fasxml import NAMESPACE, load_schema
+from sinks.sweccis.fasxml import NAMESPACE, SCHEMA_VERSIONS, load_schema
 
 NS = f"{{{NAMESPACE}}}"
+#: FAS version by namespace: the peer answers each document in its own version.
+VERSION_OF = {namespace: version for version, namespace in SCHEMA_VERSIONS.items()}
 DATA_FAS = ("Intel", "Logistics", "Operations")
 #: Data documents by root element, and the FAS a client must have registered to publish them.
 DATA_ROOTS = {**{fas: fas for fas in DATA_FAS}, "OrderStatus": "Orders"}
@@ -79,10 +81,13 @@ class Connection:
             await self.stream.send(struct.pack(">I", len(payload)) + payload)
 
 
-def _ack(ref: str, status: str, reason: str | None = None) -> bytes:
-    root = etree.Element(f"{NS}Ack", nsmap={None: NAMESPACE}, version="1", ref=ref, status=status)
+def _ack(ref: str, status: str, reason: str | None = None, namespace: str = NAMESPACE) -> bytes:
+    ns, version = f"{{{namespace}}}", VERSION_OF[namespace]
+    root = etree.Element(
+        f"{ns}Ack", nsmap={None: namespace}, version=version, ref=ref, status=status
+    )
     if reason is not None:
-        etree.SubElement(root, f"{NS}Reason").text = reason[:512]
+        etree.SubElement(root, f"{ns}Reason").text = reason[:512]
     return bytes(etree.tostring(root, xml_declaration=True, encoding="UTF-8"))
 
 
@@ -173,6 +178,11 @@ class SweccisPeer:
         client.private_key_pem.write_to_path(str(self.key_file))
         self.port = 0
         self.schema = etree.XMLSchema(etree.fromstring(load_schema()))
+        #: Each version's schema by namespace; a document is checked against its own.
+        self.schemas = {
+            namespace: etree.XMLSchema(etree.fromstring(load_schema(version)))
+            for version, namespace in SCHEMA_VERSIONS.items()
+        }
         #: Data documents accepted, by id, in arrival order (each id once).
         self.accepted: dict[str, etree._Element] = {}
         #: Every document read, in arrival order, with the status answered.
@@ -342,19 +352,25 @@ class SweccisPeer:
             self.documents.append(Received("(garbage)", None, None))
             return True
         name = etree.QName(root).localname
+        namespace = etree.QName(root).namespace or ""
+        if namespace not in VERSION_OF:
+            namespace = NAMESPACE  # checked against version 1, which refuses it
         doc_id = root.get("id") or root.get("ref")
-        if not self.schema.validate(root):
-            problem = str(self.schema.error_log.last_error)
+        schema = self.schemas[namespace]
+        if not schema.validate(root):
+            problem = str(schema.error_log.last_error)
             self.invalid.append((doc_id, problem))
             self.documents.append(Received(name, doc_id, "rejected" if doc_id else None))
             if root.get("id"):
-                await connection.send(_ack(root.get("id", ""), "rejected", f"schema: {problem}"))
+                await connection.send(
+                    _ack(root.get("id", ""), "rejected", f"schema: {problem}", namespace)
+                )
             return True
         if name == "Register":
-            return await self._register(connection, root)
+            return await self._register(connection, root, namespace)
         if name == "Ack":
             ref, status = root.get("ref", ""), root.get("status", "")
-            reason = root.findtext(f"{NS}Reason")
+            reason = root.findtext(f"{{{namespace}}}Reason")
             self.order_acks.append((ref, status, reason))
             self.outbox.pop(ref, None)
             self.documents.append(Received(name, ref, None))
@@ -374,7 +390,7 @@ class SweccisPeer:
         if self.noise is not None:
             async with connection.lock:
                 await connection.stream.send(self.noise)
-        await connection.send(_ack(doc_id, status, reason))
+        await connection.send(_ack(doc_id, status, reason, namespace))
         return True
 
     def _verdict(self, connection: Connection, name: str, doc_id: str) -> tuple[str, str | None]:
@@ -386,22 +402,27 @@ class SweccisPeer:
             return "duplicate", None
         return "accepted", None
 
-    async def _register(self, connection: Connection, root: etree._Element) -> bool:
-        publish = [e.text or "" for e in root.findall(f"{NS}Publish")]
-        subscribe = [e.text or "" for e in root.findall(f"{NS}Subscribe")]
-        self.registrations.append((root.findtext(f"{NS}Client") or "", publish, subscribe))
+    async def _register(self, connection: Connection, root: etree._Element, namespace: str) -> bool:
+        ns = f"{{{namespace}}}"
+        publish = [e.text or "" for e in root.findall(f"{ns}Publish")]
+        subscribe = [e.text or "" for e in root.findall(f"{ns}Subscribe")]
+        self.registrations.append((root.findtext(f"{ns}Client") or "", publish, subscribe))
         self.documents.append(Received("Register", root.get("id"), None))
         if self.refuse_registration is not None:
-            await connection.send(_ack(root.get("id", ""), "rejected", self.refuse_registration))
+            refused = _ack(root.get("id", ""), "rejected", self.refuse_registration, namespace)
+            await connection.send(refused)
             return False
         connection.publish = set(publish) - self.withhold
         connection.subscribe = set(subscribe) - self.withhold
         answer = etree.Element(
-            f"{NS}Registered", nsmap={None: NAMESPACE}, version="1", ref=root.get("id", "")
+            f"{ns}Registered",
+            nsmap={None: namespace},
+            version=VERSION_OF[namespace],
+            ref=root.get("id", ""),
         )
         for tag, names in (("Publish", connection.publish), ("Subscribe", connection.subscribe)):
             for fas in sorted(names):
-                etree.SubElement(answer, f"{NS}{tag}").text = fas
+                etree.SubElement(answer, f"{ns}{tag}").text = fas
         await connection.send(bytes(etree.tostring(answer, encoding="UTF-8")))
         if "Orders" in connection.subscribe:
             for payload in list(self.outbox.values()):

@@ -204,6 +204,8 @@ def test_imports_run_down_the_layers_and_the_sides_stay_apart() -> None:
 PLAYS_A_PEER = {
     # The simulator plays ATAK's SA mesh: it writes CoT with the CoT integration's codec.
     "gateway.sim.runner": {"sinks.cot.codec", "sinks.cot.event", "sinks.cot.validate"},
+    # The scorer listens as the Ra 180 net: it reads the CDMs the radio heard.
+    "gateway.scoring.announce": {"sinks.ra180.cdm"},
 }
 
 

@@ -31,6 +31,12 @@ has a cue of its own, the merged track's cue goes out once more as a revision wi
 the survivor's next update goes out as its next revision with a note saying so (one cue id
 per object, revisions allowed).
 
+A cued track that the tracker gives up on (``lost``: no detection for ``lost_after_s``) does
+not leave a live cue at the battery for an object nobody tracks any more: its cue goes out
+once more as a final revision with status ``withdrawn``, no recommendation, no effector
+offered and a note saying why ("track T-… lost: no detection since 12:03:07Z"). The desk
+then forgets the track. A withdrawn cue is never revised again.
+
 The result is a ``Handoff``: a cue with a recommendation for the battery's human operator,
 who alone authorises an engagement. Nothing here can command an effector, and the event
 type has no field that could carry such a command.
@@ -40,7 +46,7 @@ from __future__ import annotations
 
 from collections import OrderedDict
 from dataclasses import dataclass
-from datetime import datetime
+from datetime import UTC, datetime
 from typing import Literal
 
 from gateway.domain.effectors import EffectorTable, recommend
@@ -80,6 +86,7 @@ class CueCounts:
     below_confidence: int = 0
     superseded: int = 0
     carried_on: int = 0
+    withdrawn: int = 0
 
 
 @dataclass(slots=True)
@@ -119,15 +126,10 @@ class CueDesk:
         self.counts = CueCounts()
         self._cued: OrderedDict[str, _Cue] = OrderedDict()  # by track id
 
-    def forget(self, track_id: str) -> None:
-        """The track is lost: it no longer holds a place among the cued."""
-        self._cued.pop(track_id, None)
-
     def consider(self, track: Track) -> Handoff | None:
         """The handoff (or revision) for ``track`` if one is due now; None otherwise."""
         if track.status == "lost":
-            self.forget(track.track_id)
-            return None
+            return self._lost(track)
         if track.status == "merged":
             return self._merged(track)
         last = self._cued.get(track.track_id)
@@ -187,6 +189,24 @@ class CueDesk:
             note=(
                 f"track {track.track_id} merged into {survivor_id}, which cue"
                 f" {survivor.handoff_id} follows: drop this cue"
+            ),
+        )  # fmt: skip
+
+    def _lost(self, track: Track) -> Handoff | None:
+        """``track`` is lost: withdraw its cue, once, and forget it."""
+        cue = self._cued.pop(track.track_id, None)
+        if cue is None:
+            return None
+        nearest = self._nearest(track)
+        range_m, bearing, _ = self._offer(track, cue.battery, nearest)
+        self.counts.withdrawn += 1
+        return self._handoff(
+            track, cue.battery, cue.handoff_id, cue.revision + 1, range_m, bearing, [],
+            nearest, complete=self.blue.complete, status="withdrawn",
+            note=(
+                f"track {track.track_id} lost: no detection since"
+                f" {track.last_seen.astimezone(UTC):%Y-%m-%dT%H:%M:%SZ}; the gateway no"
+                " longer tracks this object: drop this cue"
             ),
         )  # fmt: skip
 
@@ -258,12 +278,12 @@ class CueDesk:
         nearest: NearestBlue | None,
         *,
         complete: bool,
-        status: Literal["active", "superseded"] = "active",
+        status: Literal["active", "superseded", "withdrawn"] = "active",
         superseded_by: str | None = None,
         note: str = "",
     ) -> Handoff:
         clear = complete and bool(offered) and all(o.deconfliction_clear for o in offered)
-        if not clear:
+        if not clear and status != "withdrawn":
             self.counts.not_clear += 1
         return Handoff(
             event_id=handoff_id if revision == 0 else f"{handoff_id}-r{revision}",

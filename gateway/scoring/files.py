@@ -26,6 +26,7 @@ from gateway.sim.truth import TRUTH_FORMAT
 
 __all__ = [
     "MAX_LINE_BYTES",
+    "archive_tracks",
     "parse_truth",
     "read_archive",
     "read_truth",
@@ -208,3 +209,14 @@ def read_archive(paths: Iterable[Path], plane: Plane) -> Tracks:
             _take(tracks, event, plane)
     tracks.sort()
     return tracks
+
+
+def archive_tracks(paths: Iterable[Path]) -> list[Track]:
+    """Every Track event of the archive files, in order (unreadable lines passed over)."""
+    skipped = Tracks()
+    return [
+        event
+        for path in paths
+        for event in _archive_events(path, skipped)
+        if isinstance(event, Track)
+    ]

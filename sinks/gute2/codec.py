@@ -14,7 +14,8 @@ of shape is a new version, never a silent edit.
 Version 2 adds where the blue-force picture came from (the nearest unit's source, provenance
 and what its callsign is, "unauthenticated CoT callsign", and the current units counted per
 source and provenance, ``blue_sources``) and the cue's own ``status``, ``superseded_by`` and
-``note`` (a cue superseded when its track merged into another). Version 1's schema still ships
+``note`` (a cue superseded when its track merged into another, withdrawn when its track was
+lost). Version 1's schema still ships
 (``gute2-handoff-1.schema.json``, ``load_schema(1)``), so a document written before stays
 readable and checkable, and ``schema_for`` picks a document's own.
 """

@@ -1,8 +1,12 @@
 """SWECCIS Functional Area Service documents: the gateway's events as XML, and back for orders.
 
 No public SWECCIS schema exists, so the documents are ours, versioned and shipped:
-``data/schemas/sweccis-fas.xsd`` (namespace ``urn:fischer-gateway:sweccis:fas:1``). What goes
-where (docs/sweccis.md has the table and examples):
+``data/schemas/sweccis-fas.xsd`` (version 1, namespace ``urn:fischer-gateway:sweccis:fas:1``)
+and ``sweccis-fas-2.xsd`` (version 2, ``...:fas:2``). Version 2 publishes a merge as what it
+is: a Track with Status ``merged`` naming the survivor in ``MergedInto``; version 1 has no
+such status, so there a merged track ends as ``lost``. Every encoder takes the ``version``
+to write (``"1"`` by default: a receiver that validates against version 1 keeps working);
+both versions are read. What goes where (docs/sweccis.md has the table and examples):
 
 - a ``Detection`` or a ``Track`` is one **Intel** document, its id the event id;
 - a ``Telemetry`` is a **Logistics** document (the airframe's health: system status, GPS fix,
@@ -43,6 +47,7 @@ from sinks.sweccis.fasxml import (
     MAX_DOCUMENT_BYTES,
     NAMESPACE,
     SCHEMA_VERSION,
+    SCHEMA_VERSIONS,
     DocumentError,
     Fas,
     Node,
@@ -62,6 +67,7 @@ __all__ = [
     "MAX_DOCUMENT_BYTES",
     "NAMESPACE",
     "SCHEMA_VERSION",
+    "SCHEMA_VERSIONS",
     "Ack",
     "AckStatus",
     "Document",
@@ -154,8 +160,14 @@ def _position(parent: ET.Element, tag: str, position: Position, **extra: str | N
     )
 
 
-def _root(fas: Fas, doc_id: str) -> ET.Element:
-    return ET.Element(fas.value, {"version": SCHEMA_VERSION, "id": check_id(doc_id, "@id")})
+def _root(fas: Fas, doc_id: str, version: str = SCHEMA_VERSION) -> ET.Element:
+    return ET.Element(fas.value, {"version": _version(version), "id": check_id(doc_id, "@id")})
+
+
+def _version(version: str) -> str:
+    if version not in SCHEMA_VERSIONS:
+        raise ValueError(f"SWECCIS FAS version {version!r} is not one of {sorted(SCHEMA_VERSIONS)}")
+    return version
 
 
 def _late(parent: ET.Element, late_by_s: float | None) -> None:
@@ -163,8 +175,8 @@ def _late(parent: ET.Element, late_by_s: float | None) -> None:
         add(parent, "LateByS", number(late_by_s, "LateByS", 0.0))
 
 
-def _detection(detection: Detection) -> bytes:
-    root = _root(Fas.INTEL, detection.event_id)
+def _detection(detection: Detection, version: str) -> bytes:
+    root = _root(Fas.INTEL, detection.event_id, version)
     body = add(root, "Detection")
     add(body, "Time", time_text(detection.time))
     add(body, "Airframe", check_text(detection.airframe, "Airframe", 128, min_length=1))
@@ -190,13 +202,21 @@ def _names(parent: ET.Element, tag: str, item: str, values: Iterable[str], limit
         add(holder, item, check_text(value, f"{tag}/{item}", 128, min_length=1))
 
 
-def _track(track: Track) -> bytes:
-    root = _root(Fas.INTEL, track.event_id)
+def _track(track: Track, version: str) -> bytes:
+    root = _root(Fas.INTEL, track.event_id, version)
     body = add(root, "Track")
     add(body, "TrackId", check_text(track.track_id, "TrackId", 128, min_length=1))
-    # FAS version 1 knows created/updated/lost: a merged track's id ends here as lost (its
-    # object lives on under the survivor's id). Saying "merged" needs a version 2.
-    add(body, "Status", "lost" if track.status == "merged" else track.status)
+    if track.status == "merged" and version == "1":
+        # Version 1 knows created/updated/lost: a merged track's id ends here as lost (its
+        # object lives on under the survivor's id, which version 1 cannot name).
+        add(body, "Status", "lost")
+    elif track.status == "merged":
+        if track.merged_into is None:
+            raise ValueError("MergedInto: a merged track must name the track it merged into")
+        add(body, "Status", "merged")
+        add(body, "MergedInto", check_text(track.merged_into, "MergedInto", 128, min_length=1))
+    else:
+        add(body, "Status", track.status)
     add(body, "Time", time_text(track.time))
     add(body, "FirstSeen", time_text(track.first_seen))
     add(body, "LastSeen", time_text(track.last_seen))
@@ -233,9 +253,9 @@ def _name_of(table: tuple[str, ...], value: int) -> str:
     return table[value] if 0 <= value < len(table) else "unknown"
 
 
-def _logistics(telemetry: Telemetry) -> bytes:
+def _logistics(telemetry: Telemetry, version: str) -> bytes:
     t = telemetry
-    root = _root(Fas.LOGISTICS, f"{t.event_id}/logistics")
+    root = _root(Fas.LOGISTICS, f"{t.event_id}/logistics", version)
     body = add(root, "AirframeHealth")
     add(body, "Airframe", check_text(t.airframe, "Airframe", 128, min_length=1))
     add(body, "Time", time_text(t.time))
@@ -293,11 +313,11 @@ def _mission(telemetry: Telemetry) -> dict[str, str | None]:
     }
 
 
-def _operations(telemetry: Telemetry) -> bytes | None:
+def _operations(telemetry: Telemetry, version: str) -> bytes | None:
     t = telemetry
     if t.position is None:
         return None  # no position, no Operations document
-    root = _root(Fas.OPERATIONS, f"{t.event_id}/operations")
+    root = _root(Fas.OPERATIONS, f"{t.event_id}/operations", version)
     body = add(root, "AirframeState")
     add(body, "Airframe", check_text(t.airframe, "Airframe", 128, min_length=1))
     add(body, "Time", time_text(t.time))
@@ -338,9 +358,14 @@ def _operations(telemetry: Telemetry) -> bytes | None:
 
 
 def encode_event(
-    event: Event, *, logistics: bool = True, operations: bool = True
+    event: Event,
+    *,
+    logistics: bool = True,
+    operations: bool = True,
+    version: str = SCHEMA_VERSION,
 ) -> list[Document]:
-    """The documents of one event, in the order they are sent (none for a skipped FAS).
+    """The documents of one event in FAS ``version``, in the order they are sent (none for
+    a skipped FAS).
 
     A detection or track is one Intel document; telemetry is a Logistics document (unless
     ``logistics`` is False) and an Operations document (unless ``operations`` is False or
@@ -349,16 +374,17 @@ def encode_event(
     """
     try:
         if isinstance(event, Detection):
-            return [Document(Fas.INTEL, event.event_id, event.event_id, _detection(event))]
+            payload = _detection(event, version)
+            return [Document(Fas.INTEL, event.event_id, event.event_id, payload)]
         if isinstance(event, Track):
-            return [Document(Fas.INTEL, event.event_id, event.event_id, _track(event))]
+            return [Document(Fas.INTEL, event.event_id, event.event_id, _track(event, version))]
         if isinstance(event, Telemetry):
             documents = []
             if logistics:
-                payload = _logistics(event)
+                payload = _logistics(event, version)
                 doc_id = f"{event.event_id}/logistics"
                 documents.append(Document(Fas.LOGISTICS, doc_id, event.event_id, payload))
-            state = _operations(event) if operations else None
+            state = _operations(event, version) if operations else None
             if state is not None:
                 doc_id = f"{event.event_id}/operations"
                 documents.append(Document(Fas.OPERATIONS, doc_id, event.event_id, state))
@@ -372,10 +398,16 @@ def encode_event(
 
 
 def encode_register(
-    doc_id: str, client: str, *, publish: Iterable[Fas] = (), subscribe: Iterable[Fas] = ()
+    doc_id: str,
+    client: str,
+    *,
+    publish: Iterable[Fas] = (),
+    subscribe: Iterable[Fas] = (),
+    version: str = SCHEMA_VERSION,
 ) -> bytes:
-    """Our ``Register``: the FAS this connection publishes and those it wants to receive."""
-    root = ET.Element("Register", {"version": SCHEMA_VERSION, "id": check_id(doc_id, "@id")})
+    """Our ``Register``, in FAS ``version``: the FAS this connection publishes and those it
+    wants to receive."""
+    root = ET.Element("Register", {"version": _version(version), "id": check_id(doc_id, "@id")})
     add(root, "Client", check_text(client, "Client", 128, min_length=1))
     for fas in publish:
         add(root, "Publish", fas.value)
@@ -384,22 +416,26 @@ def encode_register(
     return to_bytes(root)
 
 
-def encode_ack(ref: str, status: AckStatus, reason: str | None = None) -> bytes:
+def encode_ack(
+    ref: str, status: AckStatus, reason: str | None = None, *, version: str = SCHEMA_VERSION
+) -> bytes:
     """Our answer to document ``ref`` (an order); a reason is cut to 512 characters and
-    anything XML cannot carry in it replaced, so only an invalid ``ref`` raises ``ValueError``."""
+    anything XML cannot carry in it replaced, so only an invalid ``ref`` (or ``version``)
+    raises ``ValueError``."""
     root = ET.Element(
-        "Ack", {"version": SCHEMA_VERSION, "ref": check_id(ref, "@ref"), "status": status}
+        "Ack", {"version": _version(version), "ref": check_id(ref, "@ref"), "status": status}
     )
     if reason is not None:
         add(root, "Reason", clean_text(reason, 512))
     return to_bytes(root)
 
 
-def encode_order_status(status: OrderStatus) -> bytes:
-    """The ``OrderStatus`` document of one status; ``ValueError`` naming the field for a value
-    the schema cannot hold (the reason is cleaned and cut, never refused)."""
+def encode_order_status(status: OrderStatus, *, version: str = SCHEMA_VERSION) -> bytes:
+    """The ``OrderStatus`` document of one status in FAS ``version``; ``ValueError`` naming
+    the field for a value the schema cannot hold (the reason is cleaned and cut, never
+    refused)."""
     root = ET.Element(
-        "OrderStatus", {"version": SCHEMA_VERSION, "id": check_id(status.event_id, "@id")}
+        "OrderStatus", {"version": _version(version), "id": check_id(status.event_id, "@id")}
     )
     add(root, "OrderId", check_text(status.order_id, "OrderId", 128, min_length=1))
     add(root, "Status", status.status.value)

@@ -26,6 +26,7 @@ __all__ = [
     "MAX_DOCUMENT_BYTES",
     "NAMESPACE",
     "SCHEMA_VERSION",
+    "SCHEMA_VERSIONS",
     "DocumentError",
     "Fas",
     "Node",
@@ -41,13 +42,17 @@ __all__ = [
     "to_bytes",
 ]
 
-#: The namespace of every document; its last part is the schema version.
+#: The namespace of every version 1 document; its last part is the schema version.
 NAMESPACE = "urn:fischer-gateway:sweccis:fas:1"
-#: The ``version`` attribute every root element carries.
+#: The ``version`` attribute a root element carries by default (version 1, the first).
 SCHEMA_VERSION = "1"
+#: Every version written and read, and its namespace. Version 2 adds the track status
+#: ``merged`` and its ``MergedInto``; everything else is version 1's shape.
+SCHEMA_VERSIONS = {"1": NAMESPACE, "2": "urn:fischer-gateway:sweccis:fas:2"}
+_NAMESPACES = frozenset(SCHEMA_VERSIONS.values())
 #: The largest document read or written unless configured otherwise.
 MAX_DOCUMENT_BYTES = 65_536
-_SCHEMA_RESOURCE = "data/schemas/sweccis-fas.xsd"
+_SCHEMA_RESOURCES = {"1": "data/schemas/sweccis-fas.xsd", "2": "data/schemas/sweccis-fas-2.xsd"}
 _ID = re.compile(r"[!-~]{1,200}")
 # Characters XML 1.0 cannot carry at all (control characters, lone surrogates, U+FFFE/F).
 _NOT_XML = re.compile("[^\t\n\r\x20-\ud7ff\ue000-\ufffd\U00010000-\U0010ffff]")
@@ -78,9 +83,15 @@ class DocumentError(Malformed):
         super().__init__(f"{element}: {message}")
 
 
-def load_schema() -> bytes:
-    """The XSD of every document (``data/schemas/sweccis-fas.xsd``), from package data."""
-    data: bytes = files("gateway").joinpath(_SCHEMA_RESOURCE).read_bytes()
+def load_schema(version: str = SCHEMA_VERSION) -> bytes:
+    """The XSD of every document of ``version`` (``data/schemas/sweccis-fas.xsd`` for 1,
+    ``sweccis-fas-2.xsd`` for 2), from package data; ``ValueError`` for another version."""
+    resource = _SCHEMA_RESOURCES.get(version)
+    if resource is None:
+        raise ValueError(
+            f"SWECCIS FAS version {version!r} is not one of {sorted(_SCHEMA_RESOURCES)}"
+        )
+    data: bytes = files("gateway").joinpath(resource).read_bytes()
     return data
 
 
@@ -132,8 +143,9 @@ def add(parent: ET.Element, tag: str, text: str | None = None, **attrs: str | No
 
 
 def to_bytes(root: ET.Element) -> bytes:
-    """The document as UTF-8, its root in our namespace (no declaration: UTF-8 is the rule)."""
-    root.set("xmlns", NAMESPACE)
+    """The document as UTF-8, its root in the namespace of its ``version`` attribute (no
+    declaration: UTF-8 is the rule)."""
+    root.set("xmlns", SCHEMA_VERSIONS[root.get("version", SCHEMA_VERSION)])
     data: bytes = ET.tostring(root, encoding="utf-8", xml_declaration=False)
     return data
 
@@ -141,12 +153,19 @@ def to_bytes(root: ET.Element) -> bytes:
 # -- reading ---------------------------------------------------------------------------------
 
 
-def tag_of(element: ET.Element, where: str) -> str:
-    """The local name of ``element``; ``DocumentError`` if it is not in our namespace."""
-    namespace, brace, local = element.tag[1:].partition("}")
-    if not element.tag.startswith("{") or not brace or namespace != NAMESPACE:
-        raise DocumentError(where, f"<{element.tag}> is not in namespace {NAMESPACE}")
+def tag_of(element: ET.Element, where: str, namespace: str | None = None) -> str:
+    """The local name of ``element``; ``DocumentError`` if it is not in ``namespace`` (any
+    of our versions' when None)."""
+    found, brace, local = element.tag[1:].partition("}")
+    allowed = _NAMESPACES if namespace is None else frozenset({namespace})
+    if not element.tag.startswith("{") or not brace or found not in allowed:
+        expected = " or ".join(sorted(allowed))
+        raise DocumentError(where, f"<{element.tag}> is not in namespace {expected}")
     return local
+
+
+def _namespace(element: ET.Element) -> str:
+    return element.tag[1:].partition("}")[0]
 
 
 def parse_root(data: bytes, max_bytes: int = MAX_DOCUMENT_BYTES) -> tuple[ET.Element, str]:
@@ -172,9 +191,11 @@ def parse_root(data: bytes, max_bytes: int = MAX_DOCUMENT_BYTES) -> tuple[ET.Ele
         raise DocumentError("(document)", f"not well-formed XML ({exc})") from None
     name = tag_of(root, "(root)")
     version = root.get("version")
-    if version != SCHEMA_VERSION:
+    if version is None or SCHEMA_VERSIONS.get(version) != _namespace(root):
         raise DocumentError(
-            f"{name}/@version", f"{version!r} is not the supported version {SCHEMA_VERSION!r}"
+            f"{name}/@version",
+            f"{version!r} is not the version of namespace {_namespace(root)}"
+            f" ({', '.join(f'{v} for {n}' for v, n in SCHEMA_VERSIONS.items())})",
         )
     return root, name
 
@@ -206,7 +227,7 @@ class Node:
         """The child elements by name; each at most ``allowed[name]`` times, no others."""
         found: dict[str, list[Node]] = {}
         for child in self.element:
-            name = tag_of(child, self.path)
+            name = tag_of(child, self.path, _namespace(self.element))
             if name not in allowed:
                 raise self.fail(f"unexpected element <{name}>")
             nodes = found.setdefault(name, [])

@@ -23,6 +23,7 @@ import ssl
 from collections import Counter
 from collections.abc import Iterable, Sequence
 from pathlib import Path
+from typing import Literal
 from urllib.parse import urlsplit
 
 import anyio
@@ -75,6 +76,11 @@ class SweccisLinkOptions(BaseModel):
         gt=0,
         le=300,
         description="Deadline to connect and register, and for each acknowledgement awaited.",
+    )
+    fas_version: Literal[1, 2] = Field(
+        default=1,
+        description="FAS document version written: 1, or 2 (a merged track as 'merged' "
+        "naming the survivor; version 1 writes it as 'lost'). Both are read.",
     )
     max_frame_bytes: int = Field(
         default=MAX_DOCUMENT_BYTES,
@@ -209,6 +215,7 @@ class SweccisLink:
                         options.client_id,
                         publish=sorted(wanted_publish),
                         subscribe=sorted(wanted_subscribe),
+                        version=str(options.fas_version),
                     )
                 )
                 reply = parse_document(

@@ -184,7 +184,12 @@ class SweccisSink:
                 logistics = self._is_due(event, Fas.LOGISTICS, planned)
                 operations = self._is_due(event, Fas.OPERATIONS, planned)
             try:
-                encoded = encode_event(event, logistics=logistics, operations=operations)
+                encoded = encode_event(
+                    event,
+                    logistics=logistics,
+                    operations=operations,
+                    version=str(self.config.fas_version),
+                )
                 for document in encoded:
                     if len(document.payload) > self.config.max_frame_bytes:
                         raise ValueError(

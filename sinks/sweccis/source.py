@@ -284,7 +284,9 @@ class SweccisSource:
     async def _ack(
         self, link: SweccisLink, doc_id: str, status: AckStatus, reason: str | None = None
     ) -> None:
-        await self._send(link, encode_ack(doc_id, status, reason))
+        await self._send(
+            link, encode_ack(doc_id, status, reason, version=str(self.config.fas_version))
+        )
 
     async def _send(self, link: SweccisLink, payload: bytes) -> None:
         # Acks and statuses come from two tasks: one frame at a time on the stream.
@@ -301,7 +303,7 @@ class SweccisSource:
                 if doc_id in sent:
                     continue
                 try:
-                    payload = encode_order_status(status)
+                    payload = encode_order_status(status, version=str(self.config.fas_version))
                 except ValueError as exc:
                     self._statuses.pop(doc_id, None)
                     self._count("status_unencodable", order_id=status.order_id, reason=str(exc))

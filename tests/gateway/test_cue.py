@@ -167,8 +167,61 @@ def test_once_per_track_until_it_is_lost() -> None:
     assert cue.consider(track(where, status="created")) is not None
     assert cue.consider(track(where)) is None
     assert cue.consider(track(where, track_id="T-2")) is not None
-    assert cue.consider(track(where, status="lost")) is None
+    assert cue.consider(track(where, status="lost")) is not None  # withdrawn, below
     assert cue.counts.handed_off == 2
+
+
+class TestLostTracks:
+    """A cued track that is lost leaves no live cue at the battery."""
+
+    def lost(self, where: Position, track_id: str = "T-1") -> Track:
+        return track(where, track_id=track_id, status="lost").model_copy(
+            update={"time": NOW + timedelta(seconds=61), "last_seen": NOW}
+        )
+
+    def test_its_cue_is_withdrawn_once_with_why_and_nothing_recommended(self) -> None:
+        cue = desk()
+        where = at(BATTERY, 45, 1500)
+        first = cue.consider(track(where))
+        assert first is not None
+        assert first.recommended_effector is not None
+        withdrawn = cue.consider(self.lost(where))
+        assert withdrawn is not None
+        assert withdrawn.status == "withdrawn"
+        assert (withdrawn.handoff_id, withdrawn.revision) == (first.handoff_id, 1)
+        assert withdrawn.event_id == f"{first.handoff_id}-r1"
+        assert withdrawn.note.startswith("track T-1 lost: no detection since 2026-11-23T12:00:00Z")
+        assert withdrawn.recommended_effector is None
+        assert withdrawn.options == ()
+        assert withdrawn.superseded_by is None
+        assert withdrawn.operator_authorisation_required is True
+        assert (cue.counts.withdrawn, cue.counts.not_clear) == (1, 0)
+        # Forgotten: a second loss (a replay) withdraws nothing more.
+        assert cue.consider(self.lost(where)) is None
+        assert cue.counts.withdrawn == 1
+
+    def test_a_lost_track_never_cued_sends_nothing(self) -> None:
+        cue = desk()
+        assert cue.consider(self.lost(at(BATTERY, 45, 1500), "T-7")) is None
+        assert cue.counts.withdrawn == 0
+
+    def test_a_cue_carried_on_to_a_survivor_is_withdrawn_when_the_survivor_is_lost(
+        self,
+    ) -> None:
+        cue = desk(min_confidence=0.9)
+        where = at(BATTERY, 90, 2000)
+        assert cue.consider(track(where, track_id="T-1", confidence=0.5)) is None
+        young = cue.consider(track(where, track_id="T-2"))
+        assert young is not None
+        merged = track(where, track_id="T-2", status="merged").model_copy(
+            update={"merged_into": "T-1", "time": NOW + timedelta(seconds=2)}
+        )
+        assert cue.consider(merged) is None  # carried on with T-1
+        withdrawn = cue.consider(self.lost(where, "T-1"))
+        assert withdrawn is not None
+        assert (withdrawn.handoff_id, withdrawn.status) == (young.handoff_id, "withdrawn")
+        assert withdrawn.revision == 1
+        assert withdrawn.note.startswith("track T-1 lost")
 
 
 def test_a_weak_track_waits_for_fusion_and_other_classes_are_not_cued() -> None:

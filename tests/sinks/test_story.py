@@ -17,6 +17,7 @@ from gateway.events import (
     Track,
 )
 from sinks._story import Story
+from sinks.console import describe
 
 T = datetime(2026, 11, 23, 12, 0, tzinfo=UTC)
 WHERE = Position(lat_deg=65.8252, lon_deg=21.6886)
@@ -81,6 +82,23 @@ def test_a_merged_track_is_told_as_merged_and_its_superseded_cue_as_such() -> No
     (line,) = story.tell(superseded)
     assert line.startswith(f"GUTE II cue {sample.handoff_id} revision 1 superseded at battery")
     assert line.endswith("by HO-T0-GUTE-1: track T1 merged into T0")
+
+
+def test_a_withdrawn_cue_is_told_as_withdrawn_with_why() -> None:
+    sample = sample_events(frozenset({EventKind.HANDOFF}))[0]
+    assert isinstance(sample, Handoff)
+    note = "track T1 lost: no detection since 2026-11-22T12:00:00Z"
+    withdrawn = sample.model_copy(
+        update={"revision": 2, "status": "withdrawn", "note": note,
+                "recommended_effector": None, "options": ()}
+    )  # fmt: skip
+    (line,) = Story().tell(withdrawn)
+    assert line == f"GUTE II cue {sample.handoff_id} revision 2 withdrawn at battery GUTE-1: {note}"
+    assert "recommended" not in line
+    (text,) = [describe(withdrawn)]
+    assert f"{sample.handoff_id} r2 WITHDRAWN (track T1)" in text
+    assert text.endswith(note)
+    assert "recommend" not in text
 
 
 def test_a_cue_says_deconfliction_and_recommendation_and_leaves_the_decision_to_the_operator() -> (

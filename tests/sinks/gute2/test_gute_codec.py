@@ -332,6 +332,24 @@ class TestVersions:
         assert document["superseded_by"] == "HO-T2-GUTE-1"
         assert document["note"] == "track T1 merged into T2"
 
+    def test_a_withdrawn_revision_says_why_and_offers_nothing(self) -> None:
+        revision = SAMPLE.model_copy(
+            update={
+                "event_id": f"{SAMPLE.handoff_id}-r2",
+                "revision": 2,
+                "status": "withdrawn",
+                "note": "track T1 lost: no detection since 2026-11-22T12:00:00Z",
+                "recommended_effector": None,
+                "options": (),
+            }
+        )
+        document = handoff_payload(revision)
+        VALIDATOR.validate(document)
+        assert (document["status"], document["superseded_by"]) == ("withdrawn", None)
+        assert (document["recommended_effector"], document["options"]) == (None, [])
+        assert document["note"].startswith("track T1 lost")
+        assert document["operator_authorisation_required"] is True
+
     def test_a_status_outside_the_list_is_refused(self) -> None:
         document = handoff_payload(SAMPLE) | {"status": "engage"}
         assert not VALIDATOR.is_valid(document)

@@ -34,7 +34,9 @@ from gateway.events import (
 from gateway.testing import fuzz_examples
 from sinks.sweccis.fas import (
     NAMESPACE,
+    SCHEMA_VERSIONS,
     Ack,
+    Document,
     DocumentError,
     Fas,
     OrderDocument,
@@ -48,7 +50,9 @@ from sinks.sweccis.fas import (
 
 ROOT = Path(__file__).resolve().parents[3]
 SCHEMA = etree.XMLSchema(etree.fromstring(load_schema()))
+SCHEMA_2 = etree.XMLSchema(etree.fromstring(load_schema("2")))
 NS = f"{{{NAMESPACE}}}"
+NS2 = f"{{{SCHEMA_VERSIONS['2']}}}"
 T0 = datetime(2026, 11, 22, 12, 0, tzinfo=UTC)
 SAMPLES = {e.kind: e for e in sample_events(frozenset(EventKind))}
 
@@ -163,6 +167,91 @@ class TestEncoding:
         merged = track.model_copy(update={"status": "merged", "merged_into": "T0"})
         root = valid(encode_event(merged)[0].payload)
         assert text(root, "Track/Status") == "lost"
+        assert text(root, "Track/MergedInto") is None
+
+
+class TestVersion2:
+    """FAS version 2 publishes a merge as a merge; version 1 stays as it was, and valid."""
+
+    def merged(self) -> Track:
+        track = SAMPLES[EventKind.TRACK]
+        assert isinstance(track, Track)
+        return track.model_copy(update={"status": "merged", "merged_into": "T-0007"})
+
+    def test_a_merged_track_is_merged_and_names_the_survivor(self) -> None:
+        (document,) = encode_event(self.merged(), version="2")
+        root = etree.fromstring(document.payload)
+        assert SCHEMA_2.validate(root), SCHEMA_2.error_log
+        assert root.tag == f"{{{SCHEMA_VERSIONS['2']}}}Intel"
+        assert root.get("version") == "2"
+        ns = f"{{{SCHEMA_VERSIONS['2']}}}"
+        assert root.findtext(f"{ns}Track/{ns}Status") == "merged"
+        assert root.findtext(f"{ns}Track/{ns}MergedInto") == "T-0007"
+        # MergedInto comes right after Status, as the schema's sequence says.
+        tags = [etree.QName(e).localname for e in root.find(f"{ns}Track")]
+        assert tags[1:3] == ["Status", "MergedInto"]
+        # A version 1 reader's schema refuses it: the version is a new namespace, not an edit.
+        assert not SCHEMA.validate(root)
+
+    def test_every_kind_and_control_document_is_valid_in_version_2(self) -> None:
+        documents = [d.payload for e in SAMPLES.values() for d in _encodable(e, "2")]
+        documents += [
+            encode_register("r-1", "node-1", publish=[Fas.INTEL], version="2"),
+            encode_ack("doc-1", "accepted", version="2"),
+        ]
+        assert len(documents) >= 5
+        for payload in documents:
+            root = etree.fromstring(payload)
+            assert SCHEMA_2.validate(root), (payload[:80], SCHEMA_2.error_log)
+            assert root.get("version") == "2"
+
+    def test_other_statuses_carry_no_merged_into_and_version_1_is_unchanged(self) -> None:
+        track = SAMPLES[EventKind.TRACK]
+        assert isinstance(track, Track)
+        for status in ("created", "updated", "lost"):
+            event = track.model_copy(update={"status": status})
+            v2 = etree.fromstring(encode_event(event, version="2")[0].payload)
+            assert SCHEMA_2.validate(v2), SCHEMA_2.error_log
+            assert v2.find(f"{NS2}Track/{NS2}MergedInto") is None
+            v1 = encode_event(event)[0].payload
+            assert encode_event(event, version="1")[0].payload == v1
+            assert valid(v1).get("version") == "1"
+
+    def test_a_merged_track_without_its_survivor_or_an_unknown_version_is_refused(self) -> None:
+        orphan = self.merged().model_copy(update={"merged_into": None})
+        with pytest.raises(ValueError, match="MergedInto"):
+            encode_event(orphan, version="2")
+        with pytest.raises(ValueError, match="version '3'"):
+            encode_event(self.merged(), version="3")
+        with pytest.raises(ValueError, match="version '3'"):
+            load_schema("3")
+
+    def test_version_2_control_documents_are_read_and_a_mismatch_is_refused(self) -> None:
+        ns2 = SCHEMA_VERSIONS["2"]
+        registered = parse_document(
+            f'<Registered xmlns="{ns2}" version="2" ref="r-1"><Publish>Intel</Publish>'
+            "</Registered>".encode(),
+            source="s",
+        )
+        assert registered == Registered("r-1", frozenset({Fas.INTEL}), frozenset())
+        assert parse_document(encode_ack("d-1", "accepted", version="2"), source="s") == Ack(
+            "d-1", "accepted"
+        )
+        for wrong in (
+            f'<Ack xmlns="{ns2}" version="1" ref="a" status="accepted"/>',
+            f'<Ack xmlns="{NAMESPACE}" version="2" ref="a" status="accepted"/>',
+            f'<Ack xmlns="{ns2}" version="2" ref="a" status="rejected">'
+            f'<Reason xmlns="{NAMESPACE}">mixed</Reason></Ack>',
+        ):
+            with pytest.raises(DocumentError):
+                parse_document(wrong.encode(), source="s")
+
+
+def _encodable(event: object, version: str) -> list[Document]:
+    try:
+        return encode_event(event, version=version)  # type: ignore[arg-type]
+    except ValueError:
+        return []  # a kind no FAS carries
 
     def test_telemetry_is_a_logistics_and_an_operations_document(self) -> None:
         logistics, operations = encode_event(telemetry())
@@ -565,9 +654,14 @@ class TestOrders:
 
 
 def test_the_examples_in_the_documentation_are_valid() -> None:
-    """Every XML example in docs/sweccis.md passes the shipped XSD."""
+    """Every XML example in docs/sweccis.md passes the shipped XSD of its own version."""
     doc = (ROOT / "docs" / "sweccis.md").read_text()
     examples = re.findall(r"```xml\n(.*?)```", doc, flags=re.DOTALL)
-    assert len(examples) >= 6
+    assert len(examples) >= 7
+    versions = []
     for example in examples:
-        assert SCHEMA.validate(etree.fromstring(example.encode())), (example, SCHEMA.error_log)
+        root = etree.fromstring(example.encode())
+        schema = SCHEMA_2 if root.get("version") == "2" else SCHEMA
+        assert schema.validate(root), (example, schema.error_log)
+        versions.append(root.get("version"))
+    assert "2" in versions
