@@ -554,14 +554,18 @@ class Tracker:
     def _drifted(self, state: TrackState, at_s: float) -> bool:
         """Whether receivers, dead-reckoning the last event, now show the track further from
         its estimate than ``max_drift_m`` and than the estimate's own σ (a shift within its
-        uncertainty is not news)."""
+        uncertainty is not news), or 2σ while the last event carried no velocity (the
+        estimate's own wander is largest then)."""
         if state.shown is None:
             return True
         lat, lon, ve, vn, shown_s = state.shown
         dt = at_s - shown_s
         east, north = offset_m(lat, lon, state.lat_deg, state.lon_deg)
         drift = math.hypot(east - ve * dt, north - vn * dt)
-        return drift > max(self.settings.max_drift_m, state.sigma_m)
+        without_velocity = ve == 0.0 and vn == 0.0
+        return drift > max(
+            self.settings.max_drift_m, (2.0 if without_velocity else 1.0) * state.sigma_m
+        )
 
     def _emit(self, state: TrackState, status: Status, at_s: float) -> Track:
         state.emitted_s = max(state.emitted_s, at_s)
