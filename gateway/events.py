@@ -17,11 +17,24 @@ from collections.abc import Callable
 from enum import StrEnum
 from typing import Annotated, Any, Literal
 
-from pydantic import AwareDatetime, BaseModel, ConfigDict, Field, TypeAdapter, model_validator
+from pydantic import (
+    AwareDatetime,
+    BaseModel,
+    ConfigDict,
+    Field,
+    JsonValue,
+    TypeAdapter,
+    field_validator,
+    model_validator,
+)
 
 __all__ = [
     "BOOT_ID",
     "DURABLE_KINDS",
+    "EXTENSION_DATA_MAX_BYTES",
+    "EXTENSION_DATA_MAX_DEPTH",
+    "EXTENSION_TYPE_MAX",
+    "EXTENSION_TYPE_PATTERN",
     "LATEST_WINS_KINDS",
     "Attitude",
     "BlueForce",
@@ -31,6 +44,7 @@ __all__ = [
     "EffectorOption",
     "Event",
     "EventKind",
+    "Extension",
     "FiveLineOrder",
     "Handoff",
     "HopEvent",
@@ -79,6 +93,7 @@ class EventKind(StrEnum):
     HOP = "hop"
     VIDEO_FRAME_METADATA = "video_frame_metadata"
     ORDER_STATUS = "order_status"
+    EXTENSION = "extension"
 
 
 #: Kinds where only the newest event per key matters: a slow sink gets fresh data, not a backlog.
@@ -588,6 +603,92 @@ class OrderStatus(BaseModel):
     late_by_s: float | None = Field(default=None, ge=0.0)
 
 
+#: What an extension type is named: two or more dot-separated lowercase parts, the first the
+#: publisher's namespace (``acme.weather``, ``acme.radar.sweep``).
+EXTENSION_TYPE_PATTERN = r"^[a-z][a-z0-9_]{0,31}(\.[a-z][a-z0-9_]{0,31})+$"
+#: The longest extension type name.
+EXTENSION_TYPE_MAX = 64
+#: ``Extension.data`` may take at most this many bytes as compact JSON ...
+EXTENSION_DATA_MAX_BYTES = 16 * 1024
+#: ... and nest objects and arrays at most this deep (the object itself is depth 1).
+EXTENSION_DATA_MAX_DEPTH = 8
+
+
+_DATA: TypeAdapter[dict[str, JsonValue]] = TypeAdapter(dict[str, JsonValue])
+
+
+def _depth(value: JsonValue) -> int:
+    if isinstance(value, dict):
+        return 1 + max((_depth(v) for v in value.values()), default=0)
+    if isinstance(value, list):
+        return 1 + max((_depth(v) for v in value), default=0)
+    return 0
+
+
+class Extension(BaseModel):
+    """An event of a kind a third-party processor declares: its own ``type`` and ``data``.
+
+    The core knows it only as this envelope: ``type`` names what ``data`` holds
+    (``acme.weather``) and a processor may publish only the types it declares in its
+    ``extension_events`` (a mapping of type name to the pydantic model of ``data``). The
+    gateway checks ``data`` against that model before the event goes on the bus; an
+    undeclared type or invalid data is refused and counted under the publishing processor's
+    name. Durable: delivered at least once, in order, to every sink whose ``kinds`` include
+    ``extension`` (``jsonl`` and ``console`` do; the C2 sinks do not).
+    """
+
+    model_config = _FROZEN
+
+    kind: Literal[EventKind.EXTENSION] = EventKind.EXTENSION
+    event_id: str = Field(
+        min_length=1,
+        max_length=256,
+        description="The stable id receivers de-duplicate on; the publisher makes it (from "
+        "its own input, or with ``BOOT_ID`` for a counter of this process).",
+    )
+    type: str = Field(
+        max_length=EXTENSION_TYPE_MAX,
+        pattern=EXTENSION_TYPE_PATTERN,
+        description="What ``data`` holds: a namespaced name the publisher declared "
+        "(``acme.weather``).",
+    )
+    time: AwareDatetime = Field(description="When what ``data`` describes happened or held.")
+    publisher: str = Field(
+        default="",
+        max_length=64,
+        description="The configured name of the processor that published it; the gateway "
+        "sets it as it accepts the event.",
+    )
+    airframe: str | None = Field(
+        default=None,
+        max_length=64,
+        description="The airframe it concerns, if any; routes' ``airframes`` filter on it.",
+    )
+    data: dict[str, JsonValue] = Field(
+        default_factory=dict,
+        description="A JSON object valid against the model the publisher declared for "
+        f"``type``; at most {EXTENSION_DATA_MAX_BYTES} bytes as JSON and "
+        f"{EXTENSION_DATA_MAX_DEPTH} levels deep.",
+    )
+    late_by_s: float | None = Field(
+        default=None,
+        ge=0.0,
+        description="Set when the spool delivers the event after a stale rule configured "
+        "for ``extension``: how many seconds it waited.",
+    )
+
+    @field_validator("data")
+    @classmethod
+    def _bounded(cls, data: dict[str, JsonValue]) -> dict[str, JsonValue]:
+        depth = _depth(data)
+        if depth > EXTENSION_DATA_MAX_DEPTH:
+            raise ValueError(f"nests {depth} levels deep; at most {EXTENSION_DATA_MAX_DEPTH}")
+        size = len(_DATA.dump_json(data))
+        if size > EXTENSION_DATA_MAX_BYTES:
+            raise ValueError(f"takes {size} bytes as JSON; at most {EXTENSION_DATA_MAX_BYTES}")
+        return data
+
+
 Event = Annotated[
     Telemetry
     | LinkState
@@ -598,7 +699,8 @@ Event = Annotated[
     | FiveLineOrder
     | OrderStatus
     | HopEvent
-    | VideoFrameMetadata,
+    | VideoFrameMetadata
+    | Extension,
     Field(discriminator="kind"),
 ]
 

@@ -21,7 +21,15 @@ import structlog
 
 from gateway.config import RouteConfig
 from gateway.errors import ConfigError, ConfigIssue, SpoolError
-from gateway.events import LATEST_WINS_KINDS, Detection, Event, EventKind, Track, latest_key
+from gateway.events import (
+    LATEST_WINS_KINDS,
+    Detection,
+    Event,
+    EventKind,
+    Extension,
+    Track,
+    latest_key,
+)
 from gateway.flow.subscriber import Subscriber
 from gateway.ops.instruments import Instruments
 from gateway.ops.logsetup import RateLimit
@@ -58,6 +66,12 @@ def _airframes_of(event: Event) -> tuple[str, ...] | None:
         return event.airframes
     airframe = getattr(event, "airframe", None)
     return None if airframe is None else (airframe,)
+
+
+def _extension_types(subscriber: Subscriber) -> frozenset[str]:
+    gate = getattr(subscriber, "extensions", None)
+    types = getattr(gate, "types", None)
+    return types if isinstance(types, frozenset) else frozenset()
 
 
 def _class_of(event: Event) -> str | None:
@@ -99,6 +113,13 @@ class Bus:
         self._cache: dict[tuple[EventKind, tuple[str, ...] | None, str | None], list[_Target]] = {}
         self._targets: dict[tuple[int, str, EventKind], _Target] = {}
         self._event_counters = {kind: instruments.events.labels(kind.value) for kind in EventKind}
+        # (publisher, type) of every extension type a processor declares: all the bus takes.
+        self._extensions = frozenset(
+            (name, type_name)
+            for p in self._processors
+            for name, types in [(p.name, _extension_types(p))]
+            for type_name in types
+        )
         self._spool_log = RateLimit(interval_s=10.0)
         self._check(source)
 
@@ -163,6 +184,8 @@ class Bus:
         A durable event the spool refuses goes to no one, processors included: its sender
         (an airframe that was not acknowledged) sends it again, and it must count once.
         """
+        if isinstance(event, Extension) and not self._admits(event):
+            return False
         self._event_counters[event.kind].inc()
         key = (event.kind, _airframes_of(event), _class_of(event))
         targets = self._cache.get(key)
@@ -190,6 +213,23 @@ class Bus:
                 target.last_sent[slot] = now
             target.runner.offer_slot(event, now, slot)
         return True
+
+    def _admits(self, event: Extension) -> bool:
+        """An extension event only from the processor that declared its type (its runner has
+        checked the data); from anywhere else (a source) it is refused and counted."""
+        if (event.publisher, event.type) in self._extensions:
+            return True
+        publisher = event.publisher or "unknown"
+        self._inst.extension_refused.labels(publisher, "undeclared").inc()
+        if self._spool_log.allow(("extension", publisher)):
+            log.error(
+                "extension_refused",
+                publisher=publisher,
+                type=event.type,
+                reason="undeclared",
+                note="only a processor that declares the type in extension_events may publish it",
+            )
+        return False
 
     def _publish_durable(self, event: Event, targets: list[_Target], now: float) -> bool:
         names = [target.runner.name for target in targets]
