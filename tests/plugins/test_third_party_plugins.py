@@ -15,14 +15,15 @@ import os
 import socket
 from pathlib import Path
 from types import ModuleType
+from typing import ClassVar
 
 import pytest
 from daemon_support import Airframe, archive_events, free_udp_port, running, wait_until
 from own_plugins import own_types
 
 from gateway.c2.plugins import GROUP, PROCESSOR_GROUP, SOURCE_GROUP, available
-from gateway.contract import check_processor, check_sink, check_source
-from gateway.events import BlueForce, Track
+from gateway.contract import ContractViolation, check_processor, check_sink, check_source
+from gateway.events import BlueForce, Extension, Track
 from gateway.fleet.dialect import CLASS_NAMES
 
 PACKAGE = Path(__file__).resolve().parent / "fake_plugins"
@@ -45,9 +46,23 @@ def test_each_passes_its_contract_checker(installed: ModuleType, tmp_path: Path)
     assert source.published
     assert all(isinstance(e, BlueForce) and e.callsign == "BRAVO" for e in source.published)
     processor = check_processor(installed.Doubler, {"prefix": "X"})
-    (track,) = processor.published
+    track, doubled = processor.published
     assert isinstance(track, Track)
     assert track.detection_ids == ("c-det",)
+    assert isinstance(doubled, Extension)
+    assert doubled.type == "fake.doubled"
+    assert doubled.data == {"detection_id": "c-det", "track_id": track.track_id, "count": 1}
+
+
+def test_the_processor_checker_refuses_what_it_does_not_declare(installed: ModuleType) -> None:
+    with pytest.raises(ContractViolation, match=r"'fake\.undeclared', which its extension_events"):
+        check_processor(installed.Doubler, {"misbehave": True})
+
+    class Misdeclared(installed.Doubler):  # type: ignore[name-defined,misc]
+        extension_events: ClassVar[dict[str, type]] = {"NoNamespace": installed.Doubled}
+
+    with pytest.raises(ContractViolation, match="'NoNamespace' is not a type name"):
+        check_processor(Misdeclared, {})
 
 
 def test_installed_third_party_plugins_are_not_enumerated_as_ours(installed: ModuleType) -> None:
@@ -78,7 +93,7 @@ airframes:
 sources:
   - {{name: tick, type: ticker, interval_s: 0.1, callsign: ALPHA, crash_every: 5}}
 processors:
-  - {{name: twin, type: doubler, options: {{prefix: TW}}}}
+  - {{name: twin, type: doubler, options: {{prefix: TW, misbehave: true}}}}
 sinks:
   - {{name: archive, type: jsonl, options: {{path: '{archive}'}}}}
   - {{name: counted, type: tally, options: {{path: '{tally}'}}}}
@@ -95,7 +110,9 @@ routes:
         def kinds() -> set[str]:
             return {str(e.get("kind")) for e in archive_events(archive)}
 
-        wait_until(lambda: {"detection", "track", "blue_force"} <= kinds(), 10, "all three")
+        wait_until(
+            lambda: {"detection", "track", "blue_force", "extension"} <= kinds(), 10, "all four"
+        )
         status = daemon.status()
         (processor,) = status["processors"]
         assert processor["processor"] == "twin"
@@ -108,10 +125,28 @@ routes:
         assert daemon.get("/readyz")[0] == 200
         assert daemon.events("source_failed")
         assert daemon.metric("fg_processor_events_total", processor="twin", direction="out") >= 3
+        # Its undeclared type and its invalid data were refused, counted under its name.
+        for reason in ("undeclared", "invalid"):
+            refused = daemon.metric("fg_extension_refused_total", publisher="twin", reason=reason)
+            assert refused >= 3
+        assert processor["detail"]["refused"] >= 6
+        assert {e["reason"] for e in daemon.events("extension_refused")} == {
+            "undeclared",
+            "invalid",
+        }
+        assert all(e["processor"] == "twin" for e in daemon.events("extension_refused"))
     tracks = [e for e in archive_events(archive) if e["kind"] == "track"]
     expected = f"TW-OPEN-{CLASS_NAMES[1]}"  # the daemon_support detection's class_id
     assert {t["track_id"] for t in tracks} == {expected}
     assert len(tracks) == 3
+    # Its own event type, archived whole by jsonl; nothing it was refused got there.
+    extensions = [e for e in archive_events(archive) if e["kind"] == "extension"]
+    assert len(extensions) == 3
+    assert {e["type"] for e in extensions} == {"fake.doubled"}
+    assert {e["publisher"] for e in extensions} == {"twin"}
+    assert {e["airframe"] for e in extensions} == {"OPEN"}
+    assert sorted(e["data"]["count"] for e in extensions) == [1, 2, 3]
+    assert {e["data"]["track_id"] for e in extensions} == {expected}
     ticks = [e for e in archive_events(archive) if e["kind"] == "blue_force"]
     assert all(t["callsign"] == "ALPHA" for t in ticks)
     assert json.dumps(ticks[0])  # archived whole
