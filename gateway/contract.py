@@ -66,9 +66,9 @@ from gateway.events import (
     Telemetry,
     Track,
     VideoFrameMetadata,
+    declared_extensions,
     event_adapter,
 )
-from gateway.flow.extensions import declared_extensions
 from gateway.flow.processor import Processor, ProcessorConfig, Publish
 
 __all__ = [

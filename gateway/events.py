@@ -12,8 +12,9 @@ stale threshold, when it says how many seconds the event waited.
 
 from __future__ import annotations
 
+import re
 import secrets
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from enum import StrEnum
 from typing import Annotated, Any, Literal
 
@@ -36,6 +37,7 @@ __all__ = [
     "EXTENSION_TYPE_MAX",
     "EXTENSION_TYPE_PATTERN",
     "LATEST_WINS_KINDS",
+    "MAX_DECLARED_EXTENSIONS",
     "Attitude",
     "BlueForce",
     "BlueSourceCount",
@@ -62,6 +64,7 @@ __all__ = [
     "Track",
     "Velocity",
     "VideoFrameMetadata",
+    "declared_extensions",
     "event_adapter",
     "event_id",
     "latest_key",
@@ -111,7 +114,7 @@ LATEST_WINS_KINDS: frozenset[EventKind] = frozenset(
 #: Kinds that must never be dropped silently: delivered at least once, in order per sink.
 DURABLE_KINDS: frozenset[EventKind] = frozenset(EventKind) - LATEST_WINS_KINDS
 
-_FROZEN = ConfigDict(frozen=True, extra="forbid")
+_FROZEN = ConfigDict(frozen=True, extra="forbid", use_attribute_docstrings=True)
 
 
 class Position(BaseModel):
@@ -687,6 +690,44 @@ class Extension(BaseModel):
         if size > EXTENSION_DATA_MAX_BYTES:
             raise ValueError(f"takes {size} bytes as JSON; at most {EXTENSION_DATA_MAX_BYTES}")
         return data
+
+
+_TYPE = re.compile(EXTENSION_TYPE_PATTERN)
+#: A processor may declare at most this many extension types.
+MAX_DECLARED_EXTENSIONS = 64
+
+
+def declared_extensions(factory: object) -> dict[str, type[BaseModel]]:
+    """The ``extension_events`` a processor class (or instance) declares; {} when none.
+
+    Raises ``ValueError`` saying what is wrong with a declaration that is not a mapping of
+    valid type names to pydantic models.
+    """
+    declared = getattr(factory, "extension_events", None)
+    if declared is None:
+        return {}
+    if not isinstance(declared, Mapping):
+        raise ValueError(
+            f"extension_events must map type names to pydantic models, got {declared!r}"
+        )
+    if len(declared) > MAX_DECLARED_EXTENSIONS:
+        raise ValueError(
+            f"extension_events declares {len(declared)} types; at most {MAX_DECLARED_EXTENSIONS}"
+        )
+    types: dict[str, type[BaseModel]] = {}
+    for name, model in declared.items():
+        if not (
+            isinstance(name, str) and len(name) <= EXTENSION_TYPE_MAX and _TYPE.fullmatch(name)
+        ):
+            raise ValueError(
+                f"extension_events: {name!r} is not a type name: dot-separated lowercase "
+                f"parts, a namespace first ('acme.weather'), at most {EXTENSION_TYPE_MAX} "
+                "characters"
+            )
+        if not (isinstance(model, type) and issubclass(model, BaseModel)):
+            raise ValueError(f"extension_events[{name!r}] must be a pydantic model, got {model!r}")
+        types[name] = model
+    return types
 
 
 Event = Annotated[

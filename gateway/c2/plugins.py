@@ -19,7 +19,7 @@ from pydantic import BaseModel, ValidationError
 
 from gateway.c2.sink import Sink, SinkClass
 from gateway.errors import SinkLoadError, SinkOptionsInvalid
-from gateway.flow.extensions import declared_extensions
+from gateway.events import declared_extensions
 
 __all__ = [
     "GROUP",

@@ -7,9 +7,10 @@ A processor class declares its own event types in a class attribute, beside its
         config_model = WeatherConfig
         extension_events = {"acme.weather": Weather}   # type name -> pydantic model of data
 
-and publishes them as ``gateway.events.Extension(type="acme.weather", data={...})``. Before such
-an event reaches the bus, its processor's runner checks it (``ExtensionGate.admit``): the type
-must be one the processor declared and ``data`` must validate against that type's model.
+and publishes them as ``gateway.events.Extension(type="acme.weather", data={...})``
+(``gateway.events.declared_extensions`` reads the declaration). Before such an event reaches
+the bus, its processor's runner checks it (``ExtensionGate.admit``): the type must be one the
+processor declared and ``data`` must validate against that type's model.
 An event that fails is refused (``publish`` returns False), counted under the processor's name
 in ``fg_extension_refused_total`` and logged at most every few seconds per processor; the
 processor and the daemon carry on. An accepted event has ``publisher`` set to the
@@ -19,54 +20,18 @@ declared its type.
 
 from __future__ import annotations
 
-import re
 from collections.abc import Mapping
 
 import structlog
 from pydantic import BaseModel, ValidationError
 
-from gateway.events import EXTENSION_TYPE_MAX, EXTENSION_TYPE_PATTERN, Extension
+from gateway.events import Extension
 from gateway.ops.instruments import Instruments
 from gateway.ops.logsetup import RateLimit
 
-__all__ = ["ExtensionGate", "declared_extensions"]
+__all__ = ["ExtensionGate"]
 
 log = structlog.get_logger(__name__)
-
-_TYPE = re.compile(EXTENSION_TYPE_PATTERN)
-#: A processor may declare at most this many types.
-MAX_DECLARED = 64
-
-
-def declared_extensions(factory: object) -> dict[str, type[BaseModel]]:
-    """The ``extension_events`` a processor class (or instance) declares; {} when none.
-
-    Raises ``ValueError`` saying what is wrong with a declaration that is not a mapping of
-    valid type names to pydantic models.
-    """
-    declared = getattr(factory, "extension_events", None)
-    if declared is None:
-        return {}
-    if not isinstance(declared, Mapping):
-        raise ValueError(
-            f"extension_events must map type names to pydantic models, got {declared!r}"
-        )
-    if len(declared) > MAX_DECLARED:
-        raise ValueError(f"extension_events declares {len(declared)} types; at most {MAX_DECLARED}")
-    types: dict[str, type[BaseModel]] = {}
-    for name, model in declared.items():
-        if not (
-            isinstance(name, str) and len(name) <= EXTENSION_TYPE_MAX and _TYPE.fullmatch(name)
-        ):
-            raise ValueError(
-                f"extension_events: {name!r} is not a type name: dot-separated lowercase "
-                f"parts, a namespace first ('acme.weather'), at most {EXTENSION_TYPE_MAX} "
-                "characters"
-            )
-        if not (isinstance(model, type) and issubclass(model, BaseModel)):
-            raise ValueError(f"extension_events[{name!r}] must be a pydantic model, got {model!r}")
-        types[name] = model
-    return types
 
 
 class ExtensionGate:

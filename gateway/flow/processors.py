@@ -16,8 +16,8 @@ import anyio
 import anyio.abc
 import structlog
 
-from gateway.events import Event, EventKind, Extension
-from gateway.flow.extensions import ExtensionGate, declared_extensions
+from gateway.events import Event, EventKind, Extension, declared_extensions
+from gateway.flow.extensions import ExtensionGate
 from gateway.flow.processor import MissesEvents, Processor, Publish
 from gateway.ops.instruments import Instruments
 from gateway.ops.logsetup import RateLimit
