@@ -42,11 +42,17 @@ def kind_models() -> dict[EventKind, type[BaseModel]]:
 
 
 def _doc(obj: object) -> str:
-    return inspect.cleandoc(obj.__doc__ or "")
+    return _markdown(inspect.cleandoc(obj.__doc__ or ""))
+
+
+def _markdown(text: str) -> str:
+    """reStructuredText's ``code`` as Markdown's `code`."""
+    return text.replace("``", "`")
 
 
 def _anchor(name: str) -> str:
-    return name.lower().replace("_", "-")
+    """The anchor Markdown renderers give a heading of one word (underscores kept)."""
+    return name.lower()
 
 
 class _Names:
@@ -153,12 +159,19 @@ def _fields(model: type[BaseModel], names: _Names) -> list[str]:
         "| --- | --- | --- | --- | --- |",
     ]
     for name, field in model.model_fields.items():
+        if name == "kind":
+            kind = _value(field.default)
+            rows.append(
+                f"| `kind` | string | `{json.dumps(kind)}` | always `{kind}` "
+                "| The discriminator: what routes and `kinds` name. |"
+            )
+            continue
         cells = (
             f"`{name}`",
             names.type_of(field.annotation),
             _default(field),
             ", ".join(_constraints(field)) or "",
-            field.description or "",
+            _markdown(field.description or ""),
         )
         rows.append("| " + " | ".join(_cell(c) for c in cells) + " |")
     return rows
