@@ -7,7 +7,9 @@ kind. A durable event bound for sinks is first written to the spool once, for al
 spool refused it (full or failing), so a caller that can have it sent again does not
 acknowledge it. The route decision for a (kind, airframe, class) triple is computed once and
 cached, so the hot path is one dict lookup plus one offer per destination. The bus knows
-subscribers only through ``Subscriber`` and ``SpoolingSubscriber``.
+subscribers only through ``Subscriber`` and ``SpoolingSubscriber``. An ``extension`` event is
+taken only from the processor that declares its type (its runner checked the data first,
+``gateway.flow.extensions``); any other is refused and counted (``fg_extension_refused_total``).
 """
 
 from __future__ import annotations
@@ -113,6 +115,7 @@ class Bus:
         self._cache: dict[tuple[EventKind, tuple[str, ...] | None, str | None], list[_Target]] = {}
         self._targets: dict[tuple[int, str, EventKind], _Target] = {}
         self._event_counters = {kind: instruments.events.labels(kind.value) for kind in EventKind}
+        self._publishers = frozenset(p.name for p in self._processors)
         # (publisher, type) of every extension type a processor declares: all the bus takes.
         self._extensions = frozenset(
             (name, type_name)
@@ -121,6 +124,7 @@ class Bus:
             for type_name in types
         )
         self._spool_log = RateLimit(interval_s=10.0)
+        self._refused_log = RateLimit(interval_s=10.0)
         self._check(source)
 
     def _check(self, source: str) -> None:
@@ -219,12 +223,16 @@ class Bus:
         checked the data); from anywhere else (a source) it is refused and counted."""
         if (event.publisher, event.type) in self._extensions:
             return True
-        publisher = event.publisher or "unknown"
-        self._inst.extension_refused.labels(publisher, "undeclared").inc()
-        if self._spool_log.allow(("extension", publisher)):
+        # Labelled by a configured processor's name only: any other text is "unknown", so
+        # what a plugin writes there cannot grow the metric's label set.
+        known = event.publisher in self._publishers
+        self._inst.extension_refused.labels(
+            event.publisher if known else "unknown", "undeclared"
+        ).inc()
+        if self._refused_log.allow("extension"):
             log.error(
                 "extension_refused",
-                publisher=publisher,
+                publisher=event.publisher[:64] or None,
                 type=event.type,
                 reason="undeclared",
                 note="only a processor that declares the type in extension_events may publish it",

@@ -158,8 +158,9 @@ def test_the_bus_takes_an_extension_only_from_its_declaring_processor() -> None:
     assert bus.publish(weather({"wind_mps": 2.0}, publisher="other")) is False
     assert [e.kind for e in archive.got] == [EventKind.EXTENSION]
     assert cot.got == []  # a sink that does not declare the kind never sees it
-    assert inst.extension_refused.labels("unknown", "undeclared").value == 1
-    assert inst.extension_refused.labels("other", "undeclared").value == 1
+    assert bus.publish(weather({"wind_mps": 2.0}, "acme.other", publisher="wx")) is False
+    assert inst.extension_refused.labels("unknown", "undeclared").value == 2
+    assert inst.extension_refused.labels("wx", "undeclared").value == 1
 
 
 def test_a_route_naming_extension_for_a_sink_that_cannot_take_it_is_a_config_error() -> None:
