@@ -109,6 +109,12 @@ class Doubler:
         return {"doubled": self.count, "refused": self.refused}
 
 
+class Misdeclared(Doubler):
+    """A processor whose declaration breaks the rules: its type cannot be loaded."""
+
+    extension_events: ClassVar[dict[str, type[BaseModel]]] = {"Doubled": Doubled}
+
+
 class TickerConfig(SourceConfig):
     interval_s: float = Field(default=0.2, gt=0, description="Seconds between reports.")
     callsign: str = Field(default="TICK", description="The unit reported.")
