@@ -525,8 +525,7 @@ class Handoff(BaseModel):
     handoff_id: str
     """The cue of one track to one battery, for the track's life."""
     revision: int = Field(default=0, ge=0)
-    """0 for the first cue; one more each time its deconfliction, recommendation or status
-    changes."""
+    """0 for the first cue; one more for each revision sent after it."""
     status: Literal["active", "superseded", "withdrawn"] = "active"
     """``active`` (the cue stands), ``superseded`` (drop it: see ``superseded_by``) or
     ``withdrawn``."""
@@ -588,11 +587,11 @@ class OrderArea(BaseModel):
     model_config = _FROZEN
 
     point: Position | None = None
-    """Line 2 as one point (an observe, track or return order)."""
+    """Line 2 as one point; None when it is an area."""
     polygon: tuple[Position, ...] = Field(default=(), max_length=64)
-    """Line 2 as an area: its corners, 3 to 64."""
+    """Line 2 as an area: its corners, 3 to 64; empty when it is a point."""
     mgrs: str | None = Field(default=None, max_length=32)
-    """The MGRS reference as the issuer wrote it; ``point`` is its decoded cell centre."""
+    """The MGRS reference as the issuer wrote it; ``point`` is its decoded position."""
 
     @model_validator(mode="after")
     def _one_shape(self) -> OrderArea:

@@ -76,7 +76,8 @@ class _Names:
             shown = " or ".join(self.type_of(a) for a in kept)
             return f"{shown} or null" if len(kept) < len(args) else shown
         if origin is Literal:
-            return "one of " + ", ".join(f"`{_value(a)}`" for a in args)
+            shown = ", ".join(f"`{_value(a)}`" for a in args)
+            return f"always {shown}" if len(args) == 1 else f"one of {shown}"
         if origin is tuple:
             return f"list of {self.type_of(args[0])}"
         if origin is dict and args and args[1] == JsonValue:
@@ -100,7 +101,10 @@ class _Names:
 
 
 def _value(value: object) -> str:
-    return str(value.value) if isinstance(value, enum.Enum) else str(value)
+    """A literal as it reads in JSON (``true``, ``hostile``)."""
+    if isinstance(value, enum.Enum):
+        value = value.value
+    return value if isinstance(value, str) else json.dumps(value)
 
 
 def _number(value: object) -> str:
