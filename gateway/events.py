@@ -295,7 +295,7 @@ class Detection(BaseModel):
     position: Position
     """Where the object is (latitude, longitude; altitude above MSL when given)."""
     sigma_h_m: float = Field(ge=0.0)
-    """One-sigma horizontal position error, metres (at most 10 km)."""
+    """One-sigma horizontal position error, metres (ingest refuses one above 10 km)."""
     late_by_s: float | None = Field(default=None, ge=0.0)
     """Set when the spool delivers the event after its kind's stale threshold: how many seconds
     it waited."""
@@ -405,7 +405,8 @@ class BlueForce(BaseModel):
     """The unit's identity as its reporter gives it (CoT uid, NFFI unit id, or configured); the
     key a newer report replaces an older one under."""
     time: AwareDatetime
-    """When the report says the unit was there."""
+    """When the report says the unit was there (for a unit fixed in config: when its processor
+    started)."""
     callsign: str = ""
     """The unit's name as reported, made safe (``peertext.safe_text``); empty when none. Its
     reporter's word: see ``provenance``."""
@@ -435,8 +436,8 @@ class EffectorOption(BaseModel):
     effector: str
     """The effector's name in the effector table (``TRACKFIRE_30MM`` ...)."""
     deconfliction_clear: bool
-    """No current friendly unit within this effector's danger-close radius (less the track's
-    CEP90)."""
+    """No current friendly unit within this effector's danger-close radius of the track (its
+    CEP90 taken into account)."""
     danger_close_m: float = Field(ge=0.0)
     """This effector's danger-close radius, metres."""
 
