@@ -16,7 +16,7 @@ import anyio
 import anyio.abc
 import structlog
 
-from gateway.events import Event, EventKind, Extension, declared_extensions
+from gateway.events import Event, EventKind, declared_extensions
 from gateway.flow.extensions import ExtensionGate
 from gateway.flow.processor import MissesEvents, Processor, Publish
 from gateway.ops.instruments import Instruments
@@ -87,7 +87,7 @@ class ProcessorRunner:
         False (nothing published) for an extension event its processor did not declare or
         whose data its model rejects (``ExtensionGate``).
         """
-        if isinstance(event, Extension):
+        if event.kind is EventKind.EXTENSION:
             admitted = self.extensions.admit(event)
             if admitted is None:
                 return False
