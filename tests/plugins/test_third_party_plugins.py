@@ -123,9 +123,17 @@ routes:
         assert daemon.metric("fg_processor_events_total", processor="twin", direction="out") >= 3
         # Its undeclared type and its invalid data were refused, counted under its name.
         for reason in ("undeclared", "invalid"):
-            refused = daemon.metric("fg_extension_refused_total", publisher="twin", reason=reason)
-            assert refused >= 3
-        assert processor["detail"]["refused"] >= 6
+            wait_until(
+                lambda r=reason: (
+                    daemon.metric(  # type: ignore[misc]
+                        "fg_extension_refused_total", publisher="twin", reason=r
+                    )
+                    >= 3
+                ),
+                10,
+                f"three refused as {reason}",
+            )
+        assert daemon.status()["processors"][0]["detail"]["refused"] == 6
         assert {e["reason"] for e in daemon.events("extension_refused")} == {
             "undeclared",
             "invalid",
