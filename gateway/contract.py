@@ -15,8 +15,9 @@ failure raises ``ContractViolation`` saying which rule and what was found.
   and ``aclose``.
 - ``check_source``: ``status()`` a dict before, during and after ``run``; ``drive`` (yours)
   gives the running source its input.
-- ``check_processor``: ``kinds`` as for a sink; one sample event of every kind it consumes is
-  fed to its ``run``.
+- ``check_processor``: ``kinds`` as for a sink; ``extension_events`` (if declared) maps type
+  names to pydantic models with a JSON Schema; one sample event of every kind it consumes is
+  fed to its ``run``; each ``Extension`` it publishes has a declared type and valid ``data``.
 
 The checkers are synchronous (each runs its own event loop), so call them from a plain test
 function::
@@ -50,6 +51,7 @@ from gateway.events import (
     EffectorOption,
     Event,
     EventKind,
+    Extension,
     FiveLineOrder,
     Handoff,
     HopEvent,
@@ -64,6 +66,7 @@ from gateway.events import (
     Telemetry,
     Track,
     VideoFrameMetadata,
+    declared_extensions,
     event_adapter,
 )
 from gateway.flow.processor import Processor, ProcessorConfig, Publish
@@ -222,6 +225,13 @@ def sample_events(kinds: frozenset[EventKind]) -> list[Event]:
         check="geofence",
         reason="geofence: the point 59.33000, 18.06000 is outside the fence",
     )
+    every[EventKind.EXTENSION] = Extension(
+        event_id="c-ext",
+        type="example.sample",
+        time=t,
+        publisher="contract",
+        data={"note": "a sample extension event", "values": [1, 2.5, None]},
+    )
     return [every[kind] for kind in EventKind if kind in kinds]
 
 
@@ -362,7 +372,7 @@ def check_processor(
             f"processor.name is {processor.name!r}, expected the given {name!r}"
         )
     batch = list(events) if events is not None else sample_events(_kinds(processor.kinds))
-    published = _Published()
+    published = _Published(_declared(factory))
 
     async def exercise(phase: _Phase) -> None:
         # Unbuffered: each send returns once run() has taken the event.
@@ -401,6 +411,22 @@ def _config(
     return model.model_validate(dict(options or {}))
 
 
+def _declared(factory: Any) -> dict[str, type[BaseModel]]:
+    """The processor's ``extension_events``, each with a model that gives a JSON Schema."""
+    try:
+        declared = declared_extensions(factory)
+    except ValueError as exc:
+        raise ContractViolation(f"{factory!r}: {exc}") from None
+    for name, model in declared.items():
+        try:
+            model.model_json_schema()
+        except Exception as exc:  # noqa: BLE001 - pydantic raises several kinds here
+            raise ContractViolation(
+                f"extension_events[{name!r}]: {model.__name__} has no JSON Schema: {exc}"
+            ) from None
+    return declared
+
+
 def _kinds(kinds: object) -> frozenset[EventKind]:
     if not (
         isinstance(kinds, frozenset) and kinds and all(isinstance(k, EventKind) for k in kinds)
@@ -433,7 +459,8 @@ class _Phase:
 class _Published:
     """The ``publish`` given to the plugin: keeps, and checks, every event it is handed."""
 
-    def __init__(self) -> None:
+    def __init__(self, extensions: Mapping[str, type[BaseModel]] | None = None) -> None:
+        self.extensions = dict(extensions or {})
         self.events: list[Event] = []
         self.problem: str | None = None
         self.loop_thread: int | None = None
@@ -456,6 +483,23 @@ class _Published:
             return f"published an invalid {type(event).__name__}: {exc}"
         if again != event:
             return f"published a {type(event).__name__} that does not survive JSON: {event!r}"
+        if isinstance(event, Extension):
+            return self._check_extension(event)
+        return None
+
+    def _check_extension(self, event: Extension) -> str | None:
+        model = self.extensions.get(event.type)
+        if model is None:
+            return (
+                f"published an Extension of type {event.type!r}, which its extension_events "
+                f"do not declare (declared: {sorted(self.extensions)})"
+            )
+        try:
+            model.model_validate(event.data)
+        except ValidationError as exc:
+            return (
+                f"published an Extension {event.type!r} whose data {model.__name__} rejects: {exc}"
+            )
         return None
 
     def kept(self) -> tuple[Event, ...]:

@@ -30,6 +30,7 @@ from gateway.events import (
     Detection,
     Event,
     EventKind,
+    Extension,
     FiveLineOrder,
     Handoff,
     HopEvent,
@@ -175,6 +176,8 @@ def describe(event: Event) -> str:
             f"{head} {event.source} {event.order_id} {event.status.value}"
             f" on {event.airframe or 'no airframe'}{why}"
         )
+    if isinstance(event, Extension):
+        return f"{head} {event.type} from {event.publisher or '-'} {event.event_id}"
     assert_never(event)
 
 

@@ -63,6 +63,8 @@ LAYERS: dict[str, tuple[int, str]] = {
     "gateway.cli": (5, "entry"),
     "gateway.ordercli": (5, "entry"),
     "gateway.__main__": (5, "entry"),
+    # ``python -m gateway.events_doc``: writes docs/events.md from the event models.
+    "gateway.events_doc": (5, "entry"),
     # The package's public face (``from gateway import Sink``): for plugin authors. It only
     # re-exports lazily, so its own imports (under TYPE_CHECKING) are not checked.
     "gateway": (3, "public"),

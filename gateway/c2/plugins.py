@@ -19,6 +19,7 @@ from pydantic import BaseModel, ValidationError
 
 from gateway.c2.sink import Sink, SinkClass
 from gateway.errors import SinkLoadError, SinkOptionsInvalid
+from gateway.events import declared_extensions
 
 __all__ = [
     "GROUP",
@@ -97,6 +98,13 @@ def load_component(group: str, type_name: str) -> Component:
             f"{what} type {type_name!r} from {dist} {version} lacks {', '.join(missing)}",
             sink=type_name,
         )
+    if group == PROCESSOR_GROUP:
+        try:
+            declared_extensions(factory)
+        except ValueError as exc:
+            raise SinkLoadError(
+                f"{what} type {type_name!r} from {dist} {version}: {exc}", sink=type_name
+            ) from None
     component = Component(group, type_name, factory, model, dist, version)
     _components[(group, type_name)] = component
     return component

@@ -7,7 +7,9 @@ kind. A durable event bound for sinks is first written to the spool once, for al
 spool refused it (full or failing), so a caller that can have it sent again does not
 acknowledge it. The route decision for a (kind, airframe, class) triple is computed once and
 cached, so the hot path is one dict lookup plus one offer per destination. The bus knows
-subscribers only through ``Subscriber`` and ``SpoolingSubscriber``.
+subscribers only through ``Subscriber`` and ``SpoolingSubscriber``. An ``extension`` event is
+taken only from the processor that declares its type (its runner checked the data first,
+``gateway.flow.extensions``); any other is refused and counted (``fg_extension_refused_total``).
 """
 
 from __future__ import annotations
@@ -15,13 +17,21 @@ from __future__ import annotations
 import time
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Protocol, cast
 
 import structlog
 
 from gateway.config import RouteConfig
 from gateway.errors import ConfigError, ConfigIssue, SpoolError
-from gateway.events import LATEST_WINS_KINDS, Detection, Event, EventKind, Track, latest_key
+from gateway.events import (
+    LATEST_WINS_KINDS,
+    Detection,
+    Event,
+    EventKind,
+    Extension,
+    Track,
+    latest_key,
+)
 from gateway.flow.subscriber import Subscriber
 from gateway.ops.instruments import Instruments
 from gateway.ops.logsetup import RateLimit
@@ -30,6 +40,7 @@ from gateway.spool.store import Spool
 __all__ = ["Bus", "SpoolingSubscriber"]
 
 _MAX_CACHED_ROUTES = 4096
+_EXTENSION = EventKind.EXTENSION  # a module global: cheaper to read than the enum's member
 
 log = structlog.get_logger(__name__)
 
@@ -58,6 +69,12 @@ def _airframes_of(event: Event) -> tuple[str, ...] | None:
         return event.airframes
     airframe = getattr(event, "airframe", None)
     return None if airframe is None else (airframe,)
+
+
+def _extension_types(subscriber: Subscriber) -> frozenset[str]:
+    gate = getattr(subscriber, "extensions", None)
+    types = getattr(gate, "types", None)
+    return types if isinstance(types, frozenset) else frozenset()
 
 
 def _class_of(event: Event) -> str | None:
@@ -99,7 +116,16 @@ class Bus:
         self._cache: dict[tuple[EventKind, tuple[str, ...] | None, str | None], list[_Target]] = {}
         self._targets: dict[tuple[int, str, EventKind], _Target] = {}
         self._event_counters = {kind: instruments.events.labels(kind.value) for kind in EventKind}
+        self._publishers = frozenset(p.name for p in self._processors)
+        # (publisher, type) of every extension type a processor declares: all the bus takes.
+        self._extensions = frozenset(
+            (name, type_name)
+            for p in self._processors
+            for name, types in [(p.name, _extension_types(p))]
+            for type_name in types
+        )
         self._spool_log = RateLimit(interval_s=10.0)
+        self._refused_log = RateLimit(interval_s=10.0)
         self._check(source)
 
     def _check(self, source: str) -> None:
@@ -163,8 +189,12 @@ class Bus:
         A durable event the spool refuses goes to no one, processors included: its sender
         (an airframe that was not acknowledged) sends it again, and it must count once.
         """
-        self._event_counters[event.kind].inc()
-        key = (event.kind, _airframes_of(event), _class_of(event))
+        kind = event.kind
+        # By kind, not isinstance: cheaper on the hot path, and it catches a subclass too.
+        if kind is _EXTENSION and not self._admits(cast("Extension", event)):
+            return False
+        self._event_counters[kind].inc()
+        key = (kind, _airframes_of(event), _class_of(event))
         targets = self._cache.get(key)
         if targets is None:
             targets = self._resolve(*key)
@@ -190,6 +220,27 @@ class Bus:
                 target.last_sent[slot] = now
             target.runner.offer_slot(event, now, slot)
         return True
+
+    def _admits(self, event: Extension) -> bool:
+        """An extension event only from the processor that declared its type (its runner has
+        checked the data); from anywhere else (a source) it is refused and counted."""
+        if (event.publisher, event.type) in self._extensions:
+            return True
+        # Labelled by a configured processor's name only: any other text is "unknown", so
+        # what a plugin writes there cannot grow the metric's label set.
+        known = event.publisher in self._publishers
+        self._inst.extension_refused.labels(
+            event.publisher if known else "unknown", "undeclared"
+        ).inc()
+        if self._refused_log.allow("extension"):
+            log.error(
+                "extension_refused",
+                publisher=event.publisher[:64] or None,
+                type=event.type,
+                reason="undeclared",
+                note="only a processor that declares the type in extension_events may publish it",
+            )
+        return False
 
     def _publish_durable(self, event: Event, targets: list[_Target], now: float) -> bool:
         names = [target.runner.name for target in targets]

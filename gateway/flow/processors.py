@@ -6,7 +6,8 @@ most every few seconds, so a slow processor never slows ingest; a processor with
 method is told which events it lost). ``run`` starts the
 processor with a clone of that stream and a ``publish`` that puts its events back on the bus
 (never back to itself); if the processor raises, it is logged and started again with jittered
-backoff, and what arrived meanwhile is still in the stream.
+backoff, and what arrived meanwhile is still in the stream. The ``Extension`` events it
+publishes are checked against its declared ``extension_events`` first (``gateway.flow.extensions``).
 """
 
 from __future__ import annotations
@@ -15,7 +16,8 @@ import anyio
 import anyio.abc
 import structlog
 
-from gateway.events import Event, EventKind
+from gateway.events import Event, EventKind, declared_extensions
+from gateway.flow.extensions import ExtensionGate
 from gateway.flow.processor import MissesEvents, Processor, Publish
 from gateway.ops.instruments import Instruments
 from gateway.ops.logsetup import RateLimit
@@ -44,6 +46,7 @@ class ProcessorRunner:
         self.processor = processor
         self.kinds: frozenset[EventKind] = frozenset(processor.kinds)
         self._publish = publish
+        self.extensions = ExtensionGate(name, declared_extensions(processor), instruments)
         self._send, self._receive = anyio.create_memory_object_stream[Event](queue_max)
         self._publishing = False
         self.record = Supervised(name)
@@ -79,7 +82,16 @@ class ProcessorRunner:
             self._in.inc()
 
     def publish(self, event: Event) -> bool:
-        """Put one of the processor's events on the bus."""
+        """Put one of the processor's events on the bus; an ``Extension`` once checked.
+
+        False (nothing published) for an extension event its processor did not declare or
+        whose data its model rejects (``ExtensionGate``).
+        """
+        if event.kind is EventKind.EXTENSION:
+            admitted = self.extensions.admit(event)
+            if admitted is None:
+                return False
+            event = admitted
         self._publishing = True
         try:
             held = self._publish(event)

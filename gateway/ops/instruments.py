@@ -161,6 +161,12 @@ class Instruments:
             "Events into and out of a processor, and dropped when its inbox was full.",
             ("processor", "direction"),
         )
+        self.extension_refused = r.counter(
+            "fg_extension_refused_total",
+            "Extension events refused before the bus, by publisher and reason "
+            "(undeclared: a type its processor does not declare; invalid: data its model rejects).",
+            ("publisher", "reason"),
+        )
         self.link_latency = r.histogram(
             "fg_link_latency_seconds",
             "Airframe to gateway, from the tunnel's send time (needs both clocks on GPS/NTP).",

@@ -23,6 +23,7 @@ DESCRIPTIONS = {
     "operations.md": "running it: reload, logs, metrics and alerts, health endpoints",
     "architecture.md": "how the gateway is built, with a diagram",
     "writing-a-sink.md": "the sink contract, an example sink and its contract check",
+    "events.md": "every event kind and field, generated from the event models",
     "tunnel.md": "the AES-256-GCM airframe tunnel",
     "durability.md": "durable delivery: the spool, detection acknowledgements, dead letters",
     "detection-ack.md": "FISCHER_DETECTION_ACK: what an airframe must do to lose no detection",

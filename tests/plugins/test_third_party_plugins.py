@@ -21,8 +21,8 @@ from daemon_support import Airframe, archive_events, free_udp_port, running, wai
 from own_plugins import own_types
 
 from gateway.c2.plugins import GROUP, PROCESSOR_GROUP, SOURCE_GROUP, available
-from gateway.contract import check_processor, check_sink, check_source
-from gateway.events import BlueForce, Track
+from gateway.contract import ContractViolation, check_processor, check_sink, check_source
+from gateway.events import BlueForce, Extension, Track
 from gateway.fleet.dialect import CLASS_NAMES
 
 PACKAGE = Path(__file__).resolve().parent / "fake_plugins"
@@ -45,9 +45,20 @@ def test_each_passes_its_contract_checker(installed: ModuleType, tmp_path: Path)
     assert source.published
     assert all(isinstance(e, BlueForce) and e.callsign == "BRAVO" for e in source.published)
     processor = check_processor(installed.Doubler, {"prefix": "X"})
-    (track,) = processor.published
+    track, doubled = processor.published
     assert isinstance(track, Track)
     assert track.detection_ids == ("c-det",)
+    assert isinstance(doubled, Extension)
+    assert doubled.type == "fake.doubled"
+    assert doubled.data == {"detection_id": "c-det", "track_id": track.track_id, "count": 1}
+
+
+def test_the_processor_checker_refuses_what_it_does_not_declare(installed: ModuleType) -> None:
+    with pytest.raises(ContractViolation, match=r"'fake\.undeclared', which its extension_events"):
+        check_processor(installed.Doubler, {"misbehave": True})
+
+    with pytest.raises(ContractViolation, match="'Doubled' is not a type name"):
+        check_processor(installed.Misdeclared, {})
 
 
 def test_installed_third_party_plugins_are_not_enumerated_as_ours(installed: ModuleType) -> None:
@@ -78,7 +89,7 @@ airframes:
 sources:
   - {{name: tick, type: ticker, interval_s: 0.1, callsign: ALPHA, crash_every: 5}}
 processors:
-  - {{name: twin, type: doubler, options: {{prefix: TW}}}}
+  - {{name: twin, type: doubler, options: {{prefix: TW, misbehave: true}}}}
 sinks:
   - {{name: archive, type: jsonl, options: {{path: '{archive}'}}}}
   - {{name: counted, type: tally, options: {{path: '{tally}'}}}}
@@ -95,7 +106,9 @@ routes:
         def kinds() -> set[str]:
             return {str(e.get("kind")) for e in archive_events(archive)}
 
-        wait_until(lambda: {"detection", "track", "blue_force"} <= kinds(), 10, "all three")
+        wait_until(
+            lambda: {"detection", "track", "blue_force", "extension"} <= kinds(), 10, "all four"
+        )
         status = daemon.status()
         (processor,) = status["processors"]
         assert processor["processor"] == "twin"
@@ -108,10 +121,36 @@ routes:
         assert daemon.get("/readyz")[0] == 200
         assert daemon.events("source_failed")
         assert daemon.metric("fg_processor_events_total", processor="twin", direction="out") >= 3
+        # Its undeclared type and its invalid data were refused, counted under its name.
+        for reason in ("undeclared", "invalid"):
+            wait_until(
+                lambda r=reason: (
+                    daemon.metric(  # type: ignore[misc]
+                        "fg_extension_refused_total", publisher="twin", reason=r
+                    )
+                    >= 3
+                ),
+                10,
+                f"three refused as {reason}",
+            )
+        assert daemon.status()["processors"][0]["detail"]["refused"] == 6
+        assert {e["reason"] for e in daemon.events("extension_refused")} == {
+            "undeclared",
+            "invalid",
+        }
+        assert all(e["processor"] == "twin" for e in daemon.events("extension_refused"))
     tracks = [e for e in archive_events(archive) if e["kind"] == "track"]
     expected = f"TW-OPEN-{CLASS_NAMES[1]}"  # the daemon_support detection's class_id
     assert {t["track_id"] for t in tracks} == {expected}
     assert len(tracks) == 3
+    # Its own event type, archived whole by jsonl; nothing it was refused got there.
+    extensions = [e for e in archive_events(archive) if e["kind"] == "extension"]
+    assert len(extensions) == 3
+    assert {e["type"] for e in extensions} == {"fake.doubled"}
+    assert {e["publisher"] for e in extensions} == {"twin"}
+    assert {e["airframe"] for e in extensions} == {"OPEN"}
+    assert sorted(e["data"]["count"] for e in extensions) == [1, 2, 3]
+    assert {e["data"]["track_id"] for e in extensions} == {expected}
     ticks = [e for e in archive_events(archive) if e["kind"] == "blue_force"]
     assert all(t["callsign"] == "ALPHA" for t in ticks)
     assert json.dumps(ticks[0])  # archived whole
@@ -137,6 +176,7 @@ def test_a_bad_plugin_option_is_a_config_error_with_its_line(
         "sources:\n  - {name: tick, type: ticker, intervl_s: 1}\n"
         "processors:\n  - {name: twin, type: doubler, options: {prefx: X}}\n"
         "  - {name: other, type: nosuch}\n"
+        "  - {name: bad, type: misdeclared}\n"
     )
     result = subprocess.run(
         [sys.executable, "-m", "gateway", "check-config", str(config)],
@@ -155,3 +195,7 @@ def test_a_bad_plugin_option_is_a_config_error_with_its_line(
         "processors[0].options.prefx: unknown key 'prefx'; did you mean 'prefix'?" in result.stderr
     )
     assert "processors[1].type: unknown processor type 'nosuch'" in result.stderr
+    assert (
+        "processors[2].type: processor type 'misdeclared' from fake-plugins 0.1: "
+        "extension_events: 'Doubled' is not a type name" in result.stderr
+    )

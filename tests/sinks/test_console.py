@@ -19,6 +19,7 @@ from gateway.events import (
     Detection,
     Event,
     EventKind,
+    Extension,
     LinkState,
     Position,
     Sensor,
@@ -167,6 +168,12 @@ class TestText:
             " (unauthenticated CoT callsign, source atak-mesh)"
             " at 65.82520,21.68860 alt 250.0 m MSL via cot"
         )
+
+    def test_an_extension_is_named_by_its_type_and_publisher(self) -> None:
+        event = Extension(
+            event_id="w-1", type="acme.weather", time=T0, publisher="wx", data={"x": 1}
+        )
+        assert describe(event) == "12:00:01.234Z extension  acme.weather from wx w-1"
 
     def test_describe_is_the_text_format(self) -> None:
         event = Telemetry(event_id="1", airframe="A", time=T0)

@@ -1,7 +1,10 @@
 """A third-party processor, source and sink, as another package would ship them.
 
 ``Doubler`` (processor ``doubler``) consumes Detections and publishes, for each, a Track at
-the same position: the smallest processor that shows the contract end to end. ``Ticker``
+the same position and an event of its own type ``fake.doubled`` (an ``Extension`` it declares
+in ``extension_events``): the smallest processor that shows the contract end to end. With
+``misbehave`` it also publishes an undeclared type and a ``fake.doubled`` with invalid data,
+which the gateway refuses and counts. ``Ticker``
 (source ``ticker``) publishes one BlueForce event every ``interval_s``. ``Tally`` (sink
 ``tally``) appends one ``KIND EVENT_ID`` line per event to a file. They import only the public
 surface: ``gateway`` and ``gateway.events``.
@@ -16,22 +19,36 @@ from typing import Any, ClassVar
 import anyio
 import anyio.abc
 from anyio.streams.memory import MemoryObjectReceiveStream
-from pydantic import Field
+from pydantic import BaseModel, ConfigDict, Field
 
 from gateway import ProcessorConfig, Publish, SinkConfig, SourceConfig
-from gateway.events import BlueForce, Detection, Event, EventKind, Position, Track
+from gateway.events import BlueForce, Detection, Event, EventKind, Extension, Position, Track
 
 
 class DoublerConfig(ProcessorConfig):
     prefix: str = Field(default="T", description="Start of every track id.")
+    misbehave: bool = Field(default=False, description="Also publish what must be refused.")
+
+
+class Doubled(BaseModel):
+    """A detection the doubler turned into a track."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    detection_id: str = Field(description="The detection's event_id.")
+    track_id: str = Field(description="The track it became.")
+    count: int = Field(ge=1, description="Detections doubled so far by this processor.")
 
 
 class Doubler:
     config_model: ClassVar[type[DoublerConfig]] = DoublerConfig
+    extension_events: ClassVar[dict[str, type[BaseModel]]] = {"fake.doubled": Doubled}
 
     def __init__(self, name: str, config: DoublerConfig) -> None:
         self.name = name
         self.config = config
+        self.count = 0
+        self.refused = 0
 
     @property
     def kinds(self) -> frozenset[EventKind]:
@@ -49,10 +66,11 @@ class Doubler:
             async for event in events:
                 if not isinstance(event, Detection):
                     continue
+                track_id = f"{self.config.prefix}-{event.airframe}-{event.object_class}"
                 publish(
                     Track(
                         event_id=f"{self.config.prefix}-{event.event_id}",
-                        track_id=f"{self.config.prefix}-{event.airframe}-{event.object_class}",
+                        track_id=track_id,
                         time=event.time,
                         object_class=event.object_class,
                         subtype=event.subtype,
@@ -67,6 +85,34 @@ class Doubler:
                         hostility="hostile",
                     )
                 )
+                self.count += 1
+                doubled = Doubled(detection_id=event.event_id, track_id=track_id, count=self.count)
+                publish(self._extension("fake.doubled", event, doubled.model_dump()))
+                if self.config.misbehave:
+                    for type_name, data in (
+                        ("fake.undeclared", {"detection_id": event.event_id}),
+                        ("fake.doubled", {"detection_id": event.event_id, "count": 0}),
+                    ):
+                        if not publish(self._extension(type_name, event, data)):
+                            self.refused += 1
+
+    def _extension(self, type_name: str, event: Detection, data: dict[str, Any]) -> Extension:
+        return Extension(
+            event_id=f"{self.config.prefix}-{type_name}-{event.event_id}",
+            type=type_name,
+            time=event.time,
+            airframe=event.airframe,
+            data=data,
+        )
+
+    def status(self) -> dict[str, Any]:
+        return {"doubled": self.count, "refused": self.refused}
+
+
+class Misdeclared(Doubler):
+    """A processor whose declaration breaks the rules: its type cannot be loaded."""
+
+    extension_events: ClassVar[dict[str, type[BaseModel]]] = {"Doubled": Doubled}
 
 
 class TickerConfig(SourceConfig):
