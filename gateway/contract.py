@@ -75,6 +75,7 @@ __all__ = [
     "MAX_BLOCK_S",
     "ContractRun",
     "ContractViolation",
+    "LoopBlocked",
     "Processor",
     "ProcessorConfig",
     "Publish",
@@ -101,6 +102,23 @@ T = TypeVar("T")
 
 class ContractViolation(AssertionError):
     """Raised by a checker when a plugin breaks a rule of its contract."""
+
+
+class LoopBlocked(ContractViolation):
+    """A call held the event loop longer than ``MAX_BLOCK_S``.
+
+    Measured on the wall clock, so a loaded machine that deschedules the process looks the
+    same: each checker runs a fresh plugin once more before it reports this, and a plugin
+    that truly blocks does it again.
+    """
+
+
+def _twice_if_blocked(check: Callable[[], T]) -> T:
+    """``check()``, run once more if it found the loop blocked (see ``LoopBlocked``)."""
+    try:
+        return check()
+    except LoopBlocked:
+        return check()
 
 
 @dataclass(frozen=True, slots=True)
@@ -256,8 +274,15 @@ def check_sink(
         raise ContractViolation(f"sink.name is {sink.name!r}, expected the given {name!r}")
     kinds = _kinds(sink.kinds)
     batch = list(events) if events is not None else sample_events(kinds)
-    anyio.run(_exercise, sink, batch, deadline_s)
-    return sink
+
+    def once() -> Sink:
+        fresh = sink if not ran else factory(name, config)
+        ran.append(True)
+        anyio.run(_exercise, fresh, batch, deadline_s)
+        return fresh
+
+    ran: list[bool] = []
+    return _twice_if_blocked(once)
 
 
 async def _exercise(sink: Sink, batch: list[Event], deadline_s: float) -> None:
@@ -296,7 +321,7 @@ async def _timed(what: str, call: Callable[[], Awaitable[None]], deadline_s: flo
     except TimeoutError as exc:
         raise ContractViolation(f"{what} did not return within {deadline_s} s") from exc
     if longest > MAX_BLOCK_S:
-        raise ContractViolation(
+        raise LoopBlocked(
             f"{what} blocked the event loop for {longest:.3f} s (limit {MAX_BLOCK_S} s): "
             "run blocking work with anyio.to_thread.run_sync"
         )
@@ -320,29 +345,33 @@ def check_source(
     and what it published.
     """
     config = _config(factory, SourceConfig, "gateway.SourceConfig", options)
-    published = _Published()
-    source = factory(name, config, published, clock=clock)
-    if not isinstance(source, Source):
-        raise ContractViolation(f"{factory!r}: builds {source!r}, which lacks Source's members")
-    if source.name != name:
-        raise ContractViolation(f"source.name is {source.name!r}, expected the given {name!r}")
-    _check_status(source, "before run()")
 
-    async def exercise(phase: _Phase) -> None:
-        async def input_then_wait() -> None:
-            if drive is not None:
-                phase.enter("drive(source)")
-                with anyio.fail_after(deadline_s):
-                    await drive(source)
-            _check_status(source, "while it runs")
-            await anyio.sleep(run_s)
+    def once() -> ContractRun[Source]:
+        published = _Published()
+        source = factory(name, config, published, clock=clock)
+        if not isinstance(source, Source):
+            raise ContractViolation(f"{factory!r}: builds {source!r}, which lacks Source's members")
+        if source.name != name:
+            raise ContractViolation(f"source.name is {source.name!r}, expected the given {name!r}")
+        _check_status(source, "before run()")
 
-        await _exercise_run(phase, source.run, input_then_wait, deadline_s)
+        async def exercise(phase: _Phase) -> None:
+            async def input_then_wait() -> None:
+                if drive is not None:
+                    phase.enter("drive(source)")
+                    with anyio.fail_after(deadline_s):
+                        await drive(source)
+                _check_status(source, "while it runs")
+                await anyio.sleep(run_s)
 
-    _nothing_published_yet(published)
-    _guarded(exercise, published, deadline_s)
-    _check_status(source, "after run() ended")
-    return ContractRun(source, published.kept())
+            await _exercise_run(phase, source.run, input_then_wait, deadline_s)
+
+        _nothing_published_yet(published)
+        _guarded(exercise, published, deadline_s)
+        _check_status(source, "after run() ended")
+        return ContractRun(source, published.kept())
+
+    return _twice_if_blocked(once)
 
 
 def check_processor(
@@ -362,37 +391,41 @@ def check_processor(
     published.
     """
     config = _config(factory, ProcessorConfig, "gateway.ProcessorConfig", options)
-    processor = factory(name, config)
-    if not isinstance(processor, Processor):
-        raise ContractViolation(
-            f"{factory!r}: builds {processor!r}, which lacks Processor's members"
-        )
-    if processor.name != name:
-        raise ContractViolation(
-            f"processor.name is {processor.name!r}, expected the given {name!r}"
-        )
-    batch = list(events) if events is not None else sample_events(_kinds(processor.kinds))
-    published = _Published(_declared(factory))
 
-    async def exercise(phase: _Phase) -> None:
-        # Unbuffered: each send returns once run() has taken the event.
-        send, receive = anyio.create_memory_object_stream[Event](0)
+    def once() -> ContractRun[Processor]:
+        processor = factory(name, config)
+        if not isinstance(processor, Processor):
+            raise ContractViolation(
+                f"{factory!r}: builds {processor!r}, which lacks Processor's members"
+            )
+        if processor.name != name:
+            raise ContractViolation(
+                f"processor.name is {processor.name!r}, expected the given {name!r}"
+            )
+        batch = list(events) if events is not None else sample_events(_kinds(processor.kinds))
+        published = _Published(_declared(factory))
 
-        async def run(*, task_status: anyio.abc.TaskStatus[None]) -> None:
-            await processor.run(receive, published, task_status=task_status)
+        async def exercise(phase: _Phase) -> None:
+            # Unbuffered: each send returns once run() has taken the event.
+            send, receive = anyio.create_memory_object_stream[Event](0)
 
-        async def feed_then_wait() -> None:
-            phase.enter(f"reading the {len(batch)} events fed to run()")
-            with anyio.fail_after(deadline_s):
-                for event in batch:
-                    await send.send(event)
-            await anyio.sleep(settle_s)
+            async def run(*, task_status: anyio.abc.TaskStatus[None]) -> None:
+                await processor.run(receive, published, task_status=task_status)
 
-        with send, receive:
-            await _exercise_run(phase, run, feed_then_wait, deadline_s)
+            async def feed_then_wait() -> None:
+                phase.enter(f"reading the {len(batch)} events fed to run()")
+                with anyio.fail_after(deadline_s):
+                    for event in batch:
+                        await send.send(event)
+                await anyio.sleep(settle_s)
 
-    _guarded(exercise, published, deadline_s)
-    return ContractRun(processor, published.kept())
+            with send, receive:
+                await _exercise_run(phase, run, feed_then_wait, deadline_s)
+
+        _guarded(exercise, published, deadline_s)
+        return ContractRun(processor, published.kept())
+
+    return _twice_if_blocked(once)
 
 
 def _config(
@@ -568,7 +601,7 @@ async def _exercise_run(
     if problem is None and ended:
         problem = f"run() {ended[0]} when it was cancelled"
     if problem is None and watch.longest > MAX_BLOCK_S:
-        problem = (
+        raise LoopBlocked(
             f"run() blocked the event loop for {watch.longest:.3f} s (limit {MAX_BLOCK_S} s): "
             "run blocking work with anyio.to_thread.run_sync"
         )
