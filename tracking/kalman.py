@@ -157,6 +157,23 @@ class Estimate:
         n33 = p[15] - k3 * c3 - l3 * d3
         self.p = [n00, n01, n02, n03, n01, n11, n12, n13, n02, n12, n22, n23, n03, n13, n23, n33]
 
+    def update_speed(self, ue: float, un: float, speed: float, r: float) -> None:
+        """Pull the state towards a speed ``speed`` along the unit vector (ue, un) as a
+        measurement of variance ``r`` would, without taking its information: the covariance is
+        left as it was. A prior on how fast a class goes (the tracker's speed limit) says
+        nothing of where this target is heading, and must not make a velocity drawn from a
+        few noisy fixes look certain."""
+        p = self.p
+        # h = (0, 0, ue, un); P·hᵀ is ue × column 2 + un × column 3.
+        ph = [p[4 * row + 2] * ue + p[4 * row + 3] * un for row in range(4)]
+        s = ph[2] * ue + ph[3] * un + r
+        if not s > 0.0:
+            return
+        y = speed - (self.x[2] * ue + self.x[3] * un)
+        k = [v / s for v in ph]
+        for row in range(4):
+            self.x[row] += k[row] * y
+
     def shift(self, east_m: float, north_m: float) -> None:
         """Move the anchor by (east, north): positions become relative to the new anchor."""
         self.x[0] -= east_m

@@ -2,9 +2,9 @@
 
 Read from ``tracking/classes.yaml`` (package data) or a mapping an operator gives. A class the
 table lacks takes the ``other`` row. The speed limit is a *prior*: it sets how wide a new
-track's velocity uncertainty starts (σ = limit/2 per axis, so a second detection of a target
-at full speed still falls in the gate) and the tracker pulls an estimate beyond it back with a
-soft pseudo-measurement; it never clamps what is published.
+track's velocity uncertainty starts (σ = the limit per axis, so a second detection of a target
+at full speed still falls in the gate) and the tracker pulls an estimate beyond it back along
+its course; it never clamps what is published.
 """
 
 from __future__ import annotations

@@ -31,10 +31,11 @@ on both) for ``merge_after`` updates in a row, with class evidence that does not
 other, are one object: the younger is folded into the older and published once as "merged"
 naming the survivor (never "lost"); a tentative twin is folded in silently.
 
-**Speed prior.** A new track's velocity σ per axis is half its class's speed limit
+**Speed prior.** A new track's velocity σ per axis is its class's speed limit
 (``tracking.priors``, times ``speed_scale``); an estimate faster than the limit is pulled back
-by a pseudo-measurement of the velocity at the limit with σ ``speed_prior_sigma`` × limit. It
-penalises, never clamps.
+along its course as a measurement of the speed at the limit (σ ``speed_prior_sigma`` × limit)
+would, with the covariance left as it was (``Estimate.update_speed``). It penalises, never
+clamps.
 """
 
 from __future__ import annotations
@@ -50,7 +51,7 @@ from gateway.flow.localplane import offset_m
 from tracking.assign import assign
 from tracking.emit import Status, track_event
 from tracking.index import TrackIndex
-from tracking.kalman import POSITION, VELOCITY, Estimate, Innovation
+from tracking.kalman import POSITION, Estimate, Innovation
 from tracking.merge import agree, elder, fold
 from tracking.settings import OTHER, TrackerCounts, TrackerSettings
 from tracking.track import MIN_SIGMA_M, Source, TrackState, fuse_sources
@@ -379,9 +380,9 @@ class Tracker:
             return
         self.counts.speed_prior += 1
         r = (self.settings.speed_prior_sigma * limit) ** 2
-        scale = limit / speed
-        innovation = estimate.innovation(east * scale, north * scale, r, 0.0, r, VELOCITY)
-        estimate.update(innovation, VELOCITY)
+        # The speed along the estimate's course, not the velocity: the prior knows how fast
+        # the class goes, not where to, so the course keeps its own uncertainty.
+        estimate.update_speed(east / speed, north / speed, limit, r)
 
     def _record(self, state: TrackState, d: Detection, source: Source) -> None:
         if d.position.alt_msl_m is not None and d.time >= state.last_seen:

@@ -57,3 +57,19 @@ def test_update_is_the_kalman_update(pair: tuple[int, int], seed: int) -> None:
     est.update(innovation, pair)
     assert np.allclose(np.array(est.x), x + k @ y)
     assert np.allclose(np.array(est.p).reshape(4, 4), p - k @ s @ k.T)
+
+
+def test_the_speed_prior_moves_the_speed_along_the_course_and_keeps_the_covariance() -> None:
+    """A class's speed limit says how fast, not where to: the pull changes the velocity along
+    its course by a measurement's gain and leaves every variance as it was."""
+    from tracking.kalman import Estimate
+
+    estimate = Estimate.at_rest(10.0, 20.0)
+    estimate.x[2], estimate.x[3] = 30.0, 0.0  # 30 m/s due east, over a 20 m/s limit
+    before = list(estimate.p)
+    r = 4.0**2
+    estimate.update_speed(1.0, 0.0, 20.0, r)
+    gain = 20.0**2 / (20.0**2 + r)
+    assert estimate.x[2] == pytest.approx(30.0 + gain * (20.0 - 30.0))
+    assert estimate.x[3] == 0.0  # across the course: untouched
+    assert estimate.p == before
