@@ -66,3 +66,28 @@ def failures(name: str, s: Score) -> list[str]:
 def test_the_picture_meets_the_issue_22_rules(scores: dict[str, Score]) -> None:
     broken = [line for name, s in scores.items() for line in failures(name, s)]
     assert broken == []
+
+
+#: Further draws of each scenario's noise (the shipped seed is one draw): a split like the one
+#: the speed prior once made of shared-target's tank on seed 335 shows up on some draw only.
+MORE_DRAWS = 3
+
+
+def test_one_track_per_target_on_other_draws_of_the_noise() -> None:
+    """As many track ids as targets (at most 10 % more) and none false on each draw. (Which
+    track a target's id ends on may swap on a draw where two column vehicles drive close:
+    ID switches, which ``score`` counts apart, not a split picture.)"""
+    broken = []
+    for name in shipped_scenarios():
+        base = load_scenario(name)
+        for k in range(1, MORE_DRAWS + 1):
+            scenario = base.model_copy(update={"seed": base.seed + k})
+            truth = scenario_truth(scenario)
+            processor = FusionProcessor("fusion", FusionConfig())
+            published = replay(scenario_detections(scenario), processor.tracker)
+            s = score(truth, tracks_from_events(published, truth.plane))
+            if s.track_ids > MAX_TRACKS_PER_TARGET * s.targets or s.false_tracks:
+                broken.append(
+                    f"{name} seed {scenario.seed}: {s.track_ids} ids, {s.targets} targets"
+                )
+    assert broken == []
