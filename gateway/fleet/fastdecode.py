@@ -5,9 +5,11 @@ calls a generated ``__init__`` per frame. For the messages the gateway acts on
 (``GATEWAY_MESSAGES``: telemetry, detections, acknowledgements, mission and camera
 messages) this module decodes a frame with one CRC call and one ``struct`` unpack into a
 ``FastMessage``: a tuple of the payload values in wire order plus the frame, whose fields
-are read by name exactly as on pymavlink's message (same names, same values; char fields
-are NUL-stripped ``bytes`` and arrays lists as pymavlink 2.4.50 gives them; enums stay
-ints). The layout of every message (wire order, ``struct`` format, CRC_EXTRA, extensions,
+are read by name exactly as on pymavlink's message (same names, same values, arrays as
+lists, enums as ints). Char fields follow pymavlink 2.4.50's classes: ``str`` cut at the
+first NUL, ASCII with undecodable bytes replaced; in the project's own messages
+(``gateway.fleet.dialect``, ``hopdialect``) they are ``bytes`` without trailing NULs.
+The layout of every message (wire order, ``struct`` format, CRC_EXTRA, extensions,
 MAVLink 2 zero truncation) comes from the XML that the installed pymavlink carries and
 from ``fischer_dialect.xml`` (``gateway.fleet.mavxml``), read once per process.
 
@@ -43,7 +45,7 @@ from __future__ import annotations
 
 import struct
 from binascii import crc_hqx
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Collection, Iterable
 from functools import cache
 from importlib import metadata
 from operator import itemgetter
@@ -156,18 +158,26 @@ class FastMessage(tuple[Any, ...]):
 _RESERVED = frozenset(dir(FastMessage)) - frozenset(dir(tuple))
 
 
-def _getter(at: int, field_type: str, array_length: int) -> Callable[[FastMessage], Any]:
+def _getter(
+    at: int, field_type: str, array_length: int, *, chars_as_bytes: bool
+) -> Callable[[FastMessage], Any]:
     """The accessor of a field stored from flat position ``at``, giving pymavlink's value."""
-    if field_type == "char":
+    if field_type == "char" and chars_as_bytes:
         return lambda m: m[at].rstrip(b"\x00")
+    if field_type == "char":
+        return lambda m: m[at].split(b"\x00", 1)[0].decode("ascii", "replace")
     if array_length > 1:
         end = at + array_length
         return lambda m: list(m[at:end])
     return cast("Callable[[FastMessage], Any]", itemgetter(at))
 
 
-def message_class(message: MessageDef) -> type[FastMessage]:
-    """A ``FastMessage`` subclass for ``message``, its fields read from the flat values."""
+def message_class(message: MessageDef, *, chars_as_bytes: bool = False) -> type[FastMessage]:
+    """A ``FastMessage`` subclass for ``message``, its fields read from the flat values.
+
+    ``chars_as_bytes``: char fields are NUL-stripped bytes (the project's hand-written
+    pymavlink classes) rather than pymavlink's generated ``str``.
+    """
     namespace: dict[str, Any] = {
         "__slots__": (),
         "_msgname": message.name,
@@ -178,7 +188,8 @@ def message_class(message: MessageDef) -> type[FastMessage]:
     for f in message.wire_fields:
         if f.name in _RESERVED:
             raise ValueError(f"{message.name}.{f.name}: the name of a FastMessage method")
-        namespace[f.name] = property(_getter(at, f.type, f.array_length))
+        getter = _getter(at, f.type, f.array_length, chars_as_bytes=chars_as_bytes)
+        namespace[f.name] = property(getter)
         # A char array is one bytes value; any other array one value per element.
         at += 1 if f.type == "char" else max(f.array_length, 1)
     return type(f"Fast_{message.name}", (FastMessage,), namespace)
@@ -192,7 +203,11 @@ class FastDecoder:
 
     __slots__ = ("_table", "messages")
 
-    def __init__(self, messages: Iterable[MessageDef]) -> None:
+    def __init__(
+        self, messages: Iterable[MessageDef], *, chars_as_bytes: Collection[str] = ()
+    ) -> None:
+        """Decoders of ``messages``; those named in ``chars_as_bytes`` give char fields as
+        bytes (see ``message_class``)."""
         self.messages: dict[int, MessageDef] = {}
         self._table: dict[int, _Entry] = {}
         for message in messages:
@@ -203,7 +218,7 @@ class FastDecoder:
                 unpacker.size,
                 bytes(unpacker.size),
                 _REVERSED[message.crc_extra],
-                message_class(message),
+                message_class(message, chars_as_bytes=message.name in chars_as_bytes),
             )
 
     def __contains__(self, msgid: object) -> bool:
@@ -252,10 +267,12 @@ class FastDecoder:
             reversed_frame[end] << 8 | reversed_frame[end + 1]
         ):
             raise Malformed("MAVLink CRC does not match")
+        # A tuple concatenated is built once; (*values, frame) goes through a list first.
         if end - start >= payload_size:
-            return _new_tuple(cls, (*unpack(frame, start), frame))
+            return _new_tuple(cls, unpack(frame, start) + (frame,))  # noqa: RUF005
         # MAVLink 2 drops trailing zero bytes; a MAVLink 1 frame has no extensions.
-        return _new_tuple(cls, (*unpack(frame[start:end] + zeros[end - start :]), frame))
+        values = unpack(frame[start:end] + zeros[end - start :])
+        return _new_tuple(cls, values + (frame,))  # noqa: RUF005
 
     def decode_payload(self, msgid: int, payload: bytes | bytearray) -> FastMessage | None:
         """Field values of a payload whose frame was checked elsewhere; None if not ours.
@@ -268,7 +285,7 @@ class FastDecoder:
         unpack, payload_size, zeros, _extra, cls = entry
         if len(payload) < payload_size:
             payload = bytes(payload) + zeros[len(payload) :]
-        return tuple.__new__(cls, (*unpack(payload, 0), b""))
+        return _new_tuple(cls, (*unpack(payload, 0), b""))
 
 
 def load_messages(names: Iterable[str]) -> list[MessageDef]:
@@ -311,7 +328,9 @@ def default_decoder() -> FastDecoder:
         )
         return FastDecoder(())
     try:
-        return FastDecoder(load_messages(GATEWAY_MESSAGES))
+        messages = load_messages(GATEWAY_MESSAGES)
+        own = {m.name for m in messages if m.source == _PROJECT_DIALECT.name}
+        return FastDecoder(messages, chars_as_bytes=own)
     except ValueError as exc:
         log.warning("fastdecode_disabled", reason="dialect_xml", error=str(exc))
         return FastDecoder(())
