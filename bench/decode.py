@@ -23,6 +23,7 @@ import argparse
 import os
 import platform
 import statistics
+import sys
 import time
 from collections.abc import Callable
 from datetime import UTC, datetime
@@ -34,6 +35,7 @@ from gateway.errors import Malformed
 from gateway.fleet import mavlink as _registers_the_project_dialect  # noqa: F401
 from gateway.fleet.fastdecode import FastDecoder, default_decoder
 from gateway.fleet.tlog import read_tlog
+from gateway.ops.logsetup import configure_logging
 from gateway.sim.airframe import SimProfile, SimulatedAirframe
 
 ROUNDS = 5
@@ -114,6 +116,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--frames", type=int, default=100_000, help="frames per simulated set")
     args = parser.parse_args()
+    configure_logging("warning", sys.stderr)  # the damaged corpus log's warning, off stdout
     start = time.process_time()
     decoder = default_decoder()
     built_ms = (time.process_time() - start) * 1000

@@ -43,6 +43,7 @@ stateful parser to find frame boundaries.
 
 from __future__ import annotations
 
+import os
 import struct
 from binascii import crc_hqx
 from collections.abc import Callable, Collection, Iterable
@@ -316,8 +317,12 @@ def default_decoder() -> FastDecoder:
     """The decoder of ``GATEWAY_MESSAGES``, built once per process.
 
     Empty (every frame goes to pymavlink) when the installed pymavlink is not
-    ``PYMAVLINK_CHECKED`` or its XML cannot be read; a warning says why.
+    ``PYMAVLINK_CHECKED``, when ``MAV_IGNORE_CRC`` tells pymavlink to take frames whatever
+    their CRC, or when the XML cannot be read; a warning says why.
     """
+    if os.environ.get("MAV_IGNORE_CRC"):
+        log.warning("fastdecode_disabled", reason="mav_ignore_crc")
+        return FastDecoder(())
     installed = metadata.version("pymavlink")
     if installed != PYMAVLINK_CHECKED:
         log.warning(

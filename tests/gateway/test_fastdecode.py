@@ -181,6 +181,16 @@ def test_another_pymavlink_turns_the_fast_path_off(monkeypatch: pytest.MonkeyPat
     assert logs[0]["installed"] == "2.4.99"
 
 
+def test_pymavlink_told_to_ignore_crcs_turns_the_fast_path_off(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """pymavlink reads MAV_IGNORE_CRC at import; the fast path never accepts a bad CRC."""
+    monkeypatch.setenv("MAV_IGNORE_CRC", "1")
+    with structlog.testing.capture_logs() as logs:
+        assert not default_decoder.__wrapped__().messages
+    assert logs[0]["reason"] == "mav_ignore_crc"
+
+
 def test_the_chosen_messages_are_the_ones_the_gateway_handles() -> None:
     """Every message with a handler (ingest, session, commander, hop schedules) is fast;
     the two the gateway only sends are there for the dialect's sake."""
