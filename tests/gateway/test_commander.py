@@ -8,7 +8,7 @@ import pytest
 
 from gateway.app import Gateway
 from gateway.config import Config
-from gateway.domain.mission import Loiter, ModeCommands, Outcome, Waypoint
+from gateway.domain.mission import Loiter, MissionStep, ModeCommands, Outcome, Waypoint
 from gateway.fleet.commander import FleetCommander
 from gateway.fleet.missionitems import MAV_CMD_NAV_LOITER_TIME, MAV_CMD_NAV_WAYPOINT, MissionItem
 from gateway.flow.tasking import AirframeCommander
@@ -107,7 +107,10 @@ async def test_the_fleet_picks_the_mavlink_of_an_intent(
 ) -> None:
     """Orders speak in intents; the fleet says them in MAVLink (PX4 modes or plain commands)."""
     commander = _Recording()
-    steps = [Waypoint(65.85, 21.1, 500.0), Loiter(65.85, 21.1, 500.0, 600.0, 300.0)]
+    steps: list[MissionStep] = [
+        Waypoint(65.85, 21.1, 500.0),
+        Loiter(65.85, 21.1, 500.0, 600.0, 300.0),
+    ]
     for outcome in (
         await commander.upload_mission("F26E-001", steps, timeout_s=1.0, retries=0),
         await commander.start_mission("F26E-001", 2, mode_commands, timeout_s=1.0, retries=0),

@@ -157,3 +157,25 @@ class TestMessageHandlers:
         with pytest.raises(KeyError, match="a bug in a handler"):
             session.dispatch("l", "SCALED_PRESSURE", object())  # type: ignore[arg-type]
         assert seen == ["after"]
+
+
+class TestState:
+    """The session's state is its own: changed through its methods, read through properties."""
+
+    def test_a_peer_is_learned_once_and_forgotten_only_by_itself(self) -> None:
+        session = gateway().fleet.sessions["F26E-001"]
+        (label,) = session.labels
+        assert session.heard(label, ("127.0.0.1", 5), 1, 0, 1.0)
+        assert not session.heard(label, ("127.0.0.1", 5), 1, 1, 1.1)
+        assert session.peer(label) == ("127.0.0.1", 5)
+        session.forget_peer(label, ("127.0.0.1", 6))  # another connection closed
+        assert session.peer(label) == ("127.0.0.1", 5)
+        session.forget_peer(label, ("127.0.0.1", 5))
+        assert session.peer(label) is None
+
+    def test_fields_are_read_only(self) -> None:
+        session = gateway().fleet.sessions["F26E-001"]
+        with pytest.raises(AttributeError):
+            session.commands_sent = 5  # type: ignore[misc]
+        with pytest.raises(AttributeError):
+            session.peers = {}  # type: ignore[attr-defined]
