@@ -115,8 +115,9 @@ class Ingest:
             labels = frozenset(link.label for link in cfg.links)
             verifier = (verifiers or {}).get(cfg.sysid)
             airframe = AirframeSession(cfg, state, health, labels, verifier, transmit=transmit)
+            telemetry = partial(self._telemetry, state, cfg.id)
             for name in NORMALISED_TYPES:
-                airframe.on(name, self._telemetry)
+                airframe.on(name, telemetry)
             airframe.on("FISCHER_DETECTION", self._detection)
             airframe.on("COMMAND_ACK", airframe.on_command_ack)
             view = CameraView(cfg.id, state, clock, terrain)
@@ -289,14 +290,8 @@ class Ingest:
                 return
         intake.counters[2].value += 1  # type: ignore[index]
         now_mono = time.monotonic()
-        if (
-            authenticated
-            and airframe.heard(label, peer, msg.get_srcComponent(), msg.get_seq(), now_mono)
-            and intake.trust is not None
-        ):
-            intake.trust(peer)
         name = msg.get_type()
-        if not airframe.accept(buf, name, msg, now_mono):
+        if not airframe.accept(label, peer, authenticated, intake.trust, buf, name, msg, now_mono):
             self._inst.link_ignored.labels(label, "duplicate").inc()
             return
         try:
@@ -309,9 +304,18 @@ class Ingest:
                     "message_handler_failed", link=label, airframe=airframe.id, message=name
                 )
 
-    def _telemetry(self, airframe: AirframeSession, _label: str, msg: MavMessage) -> None:
-        if airframe.state.update(msg.get_type(), msg):
-            self._dirty[airframe.config.id] = airframe
+    def _telemetry(
+        self,
+        state: AirframeState,
+        airframe_id: str,
+        airframe: AirframeSession,
+        _label: str,
+        msg: MavMessage,
+    ) -> None:
+        # The airframe's state and id are bound when the handler is registered: this runs
+        # for most frames, so it reads nothing it does not need.
+        if state.update(msg.get_type(), msg):
+            self._dirty[airframe_id] = airframe
             if not self._flush_pending:
                 self._schedule_flush()
 

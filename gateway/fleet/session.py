@@ -4,16 +4,21 @@
 only ones that may speak for it) and the peer that last authenticated on each, link health
 and failover, de-duplication, the passthrough, the normalised state, and an extensible
 message table (``on(name, handler)``: telemetry, detections and COMMAND_ACK are registered by
-ingest; camera, gimbal and mission messages join the same way). A message may have several
-handlers, called in the order they were registered; registering the same handler for the same
-message twice is an error, never a silent replacement. ``Ingest`` demultiplexes
-frames to sessions after authentication; everything per airframe lives here.
+ingest; camera, gimbal, mission and hop messages join the same way). A message may have
+several handlers, called in the order they were registered; registering the same handler for
+the same message twice is an error, never a silent replacement.
+
+The session owns accept-and-dispatch: ``Ingest`` authenticates a frame and finds its
+airframe, then the session takes it: ``accept`` (an authenticated frame names the peer on
+that link and keeps the link alive; de-duplication across the airframe's links; the
+passthrough) and ``dispatch`` (the handlers). Its state is private: others read it through
+properties and change it only through these methods.
 
 Outbound, ``send`` puts raw MAVLink on the airframe's active link in the link's mode (the
-transmit function the gateway gives it), and ``command_long`` sends a COMMAND_LONG and waits
-for the COMMAND_ACK with the same command id: correlated, under a timeout, retried with an
-incremented ``confirmation`` field as MAVLink's command protocol asks, and reported as a
-``CommandResult`` (result, attempts, latency) that ``status()`` shows.
+fleet's uplink, ``Fleet.send``, given as ``transmit``), and ``command_long`` sends a
+COMMAND_LONG and waits for the COMMAND_ACK with the same command id: correlated, under a
+timeout, retried with an incremented ``confirmation`` field as MAVLink's command protocol
+asks, and reported as a ``CommandResult`` (result, attempts, latency) that ``status()`` shows.
 """
 
 from __future__ import annotations
@@ -98,7 +103,7 @@ class AirframeSession:
     """Everything the gateway holds for one airframe; see the module docstring.
 
     Its state is its own: others read it through properties and change it only through
-    methods (``heard``, ``accept``, ``forget_peer``, ``on`` ...).
+    methods (``accept``, ``forget_peer``, ``on``, ``command_long`` ...).
     """
 
     __slots__ = (
@@ -210,24 +215,36 @@ class AirframeSession:
         """The peer on link ``label`` that last sent an authenticated frame of this airframe."""
         return self._peers.get(label)
 
-    def heard(self, label: str, peer: object, component: int, seq: int, now_mono: float) -> bool:
-        """An authenticated frame from ``peer`` on link ``label``: it is now the airframe's
-        peer there, and the link is alive. True if the peer is new on that link."""
-        new = self._peers.get(label) != peer
-        if new:
-            self._peers[label] = peer
-        self._health.heard(label, component, seq, now_mono)
-        return new
-
     def forget_peer(self, label: str, peer: object) -> None:
         """``peer`` (a closed stream connection) no longer speaks for the airframe on ``label``."""
         if self._peers.get(label) == peer:
             del self._peers[label]
 
-    def accept(self, buf: bytes | bytearray, name: str, msg: MavMessage, now_mono: float) -> bool:
-        """Take one frame of the airframe: False for one already heard on another link within
-        the de-duplication window (drop it); else it goes to the passthrough, a flight
-        controller's HEARTBEAT names the autopilot's component, and True: dispatch it."""
+    def accept(
+        self,
+        label: str,
+        peer: object,
+        authenticated: bool,
+        trust: Callable[[object], None] | None,
+        buf: bytes | bytearray,
+        name: str,
+        msg: MavMessage,
+        now_mono: float,
+    ) -> bool:
+        """Take one frame of the airframe from ``peer`` on link ``label``, before dispatch.
+
+        An ``authenticated`` frame is ``heard`` (a peer new on the link is also given to
+        ``trust``); unsigned frames the config accepts prove nothing and are not. Then False
+        for a frame already heard on another link within the de-duplication window (drop
+        it); else it goes to the passthrough, a flight controller's HEARTBEAT names the
+        autopilot's component, and True: dispatch it. One call per frame: ingest's hot path.
+        """
+        if authenticated:
+            if self._peers.get(label) != peer:
+                self._peers[label] = peer
+                if trust is not None:
+                    trust(peer)
+            self._health.heard(label, msg.get_srcComponent(), msg.get_seq(), now_mono)
         if self._multilink and self._duplicate(buf, now_mono):
             return False
         if self._passthrough is not None:

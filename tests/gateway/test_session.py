@@ -163,10 +163,21 @@ class TestState:
     """The session's state is its own: changed through its methods, read through properties."""
 
     def test_a_peer_is_learned_once_and_forgotten_only_by_itself(self) -> None:
+        from gateway.fleet.mavlink import dialect
+
         session = gateway().fleet.sessions["F26E-001"]
         (label,) = session.labels
-        assert session.heard(label, ("127.0.0.1", 5), 1, 0, 1.0)
-        assert not session.heard(label, ("127.0.0.1", 5), 1, 1, 1.1)
+        mav = dialect.MAVLink(None, srcSystem=1, srcComponent=1)
+        msg = mav.heartbeat_encode(1, 12, 0, 0, 4)  # a flight controller (PX4)
+        buf = msg.pack(mav)
+        trusted: list[object] = []
+        for peer in (("127.0.0.1", 5), ("127.0.0.1", 5)):
+            assert session.accept(label, peer, True, trusted.append, buf, "HEARTBEAT", msg, 1.0)
+        assert trusted == [("127.0.0.1", 5)]  # told once, when it was new
+        assert session.peer(label) == ("127.0.0.1", 5)
+        assert session.health.autopilot_compid == 1
+        # An unsigned frame the config lets through proves nothing: no peer is learned.
+        session.accept(label, ("127.0.0.1", 7), False, trusted.append, buf, "HEARTBEAT", msg, 1.0)
         assert session.peer(label) == ("127.0.0.1", 5)
         session.forget_peer(label, ("127.0.0.1", 6))  # another connection closed
         assert session.peer(label) == ("127.0.0.1", 5)

@@ -528,3 +528,13 @@ async def test_track_target_naming_a_merged_track_flies_to_its_survivor() -> Non
     )
     ((_, items),) = commander.uploads
     assert {(i.lat_deg, i.lon_deg) for i in items} == {(65.872, 21.15)}
+
+
+def test_the_processors_speak_no_mavlink() -> None:
+    """Orders are intents: command numbers, modes and mission items are the fleet's choice."""
+    root = Path(__file__).resolve().parents[2] / "processors"
+    for path in root.glob("*.py"):
+        text = path.read_text()
+        assert "MAV_CMD" not in text, path
+        assert "gateway.fleet" not in text, path
+        assert "pymavlink" not in text, path
