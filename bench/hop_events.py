@@ -73,18 +73,18 @@ async def gateway(frames: list[bytes]) -> tuple[float, int, int]:
         }
     )
     gw = Gateway(config, sinks={"mem": MemorySink("mem")})
-    link = next(iter(gw.links.values())).label
+    link = next(iter(gw.fleet.links.values())).label
     peer = ("127.0.0.1", 14550)
     published = gw.instruments.events.labels("hop")
     half = len(frames) // 2
     start = time.perf_counter()
     for frame in frames[:half]:  # timed without tracing, which slows every allocation
-        gw.ingest.on_data(link, peer, frame)
+        gw.fleet.ingest.on_data(link, peer, frame)
     elapsed = time.perf_counter() - start
     tracemalloc.start()
     before = tracemalloc.get_traced_memory()[0]
     for frame in frames[half:]:  # a second flood as long: what it leaves allocated
-        gw.ingest.on_data(link, peer, frame)
+        gw.fleet.ingest.on_data(link, peer, frame)
     grown = tracemalloc.get_traced_memory()[0] - before
     tracemalloc.stop()
     return half / elapsed, int(published.value), grown

@@ -135,16 +135,16 @@ def gateway_pipeline(datagrams: list[bytes], airframes: int, tunnel: bool, key: 
     sinks = {f"null{n}": NullSink(f"null{n}") for n in range(SINKS)}
     gateway = Gateway(cfg, sinks=dict(sinks))
     if tunnel:
-        assert gateway.security.opener is not None
-        gateway.security.opener.freshness_s = 3600
-        gateway.security.opener.started_ms = 0  # sealed before it existed: see bare_pymavlink
+        assert gateway.fleet.security.opener is not None
+        gateway.fleet.security.opener.freshness_s = 3600
+        gateway.fleet.security.opener.started_ms = 0  # sealed before it existed: see bare_pymavlink
     total = len(datagrams)
 
     async def run() -> float:
         async with anyio.create_task_group() as tg:
             for runner in gateway.runners.values():
                 await tg.start(runner.run)
-            on_data = gateway.ingest.on_data
+            on_data = gateway.fleet.ingest.on_data
             start = time.perf_counter()
             for index, data in enumerate(datagrams):
                 on_data("bench", "peer", data)
@@ -162,7 +162,7 @@ def gateway_pipeline(datagrams: list[bytes], airframes: int, tunnel: bool, key: 
 
     from gateway.fleet.ingest import LinkIntake
 
-    gateway.ingest.register_link(
+    gateway.fleet.ingest.register_link(
         LinkIntake("bench", "tunnel" if tunnel else "unsecured", is_stream=False)
     )
     elapsed = anyio.run(run, backend_options={"use_uvloop": True})

@@ -1,15 +1,17 @@
-"""The daemon: builds every component from a Config and runs them in dependency order.
+"""The daemon: builds every component from a Config, wires them and runs them in order.
 
-Start-up: sink runners, then the health endpoint, then the links; only when every link is
-bound does the gateway report started (and systemd READY=1). Shutdown follows a fixed
-order: stop ingest (close links), let the sinks drain what is queued within half the
+The airframe side is one ``Fleet`` (``gateway.fleet.fleet``: links, ingest, sessions, the
+uplink, the commander); here it is wired to the bus, the processors, the sources and the
+sinks. Start-up: sink runners, then the health endpoint, then the fleet's links; only when
+every link is bound does the gateway report started (and systemd READY=1). Shutdown follows
+a fixed order: stop ingest (close links), let the sinks drain what is queued within half the
 deadline, then cancel and close them within the rest.
 """
 
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from functools import partial
 from importlib.metadata import PackageNotFoundError, version
 from typing import Any
@@ -22,25 +24,18 @@ from gateway.c2.plugins import PROCESSOR_GROUP, SOURCE_GROUP, build_sink, load_c
 from gateway.c2.sink import ReleasesOwnAirframes, Sink
 from gateway.c2.sinkrunner import SinkRunner
 from gateway.c2.source import OrderStatusFeed, OrderStatusListener, Source
+from gateway.c2.sourcepublish import SourcePublish
 from gateway.clock import Clock, utc_now
 from gateway.config import Config
 from gateway.domain.terrain import DemSource, TerrainModel
-from gateway.errors import FrameError, LinkError, LinkUnavailable
-from gateway.events import BlueForce, Event
-from gateway.fleet.commander import FleetCommander
-from gateway.fleet.hopschedule import HopSchedules
-from gateway.fleet.ingest import Ingest, LinkIntake
-from gateway.fleet.links import Link, make_link
-from gateway.fleet.passthrough import Passthrough
-from gateway.fleet.security.keys import read_key_file
-from gateway.fleet.security.material import Security
+from gateway.events import Event
+from gateway.fleet.fleet import Fleet
 from gateway.flow.bus import Bus
 from gateway.flow.processor import PinsUnits
 from gateway.flow.processors import ProcessorRunner
 from gateway.flow.tasking import TaskingProcessor
 from gateway.ops.health import HealthServer
 from gateway.ops.instruments import Instruments
-from gateway.ops.logsetup import RateLimit
 from gateway.ops.sdnotify import SystemdNotifier
 from gateway.ops.supervise import Supervised, supervise
 from gateway.spool.commits import COMMIT_FAILURE_REASONS
@@ -50,7 +45,6 @@ __all__ = ["Gateway", "utc_now"]
 
 log = structlog.get_logger(__name__)
 
-_LINK_CHECK_INTERVAL_S = 0.25
 _SPOOL_PROBE_INTERVAL_S = 5.0
 
 
@@ -153,47 +147,27 @@ class Gateway:
         self.instruments.sink_queue.set_function(self._queue_depths)
         self.instruments.sink_outcomes.set_function(self._sink_outcomes)
         self._instrument_spool()
-        self.security = Security.from_config(config, clock)
         self.terrain = terrain_model(config)
         self._instrument_terrain_and_readiness()
-        self.ingest = Ingest(
-            config.airframes,
+        tasking = [
+            runner.processor
+            for runner in self.processors.values()
+            if isinstance(runner.processor, TaskingProcessor)
+        ]
+        self.fleet = Fleet(
+            config,
             self.bus.publish,
             self.instruments,
             clock,
-            opener=self.security.opener,
-            verifiers=self.security.verifiers,
             terrain=self.terrain,
-            baro_sigma_m=config.terrain.baro_sigma_m,
             ledger=self.spool,
+            commander=bool(tasking),
         )
-        self.sessions = self.ingest.sessions
-        for session in self.sessions.values():
-            session.transmit = self.send_to_airframe
-        self.hops = HopSchedules(self.sessions.values(), self.bus.publish, self.instruments, clock)
-        self.commander = self._attach_commander()
-        self.links: dict[str, Link] = {}
-        self._links_by_label: dict[str, Link] = {}
-        self._link_security: dict[str, str] = {}
-        for airframe in config.airframes:
-            for link_cfg in airframe.links:
-                key = str(link_cfg.uri)
-                if key in self.links:
-                    continue
-                link = make_link(link_cfg, self.ingest.on_data, self.ingest.forget_peer)
-                self.links[key] = link
-                self._links_by_label[link.label] = link
-                self._link_security[link.label] = link_cfg.security
-                self.ingest.register_link(
-                    LinkIntake(
-                        link.label,
-                        link_cfg.security,
-                        is_stream=link_cfg.uri.scheme != "udp",
-                        max_chunk_bytes=link_cfg.max_frame_bytes,
-                        trust=link.trust,
-                        drop=link.drop,
-                    )
-                )
+        if self.fleet.commander is not None:
+            # The one place the middle and the airframe side meet for orders: the processor
+            # sees only the ``AirframeCommander`` port (``gateway.flow.tasking``).
+            for processor in tasking:
+                processor.attach(self.fleet.commander, self.terrain, config.terrain.baro_sigma_m)
         pinned = frozenset(
             uid
             for runner in self.processors.values()
@@ -219,24 +193,6 @@ class Gateway:
         for built in self.sources:
             if isinstance(built, OrderStatusListener):
                 self.order_status_feed.add(built)
-        self.passthroughs: dict[str, Passthrough] = {}
-        for airframe in config.airframes:
-            if airframe.passthrough is not None:
-                gcs_key = (
-                    None
-                    if airframe.passthrough.key_file is None
-                    else read_key_file(airframe.passthrough.key_file, exact=True)
-                )
-                passthrough = Passthrough(
-                    airframe.id,
-                    airframe.sysid,
-                    airframe.passthrough,
-                    self.send_to_airframe,
-                    gcs_key=gcs_key,
-                    refused_metric=self.instruments.passthrough_refused,
-                )
-                self.passthroughs[airframe.id] = passthrough
-                self.ingest.set_passthrough(airframe.id, passthrough.forward)
         self.health: HealthServer | None = None
         if config.health.enabled:
             self.health = HealthServer(
@@ -253,26 +209,6 @@ class Gateway:
         self._started_mono = time.monotonic()
         self._links_up = False
         self.log = log.bind(node=config.gateway.node_id)
-
-    def _attach_commander(self) -> FleetCommander | None:
-        """The fleet's commander, given to every processor that tasks airframes; None if none.
-
-        This is the one place the middle and the airframe side meet for orders: the
-        processor sees only the ``AirframeCommander`` port (``gateway.flow.tasking``).
-        """
-        tasking = [
-            runner.processor
-            for runner in self.processors.values()
-            if isinstance(runner.processor, TaskingProcessor)
-        ]
-        if not tasking:
-            return None
-        commander = FleetCommander(
-            self.sessions, lambda airframe: self.ingest.active_link(airframe) is not None
-        )
-        for processor in tasking:
-            processor.attach(commander, self.terrain, self.config.terrain.baro_sigma_m)
-        return commander
 
     def _publish(self, event: Event) -> bool:
         """What processors publish goes on the bus like ingest's events."""
@@ -323,11 +259,10 @@ class Gateway:
 
     def status_line(self) -> str:
         """One line for systemd's ``STATUS=``: airframes linked, sinks healthy, DEM state."""
-        ids = [a.id for a in self.config.airframes]
-        linked = sum(1 for a in ids if self.ingest.active_link(a) is not None)
+        linked, airframes = self.fleet.linked_count()
         unhealthy = [r.name for r in self.runners.values() if r.state != "open"]
         line = (
-            f"{linked}/{len(ids)} airframes linked, "
+            f"{linked}/{airframes} airframes linked, "
             f"{len(self.runners) - len(unhealthy)}/{len(self.runners)} sinks healthy"
         )
         if unhealthy:
@@ -345,7 +280,7 @@ class Gateway:
         return (
             self._links_up
             and not self.spool.commits.failing
-            and all(link.is_bound for link in self.links.values())
+            and self.fleet.is_bound()
             and all(runner.is_open for runner in self.runners.values())
         )
 
@@ -367,26 +302,18 @@ class Gateway:
         async with anyio.create_task_group() as outer:
             for runner in self.runners.values():
                 await outer.start(runner.run)
-            if self.commander is not None:
-                await outer.start(self.commander.run)
+            await outer.start(self.fleet.run_commander)
             for processor in self.processors.values():
                 await outer.start(processor.run)
             if self.health is not None:
                 self.health_port = await outer.start(self.health.run)
             async with anyio.create_task_group() as ingest:
-                for link in self.links.values():
-                    await ingest.start(link.run)
-                for passthrough in self.passthroughs.values():
-                    await ingest.start(passthrough.run)
+                await ingest.start(self.fleet.run)
                 for source, record in zip(self.sources, self._source_records, strict=True):
                     # A source is a plugin: its failure (or a start that never comes) is
                     # retried with backoff and shown on /status, never the daemon's end.
                     await ingest.start(partial(supervise, source.run, record, what="source"))
-                ingest.start_soon(self._watch_links)
                 ingest.start_soon(self._probe_spool)
-                if self.ingest.acks is not None:
-                    ingest.start_soon(self.ingest.acks.run)
-                ingest.start_soon(self.hops.run)
                 self._links_up = True
                 outer.start_soon(self.notifier.run_watchdog)
                 self.notifier.ready(self.status_line())
@@ -394,7 +321,7 @@ class Gateway:
                 self.log.info(
                     "gateway_started",
                     version=_version(),
-                    links=len(self.links),
+                    links=len(self.fleet.links),
                     sinks=len(self.runners),
                     health_port=self.health_port,
                 )
@@ -424,11 +351,6 @@ class Gateway:
         self.spool.close()
         self.log.info("gateway_stopped")
 
-    async def _watch_links(self) -> None:
-        while True:
-            self.ingest.check_links()
-            await anyio.sleep(_LINK_CHECK_INTERVAL_S)
-
     async def _probe_spool(self) -> None:
         """While the spool's writes fail, try one now and then: ready again once one commits.
 
@@ -439,54 +361,18 @@ class Gateway:
             if self.spool.commits.failing:
                 self.spool.probe()
 
-    async def send_to_airframe(self, airframe: str, frames: bytes) -> None:
-        """Send raw MAVLink ``frames`` to ``airframe`` on its active link, in the link's mode.
-
-        Only one of the airframe's configured links is used, and on it only the peer that
-        last authenticated for the airframe; a tunnel link seals, a signed link signs. With
-        no such link or peer the frames are refused and counted, never sent elsewhere:
-        raises ``LinkUnavailable`` (or ``FrameError`` for frames a signed link cannot sign).
-        """
-        refused = self.instruments.uplink_refused
-        label = self.ingest.active_link(airframe)
-        if label is None or not self.ingest.is_configured(airframe, label):
-            refused.labels(airframe, "no_link").inc()
-            raise LinkUnavailable(airframe, "no link of this airframe is up")
-        link = self._links_by_label[label]
-        peer = self.ingest.peer_for(airframe, label)
-        if peer is None and link.endpoint.mode == "listen":
-            refused.labels(airframe, "no_peer").inc()
-            raise LinkUnavailable(label, f"no authenticated peer of {airframe} on this link")
-        security = self._link_security[label]
-        try:
-            if security == "tunnel":
-                frames = self.security.seal(airframe, frames, stream=link.endpoint.scheme != "udp")
-            elif security == "signed":
-                frames = self.security.sign(airframe, frames)
-        except FrameError:
-            refused.labels(airframe, "unsignable").inc()
-            raise
-        try:
-            await link.send_to(peer, frames)
-        except LinkError:
-            refused.labels(airframe, "send_failed").inc()
-            raise
-        self.instruments.uplink_frames.labels(airframe, label).inc()
-
     def status(self) -> dict[str, Any]:
         """The whole node's state, for /status."""
+        fleet = self.fleet.status()
         return {
             "node_id": self.config.gateway.node_id,
             "version": _version(),
             "uptime_s": round(time.monotonic() - self._started_mono, 3),
             "ready": self.is_ready(),
-            "airframes": self.ingest.status(),
-            "links": [
-                {**link.status(), "security": self._link_security[link.label]}
-                for link in self.links.values()
-            ],
-            "hop_schedules": self.hops.status(),
-            "passthroughs": [p.status() for p in self.passthroughs.values()],
+            "airframes": fleet["airframes"],
+            "links": fleet["links"],
+            "hop_schedules": fleet["hop_schedules"],
+            "passthroughs": fleet["passthroughs"],
             "sources": [
                 {
                     **s.status(),
@@ -500,7 +386,7 @@ class Gateway:
                     self.sources, self._source_records, self._source_publish, strict=True
                 )
             ],
-            "unknown_sysids": sorted(self.ingest.unknown_sysids),
+            "unknown_sysids": fleet["unknown_sysids"],
             "sinks": [runner.status() for runner in self.runners.values()],
             "spool": {
                 # failing: writes do not commit now; recovered_with_loss: this start could
@@ -526,52 +412,3 @@ class Gateway:
             "listeners": [self.health.stats.status()] if self.health is not None else [],
             "terrain": [] if self.terrain is None else self.terrain.status(),
         }
-
-
-_REFUSED_EVENT = {"pinned": "blue_force_pinned_uid_refused", "own": "blue_force_own_uid_refused"}
-
-
-class SourcePublish:
-    """A source's way onto the bus, refusing friendly reports under uids that are not theirs.
-
-    A ``BlueForce`` whose ``uid`` a processor pins (``counter_uas`` ``blue_forces``) would
-    otherwise reach every sink and draw the fixed unit wherever the report says (the registry
-    ignores it, ATAK would not); one under the uid a sink gives our own airframe (an ``nffi``
-    sink's trackSource read back: a C2 system echoing our tracks, or a forgery; a ``cot``
-    sink's own-airframe uid heard back on a mesh the gateway also listens on) would make our
-    airframe a second, "friendly" unit. Both are refused, counted (``pinned_refused``,
-    ``own_refused`` on /status) and logged at most once per 10 s each.
-    """
-
-    def __init__(
-        self,
-        source: str,
-        pinned: frozenset[str],
-        own: frozenset[str],
-        publish: Callable[[Event], bool],
-    ) -> None:
-        self.source = source
-        self.pinned = pinned
-        self.own = own
-        self.refused = {"pinned": 0, "own": 0}
-        self._publish = publish
-        self._log_limit = RateLimit(interval_s=10.0)
-
-    def __call__(self, event: Event) -> bool:
-        if isinstance(event, BlueForce):
-            reason = (
-                "pinned" if event.uid in self.pinned else "own" if event.uid in self.own else None
-            )
-            if reason is not None:
-                self.refused[reason] += 1
-                if self._log_limit.allow(reason):
-                    # Our own reports heard back are routine on a CoT mesh the gateway both
-                    # sends to and listens on: info, not a warning every 10 s for ever.
-                    (log.warning if reason == "pinned" else log.info)(
-                        _REFUSED_EVENT[reason],
-                        source=self.source,
-                        uid=event.uid,
-                        refused=self.refused[reason],
-                    )
-                return False
-        return self._publish(event)

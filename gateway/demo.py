@@ -101,7 +101,7 @@ class Demo:
             async with anyio.create_task_group() as tg:
                 await tg.start(self.battery.serve)
                 tg.start_soon(self._atak)
-                link = next(iter(gateway.links.values()))
+                link = next(iter(gateway.fleet.links.values()))
                 port = getattr(link, "local_port", 0) or self.link_port  # --udp-port 0: bound now
                 await play_scenario(
                     self.scenario,

@@ -1,7 +1,7 @@
 """What an order asks of an airframe, and whether the airframe can do it: pure, no I/O.
 
 ``plan`` turns a ``FiveLineOrder`` and the airframe's latest ``Telemetry`` into a ``Plan``:
-the mission items to upload (none for return to base), the points the airframe will fly
+the mission steps to upload (none for return to base), the points the airframe will fly
 through (from where it is, over the task, back home) and the time it will spend on task.
 ``check`` runs the acceptance checks on a plan, in order, and returns the first that fails
 as a ``Refusal`` naming the check and its numbers:
@@ -29,10 +29,10 @@ from itertools import pairwise
 
 from gateway.domain.geodesy import destination
 from gateway.domain.mission import (
-    MAV_CMD_NAV_LOITER_TIME,
-    MAV_CMD_NAV_WAYPOINT,
     Excursion,
-    MissionItem,
+    Loiter,
+    MissionStep,
+    Waypoint,
     polygon_problem,
     route_exit,
     route_length_m,
@@ -82,7 +82,7 @@ class Limits:
 class Plan:
     """What the airframe will do for an order (see the module docstring)."""
 
-    items: tuple[MissionItem, ...]
+    items: tuple[MissionStep, ...]
     task_points: tuple[LatLon, ...]
     route: tuple[LatLon, ...]
     alt_msl_m: float
@@ -120,15 +120,9 @@ def plan(
     if area.point is not None:
         point = (area.point.lat_deg, area.point.lon_deg)
         radius = limits.loiter_radius_m
-        items: tuple[MissionItem, ...] = (
-            MissionItem(MAV_CMD_NAV_WAYPOINT, point[0], point[1], alt),
-            MissionItem(
-                MAV_CMD_NAV_LOITER_TIME,
-                point[0],
-                point[1],
-                alt,
-                (limits.time_on_task_s, 0.0, radius, 0.0),
-            ),
+        items: tuple[MissionStep, ...] = (
+            Waypoint(point[0], point[1], alt),
+            Loiter(point[0], point[1], alt, limits.time_on_task_s, radius),
         )
         # The loiter circle: its far side is still flown, so check it for fence and terrain,
         # as the octagon drawn round it (its legs never cut inside the circle).
@@ -146,7 +140,7 @@ def plan(
     if problem is not None:
         return Refusal("area", f"the order's polygon {problem}")
     loop = (*corners, corners[0])
-    area_items = tuple(MissionItem(MAV_CMD_NAV_WAYPOINT, lat, lon, alt) for lat, lon in loop)
+    area_items = tuple(Waypoint(lat, lon, alt) for lat, lon in loop)
     perimeter_m = route_length_m(loop)
     legs_m = route_length_m((start, loop[0])) + route_length_m((loop[-1], back))
     return Plan(

@@ -13,11 +13,12 @@ Before anything is sent, the order must pass, in this order: the airframe is con
 An accepted order is carried out through the airframe commander the assembly attaches
 (``gateway.flow.tasking``): observe point and track target upload a waypoint and a timed
 loiter at the point; area reconnaissance uploads the area's perimeter as waypoints; then the
-mission is started. Return to base is a command. Commands are DO_SET_MODE with PX4's AUTO
-MISSION and AUTO RTL modes (``mode_commands: px4``, what PX4 and MAVSDK's autopilot server
-take) or MAV_CMD_MISSION_START and MAV_CMD_NAV_RETURN_TO_LAUNCH (``mode_commands: mavlink``).
-Progress comes from MISSION_CURRENT and MISSION_ITEM_REACHED: ``completed`` once the last
-item is reached. A return to base completes when the airframe reports itself disarmed.
+mission is started. Return to base is one command. The processor asks for these as intents
+(``upload_mission``, ``start_mission``, ``return_to_base``) and passes its ``mode_commands``
+option on with them: the airframe side picks the MAVLink (PX4's AUTO.MISSION and AUTO.RTL
+modes with ``px4``, plain MAVLink commands with ``mavlink``). Progress comes from the
+airframe's mission reports: ``completed`` once the last item is reached. A return to base
+completes when the airframe reports itself disarmed.
 One order per airframe at a time: a newer accepted order supersedes the running one, which
 is reported ``failed`` saying so. A ``track_target`` order naming the ``track_id`` of a live
 fused track flies to that track's newest position (at the order's altitude, if it gives one)
@@ -39,12 +40,7 @@ from anyio.streams.memory import MemoryObjectReceiveStream
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from gateway.clock import Clock, utc_now
-from gateway.domain.mission import (
-    MAV_CMD_DO_SET_MODE,
-    MAV_CMD_MISSION_START,
-    MAV_CMD_NAV_RETURN_TO_LAUNCH,
-    polygon_problem,
-)
+from gateway.domain.mission import ModeCommands, polygon_problem
 from gateway.domain.terrain import TerrainModel
 from gateway.events import (
     Event,
@@ -67,9 +63,6 @@ __all__ = ["OrdersConfig", "OrdersProcessor"]
 
 log = structlog.get_logger(__name__)
 
-#: DO_SET_MODE parameters for PX4: custom mode enabled, main mode AUTO, sub mode.
-_PX4_AUTO_MISSION = (1.0, 4.0, 4.0)
-_PX4_AUTO_RTL = (1.0, 4.0, 5.0)
 _REMEMBERED_ORDERS = 10_000
 _REMEMBERED_TRACKS = 10_000
 
@@ -111,10 +104,10 @@ class OrdersConfig(ProcessorConfig):
     clearance_m: float = Field(
         default=0.0, ge=0, le=5000, description="Height above ground wanted beyond the 3σ floor."
     )
-    mode_commands: Literal["px4", "mavlink"] = Field(
+    mode_commands: ModeCommands = Field(
         default="px4",
-        description="px4: DO_SET_MODE AUTO MISSION / AUTO RTL; mavlink: MISSION_START and "
-        "NAV_RETURN_TO_LAUNCH.",
+        description="How the fleet starts a mission and returns home: px4, PX4's AUTO "
+        "MISSION / AUTO RTL modes; mavlink, MISSION_START and NAV_RETURN_TO_LAUNCH.",
     )
     command_timeout_s: float = Field(default=1.5, gt=0, le=60, description="Per COMMAND_ACK.")
     command_retries: int = Field(default=2, ge=0, le=10, description="Resends of a command.")
@@ -389,12 +382,12 @@ class OrdersProcessor:
             wait_s = (order.not_before - self._clock()).total_seconds()
             if wait_s > 0:
                 await anyio.sleep(wait_s)
-        params: tuple[float, ...]
         if chosen.is_return:
-            command, params = (
-                (MAV_CMD_DO_SET_MODE, _PX4_AUTO_RTL)
-                if cfg.mode_commands == "px4"
-                else (MAV_CMD_NAV_RETURN_TO_LAUNCH, ())
+            answered = await commander.return_to_base(
+                airframe,
+                cfg.mode_commands,
+                timeout_s=cfg.command_timeout_s,
+                retries=cfg.command_retries,
             )
         else:
             uploaded = await commander.upload_mission(
@@ -410,14 +403,13 @@ class OrdersProcessor:
                 )
                 return
             running.reached = running.current = -1
-            command, params = (
-                (MAV_CMD_DO_SET_MODE, _PX4_AUTO_MISSION)
-                if cfg.mode_commands == "px4"
-                else (MAV_CMD_MISSION_START, (0.0, float(len(chosen.items) - 1)))
+            answered = await commander.start_mission(
+                airframe,
+                len(chosen.items),
+                cfg.mode_commands,
+                timeout_s=cfg.command_timeout_s,
+                retries=cfg.command_retries,
             )
-        answered = await commander.command(
-            airframe, command, params, timeout_s=cfg.command_timeout_s, retries=cfg.command_retries
-        )
         if not answered.ok:
             self._report(
                 order, OrderState.FAILED, airframe, check="command", reason=answered.detail

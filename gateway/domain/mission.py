@@ -1,9 +1,11 @@
-"""Reconnaissance routes as MAVLink mission items, and whether a route stays in a geofence.
+"""Reconnaissance routes as mission steps, and whether a route stays in a geofence.
 
-A ``MissionItem`` is one MAVLink mission item in the global frame (altitudes MSL), the
-vocabulary the orders processor and the airframe side share: the processor builds them
-from an order, the fleet uploads them (MISSION_COUNT / MISSION_ITEM_INT / MISSION_ACK).
-Only navigation commands are built here (waypoint, timed loiter): nothing arms or releases.
+A mission is a sequence of steps (``Waypoint``: fly to a point; ``Loiter``: circle a point
+for a time), altitudes MSL: the vocabulary the orders processor and the airframe side
+share. The processor builds them from an order; the fleet encodes them as MAVLink mission
+items and uploads them (``gateway.fleet.missionitems``). ``ModeCommands`` names how the
+fleet starts a mission and returns an airframe home (PX4 modes or plain MAVLink commands).
+Only navigation steps exist here: nothing arms or releases.
 
 The geofence is a polygon of (lat, lon) corners whose edges are geodesics; the geometry is
 ``gateway.domain.fence`` (an ellipsoidal gnomonic plane, where geodesics are straight). A
@@ -18,6 +20,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from itertools import pairwise
+from typing import Literal
 
 from geographiclib.geodesic import Geodesic  # type: ignore[import-untyped]
 
@@ -26,15 +29,13 @@ from gateway.domain.geodesy import distance_bearing
 from gateway.domain.paths import rhumb_at, rhumb_bow_m, rhumb_points
 
 __all__ = [
-    "MAV_CMD_DO_SET_MODE",
-    "MAV_CMD_MISSION_START",
-    "MAV_CMD_NAV_LOITER_TIME",
-    "MAV_CMD_NAV_RETURN_TO_LAUNCH",
-    "MAV_CMD_NAV_WAYPOINT",
     "RHUMB_TOLERANCE_M",
     "Excursion",
-    "MissionItem",
+    "Loiter",
+    "MissionStep",
+    "ModeCommands",
     "Outcome",
+    "Waypoint",
     "crosses",
     "inside",
     "polygon_problem",
@@ -43,13 +44,9 @@ __all__ = [
     "route_length_m",
 ]
 
-MAV_CMD_NAV_WAYPOINT = 16
-MAV_CMD_NAV_LOITER_TIME = 19
-MAV_CMD_NAV_RETURN_TO_LAUNCH = 20
-MAV_CMD_DO_SET_MODE = 176
-MAV_CMD_MISSION_START = 300
-#: MAV_FRAME_GLOBAL: latitude, longitude, altitude above mean sea level.
-MAV_FRAME_GLOBAL = 0
+ModeCommands = Literal["px4", "mavlink"]
+"""How an airframe is told to start its mission and to return: ``px4``, PX4's AUTO.MISSION
+and AUTO.RTL modes; ``mavlink``, the plain MISSION_START and NAV_RETURN_TO_LAUNCH commands."""
 
 LatLon = tuple[float, float]
 _GEOD = Geodesic.WGS84
@@ -58,15 +55,27 @@ _SAME_POINT_M = 1e-4
 
 
 @dataclass(frozen=True, slots=True)
-class MissionItem:
-    """One mission item: a navigation ``command`` at a point, altitude in metres MSL."""
+class Waypoint:
+    """Fly to a point, altitude in metres MSL."""
 
-    command: int
     lat_deg: float
     lon_deg: float
     alt_msl_m: float
-    params: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
-    frame: int = MAV_FRAME_GLOBAL
+
+
+@dataclass(frozen=True, slots=True)
+class Loiter:
+    """Circle a point for ``seconds`` at ``radius_m``, altitude in metres MSL."""
+
+    lat_deg: float
+    lon_deg: float
+    alt_msl_m: float
+    seconds: float
+    radius_m: float
+
+
+MissionStep = Waypoint | Loiter
+"""One step of a mission."""
 
 
 @dataclass(frozen=True, slots=True)

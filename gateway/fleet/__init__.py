@@ -1,3 +1,3 @@
 """The airframe side: links and their security, MAVLink intake, normalising, link health,
-the passthrough.
+the passthrough, the commander; ``fleet.Fleet`` builds and runs them all and owns the uplink.
 """

@@ -1,15 +1,17 @@
 """The fleet's airframe commander: commands, mission uploads and mission progress on MAVLink.
 
 ``FleetCommander`` implements ``gateway.flow.tasking.AirframeCommander`` over the airframe
-sessions. Commands go through ``AirframeSession.command_long`` (COMMAND_ACK correlated,
-retried). A mission goes up with MAVLink's mission protocol: MISSION_COUNT, then each
-MISSION_ITEM_INT the airframe asks for (MISSION_REQUEST_INT, or MISSION_REQUEST from older
-autopilots), until its MISSION_ACK. A step that gets no answer within ``timeout_s`` sends
-MISSION_COUNT again (the airframe starts over), at most ``retries`` times. Items are answered
-from the message handler (synchronous, on ingest's path) through a bounded queue that ``run``
-sends from. MISSION_CURRENT and MISSION_ITEM_REACHED are passed to the listeners as
-progress; HOME_POSITION is kept. Only messages addressed to the gateway (or broadcast)
-count, never a ground station's.
+sessions: it takes intents (upload these mission steps, start the mission, return to base)
+and chooses the MAVLink for them (``gateway.fleet.missionitems``: the items, and PX4 modes or
+plain MAVLink commands as the caller's ``ModeCommands`` says). Commands go through
+``AirframeSession.command_long`` (COMMAND_ACK correlated, retried). A mission goes up with
+MAVLink's mission protocol: MISSION_COUNT, then each MISSION_ITEM_INT the airframe asks for
+(MISSION_REQUEST_INT, or MISSION_REQUEST from older autopilots), until its MISSION_ACK. A
+step that gets no answer within ``timeout_s`` sends MISSION_COUNT again (the airframe starts
+over), at most ``retries`` times. Items are answered from the message handler (synchronous,
+on ingest's path) through a bounded queue that ``run`` sends from. MISSION_CURRENT and
+MISSION_ITEM_REACHED are passed to the listeners as progress; HOME_POSITION is kept. Only
+messages addressed to the gateway (or broadcast) count, never a ground station's.
 """
 
 from __future__ import annotations
@@ -24,17 +26,20 @@ import anyio.abc
 import structlog
 from anyio.streams.memory import MemoryObjectSendStream
 
-from gateway.domain.mission import (
+from gateway.domain.mission import MissionStep, ModeCommands, Outcome
+from gateway.errors import FrameError, LinkError
+from gateway.fleet.mavlink import MavMessage, dialect
+from gateway.fleet.missionitems import (
     MAV_CMD_DO_SET_MODE,
     MAV_CMD_MISSION_START,
     MAV_CMD_NAV_LOITER_TIME,
     MAV_CMD_NAV_RETURN_TO_LAUNCH,
     MAV_CMD_NAV_WAYPOINT,
     MissionItem,
-    Outcome,
+    mission_item,
+    return_command,
+    start_command,
 )
-from gateway.errors import FrameError, LinkError
-from gateway.fleet.mavlink import MavMessage, dialect
 from gateway.fleet.session import GATEWAY_COMPID, GATEWAY_SYSID, AirframeSession
 
 __all__ = ["FleetCommander"]
@@ -107,6 +112,33 @@ class FleetCommander:
         """Tell ``listener`` of every airframe's mission progress."""
         self._listeners.append(listener)
 
+    async def upload_mission(
+        self, airframe: str, steps: Sequence[MissionStep], *, timeout_s: float, retries: int
+    ) -> Outcome:
+        """Upload ``steps`` as the airframe's mission, one MAVLink item per step."""
+        items = [mission_item(step) for step in steps]
+        return await self.upload_items(airframe, items, timeout_s=timeout_s, retries=retries)
+
+    async def start_mission(
+        self,
+        airframe: str,
+        items: int,
+        mode_commands: ModeCommands,
+        *,
+        timeout_s: float,
+        retries: int,
+    ) -> Outcome:
+        """Start the uploaded mission of ``items`` items, as ``mode_commands`` says."""
+        command, params = start_command(mode_commands, items)
+        return await self.command(airframe, command, params, timeout_s=timeout_s, retries=retries)
+
+    async def return_to_base(
+        self, airframe: str, mode_commands: ModeCommands, *, timeout_s: float, retries: int
+    ) -> Outcome:
+        """Send the airframe home (its autopilot's return), as ``mode_commands`` says."""
+        command, params = return_command(mode_commands)
+        return await self.command(airframe, command, params, timeout_s=timeout_s, retries=retries)
+
     async def command(
         self,
         airframe: str,
@@ -141,7 +173,7 @@ class FleetCommander:
             detail = f"command {command} answered {result.result_name}"
         return Outcome(False, detail, result.attempts)
 
-    async def upload_mission(
+    async def upload_items(
         self, airframe: str, items: Sequence[MissionItem], *, timeout_s: float, retries: int
     ) -> Outcome:
         """Upload ``items`` (see the module docstring); ok only for MAV_MISSION_ACCEPTED."""

@@ -47,7 +47,7 @@ from gateway.fleet.normalise import (
 )
 from gateway.fleet.security.signing import SigningVerifier
 from gateway.fleet.security.tunnel import TunnelOpener
-from gateway.fleet.session import AirframeSession
+from gateway.fleet.session import AirframeSession, Transmit
 from gateway.fleet.video import CameraView
 from gateway.ops.instruments import Instruments
 from gateway.ops.logsetup import RateLimit
@@ -57,9 +57,6 @@ __all__ = ["Ingest", "LinkIntake"]
 
 log = structlog.get_logger(__name__)
 
-_SIGNED_V2 = 0xFD
-_MAV_AUTOPILOT_INVALID = 8  # a GCS, a companion or a peripheral: not the flight controller
-_DEDUP_PRUNE_EVERY = 1024
 #: Seconds between two log lines for the same link and rejection reason.
 REJECT_LOG_INTERVAL_S = 10.0
 #: Tunnel frames in a row that fail authentication before a stream peer is hung up on.
@@ -101,6 +98,7 @@ class Ingest:
         terrain: TerrainModel | None = None,
         baro_sigma_m: float = 0.5,
         ledger: DetectionLedger | None = None,
+        transmit: Transmit | None = None,
     ) -> None:
         self._publish = publish
         #: Durable intake of detections with acknowledgements, when there is a spool.
@@ -115,9 +113,11 @@ class Ingest:
             state = AirframeState(cfg.id, clock, enrichment)
             health = LinkHealth(cfg, publish, clock, instruments, on_active=state.set_active_link)
             labels = frozenset(link.label for link in cfg.links)
-            airframe = AirframeSession(cfg, state, health, labels, (verifiers or {}).get(cfg.sysid))
+            verifier = (verifiers or {}).get(cfg.sysid)
+            airframe = AirframeSession(cfg, state, health, labels, verifier, transmit=transmit)
+            telemetry = partial(self._telemetry, state, cfg.id)
             for name in NORMALISED_TYPES:
-                airframe.on(name, self._telemetry)
+                airframe.on(name, telemetry)
             airframe.on("FISCHER_DETECTION", self._detection)
             airframe.on("COMMAND_ACK", airframe.on_command_ack)
             view = CameraView(cfg.id, state, clock, terrain)
@@ -147,7 +147,7 @@ class Ingest:
 
     def set_passthrough(self, airframe: str, forward: Callable[[bytes], None]) -> None:
         """Forward every accepted frame of ``airframe`` (raw MAVLink) to ``forward``."""
-        self._by_id[airframe].passthrough = forward
+        self._by_id[airframe].set_passthrough(forward)
 
     def forget_peer(self, label: str, peer: object) -> None:
         """Drop the per-peer state of a closed stream connection."""
@@ -158,8 +158,7 @@ class Ingest:
         for key in [k for k in intake.parsers if k == peer or (type(k) is tuple and k[0] == peer)]:
             del intake.parsers[key]
         for airframe in intake.airframes.values():
-            if airframe.peers.get(label) == peer:
-                del airframe.peers[label]
+            airframe.forget_peer(label, peer)
 
     def on_data(self, label: str, peer: object, data: bytes) -> None:
         """Take one datagram or stream read from link ``label``; never raises.
@@ -291,20 +290,10 @@ class Ingest:
                 return
         intake.counters[2].value += 1  # type: ignore[index]
         now_mono = time.monotonic()
-        if authenticated:
-            if airframe.peers.get(label) != peer:
-                airframe.peers[label] = peer
-                if intake.trust is not None:
-                    intake.trust(peer)
-            airframe.health.heard(label, msg.get_srcComponent(), msg.get_seq(), now_mono)
-        if len(airframe.health.links) > 1 and self._duplicate(airframe, buf, now_mono):
+        name = msg.get_type()
+        if not airframe.accept(label, peer, authenticated, intake.trust, buf, name, msg, now_mono):
             self._inst.link_ignored.labels(label, "duplicate").inc()
             return
-        if airframe.passthrough is not None:
-            airframe.passthrough(bytes(buf))
-        name = msg.get_type()
-        if name == "HEARTBEAT" and msg.autopilot != _MAV_AUTOPILOT_INVALID:
-            airframe.health.autopilot_compid = msg.get_srcComponent()
         try:
             airframe.dispatch(label, name, msg)
         except Exception:
@@ -315,9 +304,18 @@ class Ingest:
                     "message_handler_failed", link=label, airframe=airframe.id, message=name
                 )
 
-    def _telemetry(self, airframe: AirframeSession, _label: str, msg: MavMessage) -> None:
-        if airframe.state.update(msg.get_type(), msg):
-            self._dirty[airframe.config.id] = airframe
+    def _telemetry(
+        self,
+        state: AirframeState,
+        airframe_id: str,
+        airframe: AirframeSession,
+        _label: str,
+        msg: MavMessage,
+    ) -> None:
+        # The airframe's state and id are bound when the handler is registered: this runs
+        # for most frames, so it reads nothing it does not need.
+        if state.update(msg.get_type(), msg):
+            self._dirty[airframe_id] = airframe
             if not self._flush_pending:
                 self._schedule_flush()
 
@@ -360,22 +358,6 @@ class Ingest:
         for airframe in dirty.values():
             self._publish(airframe.state.snapshot())
 
-    def _duplicate(
-        self, airframe: AirframeSession, buf: bytes | bytearray, now_mono: float
-    ) -> bool:
-        """True if the same frame arrived on another link within the de-duplication window."""
-        # A signature differs per link (its link id), so compare the frame without it.
-        key = bytes(buf[:-13]) if buf[0] == _SIGNED_V2 and buf[2] & 1 else bytes(buf)
-        window = airframe.config.dedup_window_s
-        seen = airframe.recent.get(key)
-        if seen is not None and now_mono - seen < window:
-            return True
-        airframe.recent[key] = now_mono
-        airframe.inserts += 1
-        if airframe.inserts % _DEDUP_PRUNE_EVERY == 0:
-            airframe.recent = {k: t for k, t in airframe.recent.items() if now_mono - t < window}
-        return False
-
     def _rejected(self, label: str, reason: str, detail: str, count: int = 1) -> None:
         self._inst.link_rejected.labels(label, reason).inc(count)
         if self._reject_log.allow((label, reason)):
@@ -398,7 +380,7 @@ class Ingest:
 
     def peer_for(self, airframe: str, label: str) -> object | None:
         """The peer on link ``label`` that last sent an authenticated frame of ``airframe``."""
-        return self._by_id[airframe].peers.get(label)
+        return self._by_id[airframe].peer(label)
 
     def is_configured(self, airframe: str, label: str) -> bool:
         """True if link ``label`` is one of ``airframe``'s configured links."""

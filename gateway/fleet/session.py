@@ -4,16 +4,21 @@
 only ones that may speak for it) and the peer that last authenticated on each, link health
 and failover, de-duplication, the passthrough, the normalised state, and an extensible
 message table (``on(name, handler)``: telemetry, detections and COMMAND_ACK are registered by
-ingest; camera, gimbal and mission messages join the same way). A message may have several
-handlers, called in the order they were registered; registering the same handler for the same
-message twice is an error, never a silent replacement. ``Ingest`` demultiplexes
-frames to sessions after authentication; everything per airframe lives here.
+ingest; camera, gimbal, mission and hop messages join the same way). A message may have
+several handlers, called in the order they were registered; registering the same handler for
+the same message twice is an error, never a silent replacement.
+
+The session owns accept-and-dispatch: ``Ingest`` authenticates a frame and finds its
+airframe, then the session takes it: ``accept`` (an authenticated frame names the peer on
+that link and keeps the link alive; de-duplication across the airframe's links; the
+passthrough) and ``dispatch`` (the handlers). Its state is private: others read it through
+properties and change it only through these methods.
 
 Outbound, ``send`` puts raw MAVLink on the airframe's active link in the link's mode (the
-transmit function the gateway gives it), and ``command_long`` sends a COMMAND_LONG and waits
-for the COMMAND_ACK with the same command id: correlated, under a timeout, retried with an
-incremented ``confirmation`` field as MAVLink's command protocol asks, and reported as a
-``CommandResult`` (result, attempts, latency) that ``status()`` shows.
+fleet's uplink, ``Fleet.send``, given as ``transmit``), and ``command_long`` sends a
+COMMAND_LONG and waits for the COMMAND_ACK with the same command id: correlated, under a
+timeout, retried with an incremented ``confirmation`` field as MAVLink's command protocol
+asks, and reported as a ``CommandResult`` (result, attempts, latency) that ``status()`` shows.
 """
 
 from __future__ import annotations
@@ -34,7 +39,7 @@ from gateway.fleet.mavlink import MavMessage, dialect
 from gateway.fleet.normalise import AirframeState
 from gateway.fleet.security.signing import SigningVerifier
 
-__all__ = ["AirframeSession", "CommandResult", "Handler"]
+__all__ = ["AirframeSession", "CommandResult", "Handler", "Transmit"]
 
 log = structlog.get_logger(__name__)
 
@@ -53,6 +58,9 @@ _RESULT_NAMES: dict[int, str] = {
     int(key): str(entry.name) for key, entry in dialect.enums["MAV_RESULT"].items()
 }
 _MAV_RESULT_IN_PROGRESS = 5
+_SIGNED_V2 = 0xFD
+_MAV_AUTOPILOT_INVALID = 8  # a GCS, a companion or a peripheral: not the flight controller
+_DEDUP_PRUNE_EVERY = 1024
 #: Builds message objects (``*_encode``); each frame is packed by ``encode`` with the
 #: session's own sequence number.
 _BUILDER = dialect.MAVLink(None, srcSystem=GATEWAY_SYSID, srcComponent=GATEWAY_COMPID)
@@ -91,32 +99,174 @@ class _Pending:
     progress: anyio.Event = field(default_factory=anyio.Event)
 
 
-@dataclass(slots=True)
 class AirframeSession:
-    """Everything the gateway holds for one airframe; see the module docstring."""
+    """Everything the gateway holds for one airframe; see the module docstring.
 
-    config: AirframeConfig
-    state: AirframeState
-    health: LinkHealth
-    labels: frozenset[str] = frozenset()
-    verifier: SigningVerifier | None = None
-    passthrough: Callable[[bytes], None] | None = None
-    recent: dict[bytes, float] = field(default_factory=dict)
-    inserts: int = 0
-    peers: dict[str, object] = field(default_factory=dict)
-    """Per link label, the peer that last sent an authenticated frame of this airframe."""
-    _handlers: dict[str, list[Handler]] = field(default_factory=dict)
-    transmit: Transmit | None = None
-    last_command: CommandResult | None = None
-    commands_sent: int = 0
-    commands_timed_out: int = 0
-    _pending: dict[int, _Pending] = field(default_factory=dict)
-    _seq: int = 0
+    Its state is its own: others read it through properties and change it only through
+    methods (``accept``, ``forget_peer``, ``on``, ``command_long`` ...).
+    """
+
+    __slots__ = (
+        "_commands_sent",
+        "_commands_timed_out",
+        "_config",
+        "_handlers",
+        "_health",
+        "_inserts",
+        "_labels",
+        "_last_command",
+        "_multilink",
+        "_passthrough",
+        "_peers",
+        "_pending",
+        "_recent",
+        "_seq",
+        "_state",
+        "_transmit",
+        "_verifier",
+    )
+
+    def __init__(
+        self,
+        config: AirframeConfig,
+        state: AirframeState,
+        health: LinkHealth,
+        labels: frozenset[str] = frozenset(),
+        verifier: SigningVerifier | None = None,
+        *,
+        transmit: Transmit | None = None,
+    ) -> None:
+        self._config = config
+        self._state = state
+        self._health = health
+        self._labels = labels
+        self._verifier = verifier
+        self._transmit = transmit
+        self._passthrough: Callable[[bytes], None] | None = None
+        #: Frames heard lately (without a signature), for de-duplication across links.
+        self._recent: dict[bytes, float] = {}
+        self._inserts = 0
+        #: Per link label, the peer that last sent an authenticated frame of this airframe.
+        self._peers: dict[str, object] = {}
+        self._handlers: dict[str, list[Handler]] = {}
+        self._last_command: CommandResult | None = None
+        self._commands_sent = 0
+        self._commands_timed_out = 0
+        self._pending: dict[int, _Pending] = {}
+        self._seq = 0
+        self._multilink = len(health.links) > 1
+
+    @property
+    def config(self) -> AirframeConfig:
+        """The airframe's config."""
+        return self._config
+
+    @property
+    def state(self) -> AirframeState:
+        """The airframe's normalised state (updated by ingest's telemetry handler)."""
+        return self._state
+
+    @property
+    def health(self) -> LinkHealth:
+        """The health of the airframe's links, and which is active."""
+        return self._health
+
+    @property
+    def labels(self) -> frozenset[str]:
+        """The labels of the airframe's configured links: the only ones it may speak on."""
+        return self._labels
+
+    @property
+    def verifier(self) -> SigningVerifier | None:
+        """The airframe's signing verifier, None without a signing key."""
+        return self._verifier
+
+    @property
+    def last_command(self) -> CommandResult | None:
+        """How the last command ended, None before the first."""
+        return self._last_command
+
+    @property
+    def commands_sent(self) -> int:
+        """COMMAND_LONG frames sent, resends included."""
+        return self._commands_sent
+
+    @property
+    def commands_timed_out(self) -> int:
+        """Commands that got no COMMAND_ACK after every attempt."""
+        return self._commands_timed_out
 
     @property
     def id(self) -> str:
         """The airframe's id from the config."""
-        return self.config.id
+        return self._config.id
+
+    def set_transmit(self, transmit: Transmit) -> None:
+        """Send what ``send`` is given through ``transmit(airframe, frames)`` from now on."""
+        self._transmit = transmit
+
+    def set_passthrough(self, forward: Callable[[bytes], None]) -> None:
+        """Forward every accepted frame (raw MAVLink) to ``forward`` from now on."""
+        self._passthrough = forward
+
+    # -- accepting (ingest's hot path: no allocation beyond what a frame needs) ------------
+
+    def peer(self, label: str) -> object | None:
+        """The peer on link ``label`` that last sent an authenticated frame of this airframe."""
+        return self._peers.get(label)
+
+    def forget_peer(self, label: str, peer: object) -> None:
+        """``peer`` (a closed stream connection) no longer speaks for the airframe on ``label``."""
+        if self._peers.get(label) == peer:
+            del self._peers[label]
+
+    def accept(
+        self,
+        label: str,
+        peer: object,
+        authenticated: bool,
+        trust: Callable[[object], None] | None,
+        buf: bytes | bytearray,
+        name: str,
+        msg: MavMessage,
+        now_mono: float,
+    ) -> bool:
+        """Take one frame of the airframe from ``peer`` on link ``label``, before dispatch.
+
+        An ``authenticated`` frame is ``heard`` (a peer new on the link is also given to
+        ``trust``); unsigned frames the config accepts prove nothing and are not. Then False
+        for a frame already heard on another link within the de-duplication window (drop
+        it); else it goes to the passthrough, a flight controller's HEARTBEAT names the
+        autopilot's component, and True: dispatch it. One call per frame: ingest's hot path.
+        """
+        if authenticated:
+            if self._peers.get(label) != peer:
+                self._peers[label] = peer
+                if trust is not None:
+                    trust(peer)
+            self._health.heard(label, msg.get_srcComponent(), msg.get_seq(), now_mono)
+        if self._multilink and self._duplicate(buf, now_mono):
+            return False
+        if self._passthrough is not None:
+            self._passthrough(bytes(buf))
+        if name == "HEARTBEAT" and msg.autopilot != _MAV_AUTOPILOT_INVALID:
+            self._health.autopilot_compid = msg.get_srcComponent()
+        return True
+
+    def _duplicate(self, buf: bytes | bytearray, now_mono: float) -> bool:
+        """True if the same frame arrived on another link within the de-duplication window."""
+        # A signature differs per link (its link id), so compare the frame without it.
+        key = bytes(buf[:-13]) if buf[0] == _SIGNED_V2 and buf[2] & 1 else bytes(buf)
+        window = self._config.dedup_window_s
+        recent = self._recent
+        seen = recent.get(key)
+        if seen is not None and now_mono - seen < window:
+            return True
+        recent[key] = now_mono
+        self._inserts += 1
+        if self._inserts % _DEDUP_PRUNE_EVERY == 0:
+            self._recent = {k: t for k, t in recent.items() if now_mono - t < window}
+        return False
 
     def on(self, message: str, handler: Handler) -> None:
         """Also hand every accepted ``message`` (a MAVLink message name) to ``handler``.
@@ -152,9 +302,9 @@ class AirframeSession:
 
     async def send(self, frames: bytes) -> None:
         """Send raw MAVLink ``frames`` to the airframe; ``LinkError`` if it cannot go."""
-        if self.transmit is None:
+        if self._transmit is None:
             raise LinkUnavailable(self.id, "the session has no transmit path")
-        await self.transmit(self.id, frames)
+        await self._transmit(self.id, frames)
 
     def on_command_ack(self, _session: AirframeSession, _label: str, msg: MavMessage) -> None:
         """The COMMAND_ACK handler: resolve the command waiting for it, if any."""
@@ -178,7 +328,7 @@ class AirframeSession:
     def encode_detection_ack(self, detection_id: int, time_usec: int, result: int) -> bytes:
         """A FISCHER_DETECTION_ACK frame for one of this airframe's detections."""
         return self.encode(
-            fischer_detection_ack(time_usec, detection_id, self.config.sysid, 1, result)
+            fischer_detection_ack(time_usec, detection_id, self._config.sysid, 1, result)
         )
 
     def encode(self, msg: MavMessage) -> bytes:
@@ -228,7 +378,7 @@ class AirframeSession:
                 attempts += 1
                 pending.sent_mono = time.monotonic()
                 await self.send(self._encode_command_long(command, params, confirmation))
-                self.commands_sent += 1
+                self._commands_sent += 1
                 with anyio.move_on_after(timeout_s):
                     await _first(pending.done, pending.progress)
                 if pending.in_progress and not pending.done.is_set():
@@ -237,7 +387,7 @@ class AirframeSession:
                 if pending.done.is_set() or pending.in_progress:
                     break
             if pending.result is None:
-                self.commands_timed_out += 1
+                self._commands_timed_out += 1
                 log.warning(
                     "command_timed_out",
                     airframe=self.id,
@@ -250,15 +400,15 @@ class AirframeSession:
             del self._pending[command]
         latency = None if pending.acked_mono is None else pending.acked_mono - pending.sent_mono
         result = CommandResult(command, pending.result, attempts, latency)
-        self.last_command = result
+        self._last_command = result
         return result
 
     def command_status(self) -> dict[str, Any]:
         """The command side of the session for /status."""
-        last = self.last_command
+        last = self._last_command
         return {
-            "commands_sent": self.commands_sent,
-            "commands_timed_out": self.commands_timed_out,
+            "commands_sent": self._commands_sent,
+            "commands_timed_out": self._commands_timed_out,
             "last_command": None
             if last is None
             else {

@@ -1,10 +1,13 @@
 """The airframe commander: the port through which the middle tasks the airframe side.
 
-The orders processor decides *what* an airframe is told (checks, mission items, commands);
-the airframe side (``gateway.fleet.commander``) knows *how* MAVLink carries it. The two sides
-never import each other: this Protocol is the contract, ``gateway.app`` builds the fleet's
-implementation and hands it to every processor that asks for one (``TaskingProcessor``).
-Its values (``MissionItem``, ``Outcome``) live in ``gateway.domain.mission``, below both.
+The orders processor decides *what* an airframe is told, as intents: upload these mission
+steps, start the mission, return to base. The airframe side (``gateway.fleet.commander``)
+knows *how* MAVLink carries them: the mission items, and the commands or autopilot modes
+(``ModeCommands``: PX4 or plain MAVLink). The two sides never import each other: this
+Protocol is the contract; the fleet (``gateway.fleet.fleet``) builds the implementation and
+``gateway.app`` hands it to every processor that asks for one (``TaskingProcessor``). Its
+values (``MissionStep``, ``ModeCommands``, ``Outcome``) live in ``gateway.domain.mission``,
+below both.
 """
 
 from __future__ import annotations
@@ -12,7 +15,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from typing import Literal, Protocol, runtime_checkable
 
-from gateway.domain.mission import MissionItem, Outcome
+from gateway.domain.mission import MissionStep, ModeCommands, Outcome
 from gateway.domain.terrain import TerrainModel
 
 __all__ = ["AirframeCommander", "MissionListener", "TaskingProcessor"]
@@ -37,22 +40,30 @@ class AirframeCommander(Protocol):
         """The airframe's home (lat, lon) from its HOME_POSITION, if it has reported one."""
         ...
 
-    async def command(
+    async def upload_mission(
+        self, airframe: str, steps: Sequence[MissionStep], *, timeout_s: float, retries: int
+    ) -> Outcome:
+        """Upload ``steps`` as the airframe's mission; ``ok`` only once the airframe accepted
+        it, having asked for every step (``timeout_s`` per step, ``retries`` restarts)."""
+        ...
+
+    async def start_mission(
         self,
         airframe: str,
-        command: int,
-        params: Sequence[float],
+        items: int,
+        mode_commands: ModeCommands,
         *,
         timeout_s: float,
         retries: int,
     ) -> Outcome:
-        """COMMAND_LONG ``command`` until its COMMAND_ACK; ``ok`` only for ACCEPTED."""
+        """Start the uploaded mission of ``items`` steps; ``ok`` only once the airframe
+        accepted the command (``timeout_s`` per attempt, ``retries`` resends)."""
         ...
 
-    async def upload_mission(
-        self, airframe: str, items: Sequence[MissionItem], *, timeout_s: float, retries: int
+    async def return_to_base(
+        self, airframe: str, mode_commands: ModeCommands, *, timeout_s: float, retries: int
     ) -> Outcome:
-        """Upload ``items`` as the airframe's mission; ``ok`` only for MISSION_ACK ACCEPTED."""
+        """Send the airframe home; ``ok`` only once it accepted the command."""
         ...
 
     def on_mission(self, listener: MissionListener) -> None:

@@ -33,7 +33,7 @@ def gateway_config(tmp_path: Path, sinks: list[dict[str, object]], **extra: obje
 
 
 def port(gateway: Gateway) -> int:
-    return int(next(iter(gateway.links.values())).local_port)  # type: ignore[attr-defined]
+    return int(next(iter(gateway.fleet.links.values())).local_port)  # type: ignore[attr-defined]
 
 
 def detection(n: int) -> Detection:
@@ -167,7 +167,7 @@ async def test_clock_jump_across_midnight_rotates_keys_with_grace(tmp_path: Path
     airframe_clock = Clock(before)
     sealer = Sealer("F26E-001", airframe_keys, airframe_clock)
     sim = SimulatedAirframe(1)
-    label = next(iter(gateway.links.values())).label
+    label = next(iter(gateway.fleet.links.values())).label
 
     sim_time = [0.0]
 

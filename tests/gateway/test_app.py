@@ -57,7 +57,7 @@ def config(tmp_path: Path, *sinks: str, udp_port: int = 0) -> Config:
 
 
 def udp_port(gateway: Gateway) -> int:
-    link = next(iter(gateway.links.values()))
+    link = next(iter(gateway.fleet.links.values()))
     return int(link.local_port)  # type: ignore[attr-defined]
 
 
@@ -145,7 +145,7 @@ async def test_failing_and_hung_sinks_leave_ingest_and_others_unchanged(tmp_path
                 await sim.run_udp("127.0.0.1", udp_port(gateway), duration_s=3.0, speed=10.0)
                 final = sim.sent_positions[-1]
                 await eventually(lambda: last_lat(mem) == final.lat_e7 / 1e7)
-                label = next(iter(gateway.links.values())).label
+                label = next(iter(gateway.fleet.links.values())).label
                 frames = gateway.instruments.link_frames.labels(label).value
                 gateway.shutdown()
         return last_lat(mem), int(frames)

@@ -37,7 +37,7 @@ def config(tmp_path: Path, **extra: Any) -> Config:
 
 
 def udp_port(gateway: Gateway) -> int:
-    link = next(iter(gateway.links.values()))
+    link = next(iter(gateway.fleet.links.values()))
     return int(link.local_port)  # type: ignore[attr-defined]
 
 

@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 
 import pytest
 
 from gateway.app import Gateway
 from gateway.config import Config
-from gateway.domain.mission import MAV_CMD_NAV_WAYPOINT, MissionItem
+from gateway.domain.mission import Loiter, MissionStep, ModeCommands, Outcome, Waypoint
+from gateway.fleet.commander import FleetCommander
+from gateway.fleet.missionitems import MAV_CMD_NAV_LOITER_TIME, MAV_CMD_NAV_WAYPOINT, MissionItem
 from gateway.flow.tasking import AirframeCommander
 
 built: list[Gateway] = []
@@ -44,23 +46,85 @@ def gateway(processors: list[dict[str, object]]) -> Gateway:
 
 
 def test_only_a_node_with_a_tasking_processor_gets_a_commander() -> None:
-    assert gateway([]).commander is None
-    assert gateway([{"name": "fusion", "type": "fusion"}]).commander is None
+    assert gateway([]).fleet.commander is None
+    assert gateway([{"name": "fusion", "type": "fusion"}]).fleet.commander is None
     tasked = gateway([{"name": "orders", "type": "orders"}])
-    assert isinstance(tasked.commander, AirframeCommander)
-    assert tasked.commander.is_known("F26E-001")
-    assert not tasked.commander.is_known("F26E-404")
-    assert not tasked.commander.is_linked("F26E-001")  # nothing heard from it yet
+    assert isinstance(tasked.fleet.commander, AirframeCommander)
+    assert tasked.fleet.commander.is_known("F26E-001")
+    assert not tasked.fleet.commander.is_known("F26E-404")
+    assert not tasked.fleet.commander.is_linked("F26E-001")  # nothing heard from it yet
 
 
 @pytest.mark.anyio
 async def test_an_airframe_without_a_link_is_an_outcome_not_an_error() -> None:
-    commander = gateway([{"name": "orders", "type": "orders"}]).commander
+    commander = gateway([{"name": "orders", "type": "orders"}]).fleet.commander
     assert commander is not None
-    item = MissionItem(MAV_CMD_NAV_WAYPOINT, 65.85, 21.1, 500.0)
-    uploaded = await commander.upload_mission("F26E-001", [item], timeout_s=0.1, retries=0)
+    step = Waypoint(65.85, 21.1, 500.0)
+    uploaded = await commander.upload_mission("F26E-001", [step], timeout_s=0.1, retries=0)
     assert (uploaded.ok, uploaded.attempts) == (False, 0)
     assert uploaded.detail.startswith("not sent: ")
-    commanded = await commander.command("F26E-001", 176, (1.0, 4.0, 4.0), timeout_s=0.1, retries=0)
+    commanded = await commander.start_mission("F26E-001", 1, "px4", timeout_s=0.1, retries=0)
     assert not commanded.ok
     assert commanded.detail.startswith("command 176 not sent: ")
+
+
+class _Recording(FleetCommander):
+    """The fleet's commander with the MAVLink it would send recorded instead."""
+
+    def __init__(self) -> None:
+        super().__init__({}, lambda _airframe: True)
+        self.sent: list[tuple[str, object]] = []
+
+    async def command(
+        self,
+        airframe: str,
+        command: int,
+        params: Sequence[float],
+        *,
+        timeout_s: float,
+        retries: int,
+    ) -> Outcome:
+        self.sent.append(("command", (command, tuple(params))))
+        return Outcome(True, "MAV_RESULT_ACCEPTED")
+
+    async def upload_items(
+        self, airframe: str, items: Sequence[MissionItem], *, timeout_s: float, retries: int
+    ) -> Outcome:
+        self.sent.append(("items", list(items)))
+        return Outcome(True, "MAV_MISSION_ACCEPTED")
+
+
+@pytest.mark.parametrize(
+    ("mode_commands", "start", "home"),
+    [
+        ("px4", (176, (1.0, 4.0, 4.0)), (176, (1.0, 4.0, 5.0))),
+        ("mavlink", (300, (0.0, 1.0)), (20, ())),
+    ],
+)
+@pytest.mark.anyio
+async def test_the_fleet_picks_the_mavlink_of_an_intent(
+    mode_commands: ModeCommands, start: object, home: object
+) -> None:
+    """Orders speak in intents; the fleet says them in MAVLink (PX4 modes or plain commands)."""
+    commander = _Recording()
+    steps: list[MissionStep] = [
+        Waypoint(65.85, 21.1, 500.0),
+        Loiter(65.85, 21.1, 500.0, 600.0, 300.0),
+    ]
+    for outcome in (
+        await commander.upload_mission("F26E-001", steps, timeout_s=1.0, retries=0),
+        await commander.start_mission("F26E-001", 2, mode_commands, timeout_s=1.0, retries=0),
+        await commander.return_to_base("F26E-001", mode_commands, timeout_s=1.0, retries=0),
+    ):
+        assert outcome.ok
+    assert commander.sent == [
+        (
+            "items",
+            [
+                MissionItem(MAV_CMD_NAV_WAYPOINT, 65.85, 21.1, 500.0),
+                MissionItem(MAV_CMD_NAV_LOITER_TIME, 65.85, 21.1, 500.0, (600.0, 0.0, 300.0, 0.0)),
+            ],
+        ),
+        ("command", start),
+        ("command", home),
+    ]

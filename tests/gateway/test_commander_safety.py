@@ -5,8 +5,8 @@ from __future__ import annotations
 import anyio
 import pytest
 
-from gateway.domain.mission import MAV_CMD_NAV_WAYPOINT, MissionItem
 from gateway.fleet.commander import FleetCommander
+from gateway.fleet.missionitems import MAV_CMD_NAV_WAYPOINT, MissionItem
 
 MAV_CMD_DO_SET_SERVO = 183
 MAV_CMD_COMPONENT_ARM_DISARM = 400
@@ -55,7 +55,7 @@ def test_mission_items_that_are_not_navigation_are_refused(command: int) -> None
         MissionItem(command, 65.0, 21.0, 500.0),
     )
     outcome = anyio.run(
-        lambda: commander().upload_mission("F26E-001", items, timeout_s=1.0, retries=0)
+        lambda: commander().upload_items("F26E-001", items, timeout_s=1.0, retries=0)
     )
     assert not outcome.ok
     assert outcome.attempts == 0

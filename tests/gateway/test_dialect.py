@@ -138,7 +138,7 @@ async def test_simulated_detections_reach_a_sink_every_one() -> None:
     with anyio.fail_after(15):
         async with anyio.create_task_group() as tg:
             await tg.start(gateway.run)
-            port = next(iter(gateway.links.values())).local_port  # type: ignore[attr-defined]
+            port = next(iter(gateway.fleet.links.values())).local_port  # type: ignore[attr-defined]
             await sim.run_udp("127.0.0.1", port, duration_s=1.0, speed=5.0)
             await eventually(lambda: len(mem.events) >= 5)
             gateway.shutdown()

@@ -82,7 +82,7 @@ async def fly(gateway: Gateway, sim: SimulatedAirframe, until: Any, timeout_s: f
     with anyio.fail_after(timeout_s):
         async with anyio.create_task_group() as tg:
             await tg.start(gateway.run)
-            port = next(iter(gateway.links.values())).local_port  # type: ignore[attr-defined]
+            port = next(iter(gateway.fleet.links.values())).local_port  # type: ignore[attr-defined]
             tg.start_soon(lambda: sim.run_udp("127.0.0.1", port, duration_s=None))
             await eventually(until)
             gateway.shutdown()
@@ -100,7 +100,7 @@ async def test_the_plan_is_accepted_and_hops_come_back_as_events() -> None:
     gateway = Gateway(gateway_config(), sinks={"mem": mem})
     sim = SimulatedAirframe(1, fast_profile())
     await fly(gateway, sim, lambda: len({e.reason for e in hop_events(mem)}) == 2)
-    (upload,) = gateway.hops.status()
+    (upload,) = gateway.fleet.hops.status()
     sid = schedule_id(HopPlanConfig.model_validate(PLAN))
     assert upload == {
         "airframe": "F26E-001",
@@ -139,8 +139,8 @@ async def test_on_a_signed_link_the_schedule_and_its_answer_go_signed(
     gateway = Gateway(gateway_config(signing_key=tmp_path / "s.key"), sinks={"mem": mem})
     sim = SimulatedAirframe(1, fast_profile(), signing_key=key)
     await fly(gateway, sim, lambda: bool(hop_events(mem)))
-    assert gateway.hops.status()[0]["state"] == "accepted"
-    assert sim.radio.schedules == [gateway.hops.uploads["F26E-001"].schedule_id]
+    assert gateway.fleet.hops.status()[0]["state"] == "accepted"
+    assert sim.radio.schedules == [gateway.fleet.hops.uploads["F26E-001"].schedule_id]
     assert sim.link.uplink_rejected == 0  # the sim reads only validly signed uplink frames
     assert gateway.status()["airframes"][0]["signing"]["unsigned"] == 0
 
@@ -151,8 +151,8 @@ async def test_a_lost_answer_is_sent_again_until_it_is_answered() -> None:
     gateway = Gateway(gateway_config(), sinks={"mem": mem})
     sim = SimulatedAirframe(1, fast_profile())
     sim.radio.ignore_first = 2
-    await fly(gateway, sim, lambda: gateway.hops.status()[0]["state"] == "accepted")
-    assert gateway.hops.status()[0]["sends"] == 3
+    await fly(gateway, sim, lambda: gateway.fleet.hops.status()[0]["state"] == "accepted")
+    assert gateway.fleet.hops.status()[0]["sends"] == 3
     assert len(sim.radio.schedules) == 3
     assert len(set(sim.radio.schedules)) == 1  # the same schedule, re-sent
 
@@ -163,8 +163,8 @@ async def test_a_plan_the_airframe_cannot_fly_is_refused_and_not_sent_again() ->
     # 0.3 µs beats the jammer and suits the AD9361, but the simulated radio needs 0.5 µs.
     gateway = Gateway(gateway_config({**PLAN, "dwell_us": 0.3}), sinks={"mem": mem})
     sim = SimulatedAirframe(1, fast_profile())
-    await fly(gateway, sim, lambda: gateway.hops.status()[0]["state"] == "refused")
-    (upload,) = gateway.hops.status()
+    await fly(gateway, sim, lambda: gateway.fleet.hops.status()[0]["state"] == "refused")
+    (upload,) = gateway.fleet.hops.status()
     assert (upload["last_result"], upload["sends"], upload["active_schedule_id"]) == (
         "unsupported_dwell",
         1,
@@ -185,19 +185,19 @@ async def test_an_airframe_that_reports_another_schedule_gets_the_plan_again() -
     other = hop_schedule_message(HopPlanConfig.model_validate({**PLAN, "dwell_us": 15}), 1, 77)
 
     def rebooted_with_its_old_plan() -> bool:
-        if gateway.hops.status()[0]["state"] == "accepted" and len(sim.radio.schedules) == 1:
+        if gateway.fleet.hops.status()[0]["state"] == "accepted" and len(sim.radio.schedules) == 1:
             sim.radio.active = other  # the radio came back on the plan it had stored
         # Done once the gateway has the airframe's answer to the re-send too: the radio may
         # take the schedule a moment before its ACK reaches the gateway (a loaded machine).
         return (
             len(sim.radio.schedules) >= 2
             and sim.radio.active_id == sid
-            and gateway.hops.status()[0]["state"] == "accepted"
+            and gateway.fleet.hops.status()[0]["state"] == "accepted"
         )
 
     await fly(gateway, sim, rebooted_with_its_old_plan)
     assert sim.radio.schedules[:2] == [sid, sid]
-    assert gateway.hops.status()[0]["state"] == "accepted"
+    assert gateway.fleet.hops.status()[0]["state"] == "accepted"
 
 
 def test_the_radio_answers_each_kind_of_plan() -> None:
@@ -224,10 +224,10 @@ def test_the_radio_answers_each_kind_of_plan() -> None:
 async def test_a_flood_of_hop_events_is_counted_but_published_at_a_capped_rate() -> None:
     mem = MemorySink("mem")
     gateway = Gateway(gateway_config(None), sinks={"mem": mem})
-    session = gateway.sessions["F26E-001"]
+    session = gateway.fleet.sessions["F26E-001"]
     now_us = int(datetime.now(UTC).timestamp() * 1e6)
     published: list[HopEvent] = []
-    gateway.hops._publish = lambda e: published.append(e) or True  # type: ignore[assignment,func-returns-value]
+    gateway.fleet.hops._publish = lambda e: published.append(e) or True  # type: ignore[assignment,func-returns-value]
     for n in range(5000):
         msg = FischerHopEvent(now_us + n, 2_405_000_000, 9, n + 1, 0, n % 2, -60, 127)
         session.dispatch("l", "FISCHER_HOP_EVENT", msg)
@@ -305,9 +305,9 @@ def test_a_plan_the_radio_cannot_fly_is_a_config_error_naming_key_and_line(
 def test_the_plan_is_checked_again_right_before_upload() -> None:
     """A plan that no longer beats the jammer (a changed jammer figure) is never sent."""
     gateway = Gateway(gateway_config(), sinks={"mem": MemorySink("mem")})
-    upload = gateway.hops.uploads["F26E-001"]
+    upload = gateway.fleet.hops.uploads["F26E-001"]
     upload.config = upload.config.model_copy(update={"jammer_reaction_us": 10.0})
-    assert gateway.hops._checked_frame(upload) is None
+    assert gateway.fleet.hops._checked_frame(upload) is None
     assert upload.state == "invalid"
 
 
@@ -330,32 +330,32 @@ async def test_any_hop_frame_becomes_an_event_or_a_count_never_an_error(
     """Hop events and answers with any values, and bytes around them, from the airframe."""
     gateway = Gateway(gateway_config(), sinks={"mem": MemorySink("mem")})
     published: list[HopEvent] = []
-    gateway.hops._publish = lambda e: published.append(e) or True  # type: ignore[assignment,func-returns-value]
+    gateway.fleet.hops._publish = lambda e: published.append(e) or True  # type: ignore[assignment,func-returns-value]
     airframe = apm.MAVLink(None, srcSystem=1, srcComponent=1)
-    link = next(iter(gateway.links.values())).label
+    link = next(iter(gateway.fleet.links.values())).label
     for frame in (
         FischerHopEvent(*event).pack(airframe),
         FischerHopScheduleAck(*ack).pack(airframe),
         noise,
         noise + FischerHopEvent(*event).pack(airframe),
     ):
-        gateway.ingest.on_data(link, ("127.0.0.1", 5), frame)
+        gateway.fleet.ingest.on_data(link, ("127.0.0.1", 5), frame)
     inst = gateway.instruments
     assert inst.link_ignored.labels(link, "handler_error").value == 0
     counted = sum(inst.hop_events.labels("F26E-001", r).value for r in HOP_REASONS)
     rejected = inst.link_rejected.labels(link, "malformed").value
     assert len(published) <= counted
     assert counted + rejected >= 1  # the first event frame was counted or refused
-    assert gateway.hops.status()[0]["state"] in STATES
+    assert gateway.fleet.hops.status()[0]["state"] in STATES
 
 
 @pytest.mark.anyio
 async def test_an_answer_nobody_asked_for_is_not_taken() -> None:
     gateway = Gateway(gateway_config(), sinks={"mem": MemorySink("mem")})
-    session = gateway.sessions["F26E-001"]
-    sid = gateway.hops.uploads["F26E-001"].schedule_id
+    session = gateway.fleet.sessions["F26E-001"]
+    sid = gateway.fleet.hops.uploads["F26E-001"].schedule_id
     session.dispatch("l", "FISCHER_HOP_SCHEDULE_ACK", FischerHopScheduleAck(sid, sid, 255, 191, 0))
-    (upload,) = gateway.hops.status()
+    (upload,) = gateway.fleet.hops.status()
     assert (upload["state"], upload["last_result"], upload["active_schedule_id"]) == (
         "waiting_link",
         None,
@@ -371,12 +371,12 @@ async def test_an_airframe_back_after_losing_every_link_gets_the_plan_again() ->
     gateway = Gateway(
         config.model_copy(update={"airframes": (airframe,)}), sinks={"mem": MemorySink("mem")}
     )
-    upload = gateway.hops.uploads["F26E-001"]
+    upload = gateway.fleet.hops.uploads["F26E-001"]
     before, after = SimulatedAirframe(1, fast_profile()), SimulatedAirframe(1, fast_profile())
     with anyio.fail_after(20):
         async with anyio.create_task_group() as tg:
             await tg.start(gateway.run)
-            port = next(iter(gateway.links.values())).local_port  # type: ignore[attr-defined]
+            port = next(iter(gateway.fleet.links.values())).local_port  # type: ignore[attr-defined]
             async with anyio.create_task_group() as first:
                 first.start_soon(lambda: before.run_udp("127.0.0.1", port))
                 await eventually(lambda: upload.state == "accepted")

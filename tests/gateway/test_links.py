@@ -95,7 +95,7 @@ async def test_tcp_client_reconnects_after_the_peer_hangs_up() -> None:
             await eventually(lambda: connections >= 3)
             final = sim.sent_positions[-1]
             await eventually(lambda: latest_lat(mem) == final.lat_e7 / 1e7)
-            link = next(iter(gateway.links.values()))
+            link = next(iter(gateway.fleet.links.values()))
             assert link.connects >= 3
             gateway.shutdown()
             await gateway.stopped.wait()
@@ -109,7 +109,7 @@ async def test_tcp_server_link_takes_several_peers() -> None:
     with anyio.fail_after(10):
         async with anyio.create_task_group() as tg:
             await tg.start(gateway.run)
-            port = next(iter(gateway.links.values())).local_port  # type: ignore[attr-defined]
+            port = next(iter(gateway.fleet.links.values())).local_port  # type: ignore[attr-defined]
             async with await anyio.connect_tcp("127.0.0.1", port) as a:
                 await a.send(b"".join(one.frames_at(0.0)))
                 await eventually(lambda: latest_lat(mem) == one.sent_positions[-1].lat_e7 / 1e7)
@@ -125,7 +125,7 @@ async def test_missing_serial_device_is_named_and_retried_not_fatal() -> None:
     with anyio.fail_after(5):
         async with anyio.create_task_group() as tg:
             await tg.start(gateway.run)
-            link = next(iter(gateway.links.values()))
+            link = next(iter(gateway.fleet.links.values()))
             await eventually(lambda: link.connects == 0 and link.state == "waiting for device")
             assert "/dev/does-not-exist" in link.reason
             assert gateway.is_ready()

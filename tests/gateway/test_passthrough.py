@@ -53,7 +53,7 @@ async def test_mavsdk_gets_position_and_battery_through_the_passthrough() -> Non
         async with mavsdk.Mavsdk(settings) as gcs, anyio.create_task_group() as tg:
             await gcs.add_any_connection(f"udpin://127.0.0.1:{gcs_port}")
             await tg.start(gateway.run)
-            port = int(next(iter(gateway.links.values())).local_port)  # type: ignore[attr-defined]
+            port = int(next(iter(gateway.fleet.links.values())).local_port)  # type: ignore[attr-defined]
             sock = await anyio.create_connected_udp_socket(
                 remote_host="127.0.0.1", remote_port=port
             )
@@ -92,4 +92,4 @@ async def test_mavsdk_gets_position_and_battery_through_the_passthrough() -> Non
     )
     assert 0 < battery.remaining_percent <= 100
     assert 18.0 < battery.voltage_v < 26.0  # the simulated 6S pack
-    assert gateway.passthroughs["F26E-001"].downlink_frames > 0
+    assert gateway.fleet.passthroughs["F26E-001"].downlink_frames > 0

@@ -54,7 +54,7 @@ def make_config(links: list[dict[str, Any]], **extra: Any) -> Config:
 
 
 def port_of(gateway: Gateway, index: int = 0) -> int:
-    return int(list(gateway.links.values())[index].local_port)  # type: ignore[attr-defined]
+    return int(list(gateway.fleet.links.values())[index].local_port)  # type: ignore[attr-defined]
 
 
 def positions(sink: MemorySink) -> list[tuple[float, float]]:
@@ -107,7 +107,7 @@ class TestTunnel:
                 await eventually(lambda: (final.lat_e7 / 1e7, final.lon_e7 / 1e7) in positions(mem))
                 gateway.shutdown()
         rejected = gateway.instruments.link_rejected
-        label = next(iter(gateway.links.values())).label
+        label = next(iter(gateway.fleet.links.values())).label
         latency = gateway.instruments.link_latency.labels("F26E-001", label)
         assert latency.count > 0
         assert 0 <= latency.sum / latency.count < 1.0  # loopback, one clock
@@ -235,7 +235,7 @@ class TestFailover:
                     await anyio.sleep(max(0.0, start + t / 2 - anyio.current_time()))
                 final = sim.sent_positions[-1]
                 await eventually(lambda: (final.lat_e7 / 1e7, final.lon_e7 / 1e7) in positions(mem))
-                await eventually(lambda: gateway.ingest.active_link("F26E-001") == "sdr")
+                await eventually(lambda: gateway.fleet.ingest.active_link("F26E-001") == "sdr")
                 failover_s = anyio.current_time() - (cut_at or 0.0)
                 await primary.aclose()
                 await secondary.aclose()
@@ -270,7 +270,7 @@ class TestStreamsAndOutbound:
         with anyio.fail_after(20):
             async with anyio.create_task_group() as tg:
                 await tg.start(gateway.run)
-                port = next(iter(gateway.links.values())).local_port  # type: ignore[attr-defined]
+                port = next(iter(gateway.fleet.links.values())).local_port  # type: ignore[attr-defined]
                 async with await anyio.connect_tcp("127.0.0.1", port) as stream:
                     t = 0.0
                     for _ in range(20):
@@ -310,8 +310,8 @@ class TestStreamsAndOutbound:
                     remote_host="127.0.0.1", remote_port=port_of(gateway)
                 ) as sock:
                     await sock.send(sealer.seal(SimulatedAirframe(1).frames_at(0.0)[0]))
-                    await eventually(lambda: gateway.ingest.active_link("F26E-001") is not None)
-                    await gateway.send_to_airframe("F26E-001", command)
+                    await eventually(lambda: gateway.fleet.is_linked("F26E-001"))
+                    await gateway.fleet.send("F26E-001", command)
                     sealed = await sock.receive()
                 gateway.shutdown()
         assert command not in sealed

@@ -49,10 +49,10 @@ async def test_a_command_is_correlated_with_its_ack_and_a_lost_one_is_retried_th
     with anyio.fail_after(20):
         async with anyio.create_task_group() as tg:
             await tg.start(gw.run)
-            port = next(iter(gw.links.values())).local_port  # type: ignore[attr-defined]
+            port = next(iter(gw.fleet.links.values())).local_port  # type: ignore[attr-defined]
             await tg.start(partial(sim.run_udp, "127.0.0.1", port))
-            await eventually(lambda: gw.ingest.active_link("F26E-001") is not None)
-            session = gw.sessions["F26E-001"]
+            await eventually(lambda: gw.fleet.ingest.active_link("F26E-001") is not None)
+            session = gw.fleet.sessions["F26E-001"]
 
             done = await session.command_long(MAV_CMD_COMPONENT_ARM_DISARM, 1.0)
             assert done.is_accepted
@@ -92,13 +92,13 @@ async def test_in_progress_stops_resending_and_a_foreign_ack_is_not_ours() -> No
     from gateway.fleet.session import GATEWAY_COMPID, GATEWAY_SYSID
 
     gw = gateway()
-    session = gw.sessions["F26E-001"]
+    session = gw.fleet.sessions["F26E-001"]
     sent: list[bytes] = []
 
     async def transmit(_airframe: str, frames: bytes) -> None:
         sent.append(frames)
 
-    session.transmit = transmit
+    session.set_transmit(transmit)
     ours = (GATEWAY_SYSID, GATEWAY_COMPID)
     with anyio.fail_after(10):
         async with anyio.create_task_group() as tg:
@@ -122,7 +122,7 @@ class TestMessageHandlers:
     """``on`` adds a handler beside the others; it never silently replaces one."""
 
     def test_several_handlers_of_one_message_each_get_it_in_order(self) -> None:
-        session = gateway().sessions["F26E-001"]
+        session = gateway().fleet.sessions["F26E-001"]
         seen: list[tuple[str, str, object]] = []
         session.on("SCALED_PRESSURE", lambda _s, label, m: seen.append(("first", label, m)))
         session.on("SCALED_PRESSURE", lambda _s, label, m: seen.append(("second", label, m)))
@@ -135,7 +135,7 @@ class TestMessageHandlers:
         assert len(session.handlers("COMMAND_ACK")) == 1
 
     def test_registering_the_same_handler_twice_is_an_error(self) -> None:
-        session = gateway().sessions["F26E-001"]
+        session = gateway().fleet.sessions["F26E-001"]
 
         def handler(_session: object, _label: str, _msg: object) -> None:
             pass
@@ -146,7 +146,7 @@ class TestMessageHandlers:
         assert session.handlers("FISCHER_HOP_EVENT").count(handler) == 1
 
     def test_a_failing_handler_keeps_the_message_from_no_other(self) -> None:
-        session = gateway().sessions["F26E-001"]
+        session = gateway().fleet.sessions["F26E-001"]
         seen: list[str] = []
 
         def broken(_session: object, _label: str, _msg: object) -> None:
@@ -157,3 +157,36 @@ class TestMessageHandlers:
         with pytest.raises(KeyError, match="a bug in a handler"):
             session.dispatch("l", "SCALED_PRESSURE", object())  # type: ignore[arg-type]
         assert seen == ["after"]
+
+
+class TestState:
+    """The session's state is its own: changed through its methods, read through properties."""
+
+    def test_a_peer_is_learned_once_and_forgotten_only_by_itself(self) -> None:
+        from gateway.fleet.mavlink import dialect
+
+        session = gateway().fleet.sessions["F26E-001"]
+        (label,) = session.labels
+        mav = dialect.MAVLink(None, srcSystem=1, srcComponent=1)
+        msg = mav.heartbeat_encode(1, 12, 0, 0, 4)  # a flight controller (PX4)
+        buf = msg.pack(mav)
+        trusted: list[object] = []
+        for peer in (("127.0.0.1", 5), ("127.0.0.1", 5)):
+            assert session.accept(label, peer, True, trusted.append, buf, "HEARTBEAT", msg, 1.0)
+        assert trusted == [("127.0.0.1", 5)]  # told once, when it was new
+        assert session.peer(label) == ("127.0.0.1", 5)
+        assert session.health.autopilot_compid == 1
+        # An unsigned frame the config lets through proves nothing: no peer is learned.
+        session.accept(label, ("127.0.0.1", 7), False, trusted.append, buf, "HEARTBEAT", msg, 1.0)
+        assert session.peer(label) == ("127.0.0.1", 5)
+        session.forget_peer(label, ("127.0.0.1", 6))  # another connection closed
+        assert session.peer(label) == ("127.0.0.1", 5)
+        session.forget_peer(label, ("127.0.0.1", 5))
+        assert session.peer(label) is None
+
+    def test_fields_are_read_only(self) -> None:
+        session = gateway().fleet.sessions["F26E-001"]
+        with pytest.raises(AttributeError):
+            session.commands_sent = 5  # type: ignore[misc]
+        with pytest.raises(AttributeError):
+            session.peers = {}  # type: ignore[attr-defined]

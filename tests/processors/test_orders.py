@@ -16,7 +16,7 @@ import anyio
 import numpy as np
 import pytest
 
-from gateway.domain.mission import MissionItem, Outcome
+from gateway.domain.mission import Loiter, MissionStep, ModeCommands, Outcome, Waypoint
 from gateway.domain.terrain import DemSource, TerrainModel
 from gateway.events import (
     Event,
@@ -51,8 +51,8 @@ class Commander:
         self.linked = linked
         self.upload_ok = upload_ok
         self.ack = ack
-        self.uploads: list[tuple[str, list[MissionItem]]] = []
-        self.commands: list[tuple[str, int, tuple[float, ...]]] = []
+        self.uploads: list[tuple[str, list[MissionStep]]] = []
+        self.commands: list[tuple[str, str, int | None, ModeCommands]] = []
         self.listeners: list[MissionListener] = []
 
     def is_known(self, airframe: str) -> bool:
@@ -64,24 +64,33 @@ class Commander:
     def home(self, airframe: str) -> tuple[float, float] | None:
         return HERE
 
-    async def command(
+    def _answer(self, retries: int) -> Outcome:
+        if self.ack:
+            return Outcome(True, "MAV_RESULT_ACCEPTED")
+        return Outcome(False, f"no answer after {retries + 1} attempts")
+
+    async def start_mission(
         self,
         airframe: str,
-        command: int,
-        params: Sequence[float],
+        items: int,
+        mode_commands: ModeCommands,
         *,
         timeout_s: float,
         retries: int,
     ) -> Outcome:
-        self.commands.append((airframe, command, tuple(params)))
-        if self.ack:
-            return Outcome(True, "MAV_RESULT_ACCEPTED")
-        return Outcome(False, f"no COMMAND_ACK for command {command} after {retries + 1} attempts")
+        self.commands.append((airframe, "start", items, mode_commands))
+        return self._answer(retries)
+
+    async def return_to_base(
+        self, airframe: str, mode_commands: ModeCommands, *, timeout_s: float, retries: int
+    ) -> Outcome:
+        self.commands.append((airframe, "return", None, mode_commands))
+        return self._answer(retries)
 
     async def upload_mission(
-        self, airframe: str, items: Sequence[MissionItem], *, timeout_s: float, retries: int
+        self, airframe: str, steps: Sequence[MissionStep], *, timeout_s: float, retries: int
     ) -> Outcome:
-        self.uploads.append((airframe, list(items)))
+        self.uploads.append((airframe, list(steps)))
         return Outcome(
             self.upload_ok, "MAV_MISSION_ACCEPTED" if self.upload_ok else "MAV_MISSION_DENIED"
         )
@@ -159,9 +168,10 @@ class TestPlan:
     def test_observe_point_is_a_waypoint_then_a_timed_loiter_at_the_current_altitude(self) -> None:
         got = plan(order(), telemetry(), None, limits())
         assert isinstance(got, Plan)
-        assert [i.command for i in got.items] == [16, 19]
-        assert got.items[1].params[0] == 600.0
-        assert got.items[1].params[2] == 300.0
+        assert [type(i) for i in got.items] == [Waypoint, Loiter]
+        loiter = got.items[1]
+        assert isinstance(loiter, Loiter)
+        assert (loiter.seconds, loiter.radius_m) == (600.0, 300.0)
         assert {i.alt_msl_m for i in got.items} == {500.0}
         assert got.route == (HERE, (65.85, 21.10), HERE)
 
@@ -330,13 +340,13 @@ class TestProcessor:
         assert states(published) == ["accepted", "executing", "completed"]
         ((airframe, items),) = commander.uploads
         assert airframe == "F26E-001"
-        assert [i.command for i in items] == [16, 19]
-        assert commander.commands == [("F26E-001", 176, (1.0, 4.0, 4.0))]
+        assert [type(i) for i in items] == [Waypoint, Loiter]
+        assert commander.commands == [("F26E-001", "start", 2, "px4")]
         assert published[-1].event_id == "slb-order-O-1-completed"
         assert published[-1].source == "brigade-slb"
         assert published[-1].current_item == 1
 
-    async def test_mavlink_mode_commands_start_the_mission_with_mission_start(self) -> None:
+    async def test_mavlink_mode_commands_are_passed_on_with_the_intent(self) -> None:
         commander = Commander()
         await run_orders(
             commander,
@@ -344,7 +354,7 @@ class TestProcessor:
             options={"mode_commands": "mavlink"},
             until=lambda s: any(x.status is OrderState.EXECUTING for x in s),
         )
-        assert commander.commands == [("F26E-001", 300, (0.0, 1.0))]
+        assert commander.commands == [("F26E-001", "start", 2, "mavlink")]
 
     async def test_a_rejected_order_sends_nothing(self) -> None:
         commander = Commander()
@@ -397,7 +407,7 @@ class TestProcessor:
             until=lambda s: any(x.status is OrderState.FAILED for x in s),
         )
         assert published[-1].check == "command"
-        assert published[-1].reason == "no COMMAND_ACK for command 176 after 3 attempts"
+        assert published[-1].reason == "no answer after 3 attempts"
 
     async def test_a_newer_order_supersedes_the_running_one(self) -> None:
         commander = Commander()
@@ -425,7 +435,7 @@ class TestProcessor:
         )
         assert states(published) == ["accepted", "executing", "completed"]
         assert commander.uploads == []
-        assert commander.commands == [("F26E-001", 176, (1.0, 4.0, 5.0))]
+        assert commander.commands == [("F26E-001", "return", None, "px4")]
 
     async def test_the_same_order_twice_is_answered_once(self) -> None:
         published = await run_orders(
@@ -518,3 +528,13 @@ async def test_track_target_naming_a_merged_track_flies_to_its_survivor() -> Non
     )
     ((_, items),) = commander.uploads
     assert {(i.lat_deg, i.lon_deg) for i in items} == {(65.872, 21.15)}
+
+
+def test_the_processors_speak_no_mavlink() -> None:
+    """Orders are intents: command numbers, modes and mission items are the fleet's choice."""
+    root = Path(__file__).resolve().parents[2] / "processors"
+    for path in root.glob("*.py"):
+        text = path.read_text()
+        assert "MAV_CMD" not in text, path
+        assert "gateway.fleet" not in text, path
+        assert "pymavlink" not in text, path
