@@ -142,7 +142,9 @@ class Ingest:
         )
         intake.airframes = {a.config.sysid: a for a in self._by_sysid.values() if label in a.labels}
         if not intake.is_stream:
-            intake.datagram_parser = MavlinkParser(max_chunk_bytes=intake.max_chunk_bytes)
+            intake.datagram_parser = MavlinkParser(
+                max_chunk_bytes=intake.max_chunk_bytes, fast=True
+            )
         self._intakes[label] = intake
 
     def set_passthrough(self, airframe: str, forward: Callable[[bytes], None]) -> None:

@@ -19,6 +19,7 @@ from gateway.errors import Malformed, Oversize
 # Imported for their side effect: they register the project dialect's messages with the parser.
 from gateway.fleet import dialect as _detection_messages  # noqa: F401
 from gateway.fleet import hopdialect as _hop_messages  # noqa: F401
+from gateway.fleet.fastdecode import default_decoder
 
 _STX_V1 = 0xFE
 _STX_V2 = 0xFD
@@ -37,21 +38,27 @@ _BAD_TYPES = frozenset({"BAD_DATA"})
 class MavlinkParser:
     """Turns chunks of bytes from one stream into MAVLink messages.
 
-    ``feed`` returns the good messages and counts what was not: ``bad`` (CRC or framing
-    failures, garbage bytes), ``unknown`` (a message id this dialect does not know, whose
-    CRC cannot be checked) and ``truncated`` (a datagram that ended inside a frame). It
-    raises ``Oversize`` for a chunk over ``max_chunk_bytes`` and never lets a pymavlink
-    exception escape: those become ``Malformed`` after the parser state is reset.
+    With ``fast=True`` (ingest's parsers), a datagram (``whole=True``) of whole frames is cut
+    by their headers and each frame of a message the gateway handles is decoded by the fast
+    path built from the dialect XML (``gateway.fleet.fastdecode``, held to pymavlink field
+    for field; its messages read like pymavlink's but cannot be packed again); any other
+    frame, and any stream, goes through pymavlink. ``feed`` returns the good messages and
+    counts what was not: ``bad`` (CRC or framing failures, garbage bytes), ``unknown`` (a
+    message id this dialect does not know, whose CRC cannot be checked) and ``truncated`` (a
+    datagram that ended inside a frame). It raises ``Oversize`` for a chunk over
+    ``max_chunk_bytes`` and never lets a pymavlink exception escape: those become
+    ``Malformed`` after the parser state is reset.
     """
 
-    __slots__ = ("_mav", "bad", "max_chunk_bytes", "truncated", "unknown")
+    __slots__ = ("_fast", "_mav", "bad", "max_chunk_bytes", "truncated", "unknown")
 
-    def __init__(self, *, max_chunk_bytes: int = 2048) -> None:
+    def __init__(self, *, max_chunk_bytes: int = 2048, fast: bool = False) -> None:
         self.max_chunk_bytes = max_chunk_bytes
         self.bad = 0
         self.unknown = 0
         self.truncated = 0
         self._mav = self._new_mav()
+        self._fast = default_decoder() if fast else None
 
     @staticmethod
     def _new_mav() -> Any:
@@ -67,6 +74,34 @@ class MavlinkParser:
         """
         if len(data) > self.max_chunk_bytes:
             raise Oversize(len(data), self.max_chunk_bytes)
+        if whole and self._fast is not None:
+            try:
+                frames = split_frames(data)
+            except Malformed:
+                frames = []  # garbage or a frame cut short: pymavlink counts it, below
+            if frames:
+                return self._whole_frames(frames)
+        return self._pymavlink(data, whole=whole)
+
+    def _whole_frames(self, frames: list[bytes]) -> list[MavMessage]:
+        """The frames of one datagram: the gateway's own messages by the fast path
+        (``gateway.fleet.fastdecode``), every other one by pymavlink."""
+        fast = self._fast
+        assert fast is not None  # noqa: S101 - feed() calls this only with a fast decoder
+        good: list[MavMessage] = []
+        for frame in frames:
+            try:
+                message = fast.decode(frame)
+            except Malformed:
+                self.bad += 1  # a CRC, length or flag pymavlink refuses too
+                continue
+            if message is not None:
+                good.append(message)
+            else:
+                good += self._pymavlink(frame, whole=True)
+        return good
+
+    def _pymavlink(self, data: bytes, *, whole: bool) -> list[MavMessage]:
         mav = self._mav
         try:
             # parse_buffer() always asks for one more message; a datagram usually holds

@@ -73,8 +73,8 @@ def test_bytes_match_mavgen_and_each_decodes_the_other(
     assert frame == expected
     (back,) = generated.MAVLink(None).parse_buffer(frame)
     assert [getattr(back, f) for f in ours.fieldnames] == list(args)
-    (mine,) = MavlinkParser().feed(expected, whole=True)
-    assert isinstance(mine, ours)
+    (mine,) = MavlinkParser(fast=True).feed(expected, whole=True)  # fleet.fastdecode
+    assert mine.get_type() == name.upper()
     assert [getattr(mine, f) for f in ours.fieldnames] == list(args)
 
 
