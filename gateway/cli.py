@@ -458,7 +458,7 @@ def _demo(args: argparse.Namespace) -> int:
     demo = prepare_demo(
         args.archive, udp_port=args.udp_port, health_port=args.health_port, speed=args.speed
     )
-    gateway = Gateway(demo.config, source="demo.yaml")
+    gateway = Gateway(demo.config, sinks=demo.sinks, source="demo.yaml")
     _run_async(_serve, gateway, args.duration, demo.player(gateway))
     return EXIT_OK
 

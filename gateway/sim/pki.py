@@ -105,8 +105,8 @@ def make_demo_pki(directory: Path) -> DemoPki:
     ca = _issue("fischer-gateway demo CA", ca_key, None, usage=None, now=now)
     pki = DemoPki(
         ca_file=directory / "ca.pem",
-        server_cert=directory / "battery.pem",
-        server_key=directory / "battery.key",
+        server_cert=directory / "server.pem",
+        server_key=directory / "server.key",
         client_cert=directory / "gateway.pem",
         client_key=directory / "gateway.key",
     )
