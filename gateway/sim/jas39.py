@@ -1,35 +1,39 @@
 """A simulated JAS 39 Gripen for the demo: its own position as NFFI 1.3 over TLS (IP1).
 
-``fly_jas39`` connects to the gateway's NFFI source with the demo's client certificate
-(the server's certificate checked against the demo CA) and sends one NFFI document a
-second, written with the NFFI integration's codec (``sinks.nffi.codec``): the aircraft's
-track, a friendly fixed-wing fighter (2525C ``SFAPMFF--------``) of F 21 at Luleå, on a
-straight line from Kallax towards Boden, ``speed`` times faster than real time. After its
-first document it calls ``on_sent`` once with what it sent. It stops when cancelled; a
-refused or lost connection ends it with ``OSError`` or an anyio stream error.
+``fly_jas39`` connects to the gateway's NFFI source with the demo's client certificate (the
+server's certificate checked against the demo CA) and sends one NFFI document a second, written
+here as NFFI 1.3 describes it (docs/nffi.md), not with the gateway's codec: the aircraft's
+track (``trackSource`` SWE / JAS39 / F21 / its transponder), a friendly fixed-wing fighter
+(2525C ``SFAPMFF--------``) of F 21 at Luleå, on a straight line from Kallax towards Boden,
+``speed`` times faster than real time. After its first document it calls ``on_sent`` once with
+what it sent. It stops when cancelled; a refused or lost connection ends it with ``OSError`` or
+an anyio stream error.
 """
 
 from __future__ import annotations
 
-import math
 import ssl
 from collections.abc import Callable
 from dataclasses import dataclass
+from datetime import UTC, datetime
 
 import anyio
 
 from gateway.clock import utc_now
 from gateway.domain.geodesy import destination
-from gateway.events import BlueForce, Position, Provenance
 from gateway.sim.pki import DemoPki
-from sinks.nffi.codec import NffiOptions, encode_message, encode_track
 
-__all__ = ["CALLSIGN", "SIDC", "Jas39Sent", "fly_jas39"]
+__all__ = ["CALLSIGN", "NAMESPACE", "SIDC", "Jas39Sent", "fly_jas39", "nffi_document"]
+
+#: NFFI 1.3's namespace.
+NAMESPACE = "urn:nato:fft:protocols:nffi13"
 
 CALLSIGN = "GRIPEN 21"
+#: The aircraft's transponder id and unit short name (NFFI identifiers have no spaces).
+TRANSPONDER = "GRIPEN-21"
 #: A friendly military fixed-wing fighter (MIL-STD-2525C).
 SIDC = "SFAPMFF--------"
-_OPTIONS = NffiOptions(system="JAS39", country="SWE", subsystem="F21")
+_KMH_PER_MPS = 3.6
 _START = (65.5438, 22.1219)  # Luleå-Kallax
 _COURSE_DEG = 315.0
 _SPEED_MPS = 230.0
@@ -53,6 +57,23 @@ def _position(elapsed_s: float) -> tuple[float, float]:
     return lat, lon
 
 
+def nffi_document(lat_deg: float, lon_deg: float, when: datetime) -> bytes:
+    """One NFFI document holding the aircraft's track at (lat, lon) at ``when``."""
+    return (
+        '<?xml version="1.0" encoding="UTF-8"?>\n'
+        f'<NFFIMessage xmlns="{NAMESPACE}"><track><positionalData>'
+        "<trackSource><sourceSystem><country>SWE</country><system>JAS39</system>"
+        f"<subsystem>F21</subsystem></sourceSystem><transponderId>{TRANSPONDER}</transponderId>"
+        f"</trackSource><dateTime>{when.astimezone(UTC):%Y%m%d%H%M%S}</dateTime>"
+        f"<coordinates><latitude>{lat_deg:.7f}</latitude><longitude>{lon_deg:.7f}</longitude>"
+        f"<altitude>{_ALT_MSL_M:.0f}</altitude></coordinates>"
+        f"<bearing>{_COURSE_DEG:.0f}</bearing><speed>{_SPEED_MPS * _KMH_PER_MPS:.0f}</speed>"
+        f"</positionalData><identificationData><unitSymbol>{SIDC}</unitSymbol>"
+        f"<unitShortName>{TRANSPONDER}</unitShortName></identificationData></track>"
+        "</NFFIMessage>\n"
+    ).encode()
+
+
 async def fly_jas39(
     host: str, port: int, pki: DemoPki, *, speed: float, on_sent: Callable[[Jas39Sent], None]
 ) -> None:
@@ -66,21 +87,7 @@ async def fly_jas39(
         while True:
             elapsed_s = (anyio.current_time() - started) * speed
             lat, lon = _position(elapsed_s)
-            event = BlueForce(
-                event_id=f"jas39-{math.floor(elapsed_s)}",
-                uid=CALLSIGN,
-                time=utc_now(),
-                callsign=CALLSIGN,
-                position=Position(lat_deg=lat, lon_deg=lon, alt_msl_m=_ALT_MSL_M),
-                source="sim",
-                course_deg=_COURSE_DEG,
-                speed_mps=_SPEED_MPS,
-                sidc=SIDC,
-                provenance=Provenance.AUTHENTICATED,
-            )
-            track = encode_track(event, _OPTIONS)
-            assert track is not None  # noqa: S101 - a position is always there
-            data = encode_message([track])
+            data = nffi_document(lat, lon, utc_now())
             await stream.send(data)
             if first:
                 first = False

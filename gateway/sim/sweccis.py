@@ -1,12 +1,13 @@
 """A simulated SWECCIS server for the demo: FAS documents over TLS, each acknowledged.
 
 It listens on 127.0.0.1 with TLS and requires a client certificate from the demo CA. Its
-framing is its own reading of the protocol (docs/sweccis.md): a 4-byte big-endian length,
-then one XML document (at most ``MAX_FRAME`` bytes; more, and the connection is closed).
-The client's ``Register`` is answered ``Registered`` with the FAS it asked to publish; each
-data document after it is parsed with defusedxml and answered ``Ack`` ``accepted`` (an id
-seen before: ``duplicate``; a document it cannot read: ``rejected`` with the reason). What it
-read of each Intel document about a track, ``FasTrack``, goes to ``on_track``.
+framing is its own reading of the protocol (docs/sweccis.md): a 4-byte big-endian length, then
+one XML document (at most ``MAX_FRAME`` bytes; more, and the connection is closed). Nothing
+here comes from the gateway's SWECCIS code. The client's ``Register`` is answered
+``Registered`` with the FAS it asked to publish; each data document after it is parsed with
+defusedxml and answered ``Ack`` ``accepted`` (an id seen before: ``duplicate``; a document it
+cannot read: ``rejected`` with the reason). What it read of each Intel document about a track,
+``FasTrack``, goes to ``on_track``.
 """
 
 from __future__ import annotations
@@ -25,9 +26,11 @@ from anyio.streams.tls import TLSListener
 from defusedxml import ElementTree as SafeET
 
 from gateway.sim.pki import DemoPki
-from sinks.sweccis.fasxml import NAMESPACE
 
-__all__ = ["MAX_FRAME", "FasTrack", "SimulatedSweccis"]
+__all__ = ["MAX_FRAME", "NAMESPACE", "FasTrack", "SimulatedSweccis"]
+
+#: The FAS documents' namespace (docs/sweccis.md; the shipped XSD's target namespace).
+NAMESPACE = "urn:fischer-gateway:sweccis:fas:1"
 
 MAX_FRAME = 1024 * 1024
 _HEADER = struct.Struct(">I")
