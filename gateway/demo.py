@@ -158,6 +158,18 @@ class Demo:
         """The coroutine that plays the operation beside ``gateway`` and then stops it."""
 
         async def play() -> None:
+            try:
+                await run()
+            except anyio.get_cancelled_exc_class():
+                # --duration, a signal or a closed stdout stopped the gateway first.
+                missing = self.narrator.missing()
+                if missing:
+                    self.narrator.say(
+                        f"stopped before the operation ended; not reached: {', '.join(missing)}"
+                    )
+                raise
+
+        async def run() -> None:
             self.story.on_closed = gateway.shutdown
             self._opening()
             for processor in gateway.processors.values():
