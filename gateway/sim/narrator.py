@@ -8,11 +8,13 @@ object item, SWECCIS's Intel document, the Ra 180 net's message, ATAK's CoT). It
 1. the friendly units registered (the platoons' CoT position reports, parsed by the gateway);
 2. the GUTE II battery registered, and the stand-in waiting for its cues;
 3. the first detection of an inbound munition;
-4. the featured track: the first munition that is fused from two sensors and cued;
+4. the featured track: the first munition fused from two sensors and cued with deconfliction
+   clear;
 5. its deconfliction with the nearest friendly unit;
 6. its cue, once the battery acknowledged exactly that revision;
 7. to 10. that track as SLB, SWECCIS, the Ra 180 net and ATAK received it (ATAK's with
-   the 2525D code the gateway put on it);
+   the 2525D code the gateway put on it; a CDM names no track, so the net's new-target
+   message taken is the one nearest where SWECCIS or SLB first saw the track, within 1 km);
 
 then, after step 10, the relay of a JAS 39's NFFI report to ATAK as a friendly unit, the
 first cue held back because a friendly unit was too close, and the end. A step waits for
