@@ -13,6 +13,7 @@ import math
 import os
 import re
 import secrets
+import select
 import signal
 import sys
 from collections.abc import Callable, Coroutine, Sequence
@@ -457,7 +458,7 @@ def _demo(args: argparse.Namespace) -> int:
     demo = prepare_demo(
         args.archive, udp_port=args.udp_port, health_port=args.health_port, speed=args.speed
     )
-    gateway = Gateway(demo.config, source="demo.yaml")
+    gateway = Gateway(demo.config, sinks=demo.sinks, source="demo.yaml")
     _run_async(_serve, gateway, args.duration, demo.player(gateway))
     return EXIT_OK
 
@@ -725,15 +726,42 @@ def _spool(args: argparse.Namespace) -> int:
         return admin.requeue(
             spool, sys.stdout, sys.stderr, args.ids, every=args.all, sink=args.sink
         )
-    except BrokenPipeError:  # `| head`: the reader has what it wanted
-        sys.stdout = open(os.devnull, "w")  # noqa: SIM115 - no flush error at exit
-        return EXIT_OK
     finally:
         spool.close()
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the ``fischer-gateway`` console script."""
+    """Entry point of the ``fischer-gateway`` console script.
+
+    A reader that closes stdout early (``fischer-gateway selftest | head -1``) has what it
+    wanted: the command ends quietly with status 0, stdout pointed at /dev/null so that
+    nothing more (not even the flush at exit) fails. A broken pipe that is not stdout's (a
+    peer's socket) is not mistaken for it.
+    """
+    try:
+        code = _command(argv)
+        sys.stdout.flush()  # a pipe closed after the last write fails here, not at exit
+    except BrokenPipeError:
+        if not _stdout_closed():
+            raise
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+        return EXIT_OK
+    return code
+
+
+def _stdout_closed() -> bool:
+    """True when stdout is a pipe or socket whose reader has gone (poll says POLLERR)."""
+    try:
+        poller = select.poll()
+        poller.register(sys.stdout.fileno(), select.POLLOUT)
+        return any(mask & (select.POLLERR | select.POLLHUP) for _, mask in poller.poll(0))
+    except (OSError, ValueError):  # no file descriptor behind sys.stdout
+        return False
+
+
+def _command(argv: Sequence[str] | None) -> int:
     args = _parser().parse_args(argv)
     if args.command == "config-schema":
         from gateway.configschema import config_schema
@@ -765,6 +793,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         except FileExistsError:
             print(f"{args.out} exists; not overwriting a key", file=sys.stderr)  # noqa: T201
             return EXIT_CONFIG
+        except BrokenPipeError:
+            raise  # main's: the key is written, its reader closed stdout
         except OSError as exc:
             where = exc.filename or args.out
             print(f"{where}: {exc.strerror or exc}", file=sys.stderr)  # noqa: T201
@@ -789,6 +819,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.command == "replay":
             return _replay(args)
         return _simulate(args)
+    except BrokenPipeError:
+        raise  # main's: stdout closed by its reader, not the gateway's failure
     except Exception as exc:
         config_errors = [e for e in _leaves(exc) if isinstance(e, ConfigError)]
         # OSError: a port already in use, a file that cannot be opened: said plainly, exit 1.

@@ -12,6 +12,7 @@ first.
 from __future__ import annotations
 
 from collections import OrderedDict
+from datetime import UTC
 
 from gateway.domain.geodesy import to_mgrs
 from gateway.domain.peertext import marked, safe_text, shown
@@ -98,7 +99,15 @@ class Story:
 
     def _track(self, track: Track) -> list[str]:
         if track.status == "lost":
-            return [f"track {track.track_id} lost: no detection since {track.last_seen:%H:%M:%SZ}"]
+            # The line is stamped with the time it was lost, to the second: the silence is
+            # given as a duration, so a track lost within a second of its last detection
+            # does not read "no detection since" the very second on the line.
+            silent_s = max((track.time - track.last_seen).total_seconds(), 0.0)
+            last = track.last_seen.astimezone(UTC).strftime("%H:%M:%S.%f")[:-5]
+            return [
+                f"track {track.track_id} lost: no detection for {silent_s:.1f} s"
+                f" (the last at {last}Z)"
+            ]
         if track.status == "merged":
             return [
                 f"track {track.track_id} merged into {track.merged_into}:"

@@ -71,15 +71,30 @@ def test_the_wheel_ships_config_unit_docs_contract_and_example(tmp_path: Path) -
     assert {"gateway/contract.py", "gateway/testing.py", "sinks/example.py"} <= names
 
 
+def _anchors(markdown: str) -> set[str]:
+    """The anchors a renderer gives the headings (GitHub's rule: lower case, punctuation
+    dropped, spaces to hyphens)."""
+    headings = re.findall(r"^#+ (.+)$", markdown, re.MULTILINE)
+    return {re.sub(r"[^\w\- ]", "", h.strip().lower()).replace(" ", "-") for h in headings}
+
+
 def test_what_files_out_ships_links_only_to_what_it_ships(tmp_path: Path) -> None:
-    """An operator reading /opt/fischer-gateway/share follows every link there."""
+    """An operator reading /opt/fischer-gateway/share follows every relative link there:
+    each leads to a shipped file (and a heading of it, for an #anchor)."""
     from gateway.ops.share import write_shared
 
     written = {path.name: path for path in write_shared(tmp_path)}
+    followed = 0
     for name, path in written.items():
-        if not name.endswith(".md") or name == "README.md":
-            continue  # the README is the repository's front page (its links are checked above)
-        for target in LINK.findall(path.read_text()):
-            if re.match(r"[a-z]+:", target) or "/" in target:
-                continue  # the web, or the repository's source (read there, not shipped)
-            assert target in written, f"{name} links to {target}, which is not shipped"
+        if not name.endswith(".md"):
+            continue
+        for target, anchor in re.findall(r"\]\(([^)#\s]*)(#[^)\s]*)?\)", path.read_text()):
+            if re.match(r"[a-z][a-z0-9+.-]*:", target):
+                continue  # the web
+            landing = (tmp_path / target) if target else path
+            assert landing.resolve().parent == tmp_path.resolve(), f"{name} leaves: {target}"
+            assert landing.is_file(), f"{name} links to {target}, which is not shipped"
+            if anchor:
+                assert anchor[1:] in _anchors(landing.read_text()), f"{name}: {target}{anchor}"
+            followed += 1
+    assert followed > 50

@@ -4,16 +4,31 @@ The example config, the systemd unit and the operator documentation live in the 
 (``config/``, ``deploy/``, ``docs/``); ``gateway/data/share`` holds symbolic links to them, and
 the wheel carries their contents. ``fischer-gateway files`` lists, prints or writes them, so
 deploy/INSTALL.md works the same from a wheel as from a checkout.
+
+``files --out DIR`` writes them side by side in one directory, so a document's relative
+links are rewritten as it is written (``shipped_text``): a link to another shipped file
+points at its copy in DIR; a link into the source tree (a schema, a module) is no link
+there, so it becomes its text followed by the path in the source tree.
 """
 
 from __future__ import annotations
 
+import posixpath
+import re
 from importlib.resources import files
 from importlib.resources.abc import Traversable
 from pathlib import Path
 from typing import TextIO
 
-__all__ = ["DESCRIPTIONS", "files_command", "read_shared", "shared_names", "write_shared"]
+__all__ = [
+    "DESCRIPTIONS",
+    "ORIGINS",
+    "files_command",
+    "read_shared",
+    "shared_names",
+    "shipped_text",
+    "write_shared",
+]
 
 #: Every shipped file and what it is.
 DESCRIPTIONS = {
@@ -27,6 +42,7 @@ DESCRIPTIONS = {
     "tunnel.md": "the AES-256-GCM airframe tunnel",
     "durability.md": "durable delivery: the spool, detection acknowledgements, dead letters",
     "detection-ack.md": "FISCHER_DETECTION_ACK: what an airframe must do to lose no detection",
+    "cot.md": "the CoT sink and source: symbols, stale times, UDP and TAK server streams, TAK v1",
     "slb.md": "the SLB sink and order source: endpoints, JC3IEDM payload, options",
     "nffi.md": "the NFFI sink and source: mapping, IP1 framing, trust, options",
     "sweccis.md": "the SWECCIS sink and order source: FAS documents, framing, XSD, options",
@@ -39,6 +55,21 @@ DESCRIPTIONS = {
     "tracking.md": "scoring tracks against ground truth: truth files, GOSPA, the scenarios",
     "README.md": "what works today",
 }
+
+
+#: The repository folder of each shipped file that is not in ``docs/``.
+ORIGINS = {
+    "README.md": "",
+    "INSTALL.md": "deploy",
+    "fischer-gateway.service": "deploy",
+    "example.yaml": "config",
+}
+#: A markdown link: its text, its target and an optional #anchor (a bare #anchor is no match).
+_LINK = re.compile(r"\[([^\]]*)\]\(([^)#\s]+)(#[^)\s]*)?\)")
+
+
+def _origin(name: str) -> str:
+    return posixpath.join(ORIGINS.get(name, "docs"), name)
 
 
 def _share() -> Traversable:
@@ -57,13 +88,33 @@ def read_shared(name: str) -> str:
     return _share().joinpath(name).read_text(encoding="utf-8")
 
 
+def shipped_text(name: str) -> str:
+    """The text of one shipped file as ``files --out`` writes it (module docstring)."""
+    text = read_shared(name)
+    if not name.endswith(".md"):
+        return text
+    shipped = {_origin(known): known for known in DESCRIPTIONS}
+    folder = posixpath.dirname(_origin(name))
+
+    def relink(match: re.Match[str]) -> str:
+        label, target, anchor = match[1], match[2], match[3] or ""
+        if re.match(r"[a-z][a-z0-9+.-]*:", target):
+            return match[0]  # the web, mail
+        path = posixpath.normpath(posixpath.join(folder, target))
+        if path in shipped:
+            return f"[{label}]({shipped[path]}{anchor})"
+        return label if path.strip("/") in label else f"{label} (`{path}` in the source tree)"
+
+    return _LINK.sub(relink, text)
+
+
 def write_shared(directory: Path) -> list[Path]:
     """Write every shipped file into ``directory`` (created, files replaced); the paths."""
     directory.mkdir(parents=True, exist_ok=True)
     written = []
     for name in DESCRIPTIONS:
         target = directory / name
-        target.write_text(read_shared(name), encoding="utf-8")
+        target.write_text(shipped_text(name), encoding="utf-8")
         target.chmod(0o644)
         written.append(target)
     return written

@@ -1,109 +1,24 @@
 """A simulated GUTE II battery for the demo: an HTTPS endpoint that takes handoff cues.
 
-It listens on loopback with TLS, requires a client certificate from the demo CA, reads
-HTTP/1.1 POSTs with a ``Content-Length`` body (bounded), and answers ``201`` for a new
-``Idempotency-Key`` and ``409`` for one it already has, calling ``on_handoff`` once per key.
-It plays the battery's side only as far as the demo needs: the operator's decision to engage
-is not simulated, because the gateway never makes it.
+A ``PostServer`` (loopback TLS, client certificate from the demo CA required) whose new
+cues go to ``on_handoff`` once per ``Idempotency-Key``. It plays the battery's side only as
+far as the demo needs: the operator's decision to engage is not simulated, because the
+gateway never makes it.
 """
 
 from __future__ import annotations
 
-import json
-import socket
-import ssl
 from collections.abc import Callable
 from typing import Any
 
-import anyio
-import anyio.abc
-from anyio.streams.buffered import BufferedByteReceiveStream
-from anyio.streams.tls import TLSListener
-
+from gateway.sim.httpspost import PostServer
 from gateway.sim.pki import DemoPki
 
 __all__ = ["SimulatedBattery"]
 
-_MAX_HEAD = 16 * 1024
-_MAX_BODY = 256 * 1024
 
-
-class SimulatedBattery:
+class SimulatedBattery(PostServer):
     """See the module docstring; its loopback port is bound (``port``) when it is made."""
 
     def __init__(self, pki: DemoPki, on_handoff: Callable[[dict[str, Any]], None]) -> None:
-        self._context = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH, cafile=pki.ca_file)
-        self._context.load_cert_chain(pki.server_cert, pki.server_key)
-        self._context.verify_mode = ssl.CERT_REQUIRED
-        self._on_handoff = on_handoff
-        self.keys: set[str] = set()
-        self._socket = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-        self._socket.bind(("127.0.0.1", 0))
-        self._socket.listen(16)
-        self.port = int(self._socket.getsockname()[1])
-
-    async def serve(
-        self, *, task_status: anyio.abc.TaskStatus[None] = anyio.TASK_STATUS_IGNORED
-    ) -> None:
-        """Accept connections until cancelled."""
-        tcp = await anyio.abc.SocketListener.from_socket(self._socket)
-        listener = TLSListener(tcp, self._context, standard_compatible=False)
-        task_status.started()
-        async with listener:
-            await listener.serve(self._connection)
-
-    async def _connection(self, stream: anyio.abc.ByteStream) -> None:
-        async with stream:
-            buffered = BufferedByteReceiveStream(stream)
-            try:
-                while await self._exchange(stream, buffered):
-                    pass
-            except (anyio.EndOfStream, anyio.IncompleteRead, anyio.BrokenResourceError):
-                return
-            except anyio.DelimiterNotFound:
-                await self._answer(stream, 431, {"error": "header too large"})
-
-    async def _exchange(
-        self, stream: anyio.abc.ByteStream, buffered: BufferedByteReceiveStream
-    ) -> bool:
-        head = await buffered.receive_until(b"\r\n\r\n", _MAX_HEAD)
-        lines = head.decode("latin-1").split("\r\n")
-        method, _, _ = lines[0].partition(" ")
-        headers = {}
-        for line in lines[1:]:
-            name, _, value = line.partition(":")
-            headers[name.strip().lower()] = value.strip()
-        try:
-            length = int(headers.get("content-length", "0"))
-        except ValueError:
-            length = -1
-        if not 0 <= length <= _MAX_BODY:
-            await self._answer(stream, 413, {"error": "body missing or too large"})
-            return False
-        body = await buffered.receive_exactly(length) if length else b""
-        key = headers.get("idempotency-key", "")
-        if method != "POST" or not key:
-            await self._answer(stream, 400, {"error": "POST with an Idempotency-Key only"})
-            return True
-        try:
-            document = json.loads(body)
-        except ValueError:
-            await self._answer(stream, 400, {"error": "body is not JSON"})
-            return True
-        if key in self.keys:
-            await self._answer(stream, 409, {"status": "already received", "key": key})
-            return True
-        self.keys.add(key)
-        self._on_handoff(document if isinstance(document, dict) else {})
-        await self._answer(stream, 201, {"status": "received", "key": key})
-        return True
-
-    @staticmethod
-    async def _answer(stream: anyio.abc.ByteStream, status: int, body: dict[str, Any]) -> None:
-        data = json.dumps(body).encode()
-        reason = {201: "Created", 400: "Bad Request", 409: "Conflict"}.get(status, "Error")
-        await stream.send(
-            f"HTTP/1.1 {status} {reason}\r\nContent-Type: application/json\r\n"
-            f"Content-Length: {len(data)}\r\n\r\n".encode()
-            + data
-        )
+        super().__init__(pki, lambda _path, document: on_handoff(document))

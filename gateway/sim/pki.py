@@ -1,8 +1,10 @@
 """A throwaway certificate authority for the demo: a CA, a loopback server and one client.
 
 ``make_demo_pki(directory)`` writes PEM files (keys mode 0600) for a demo-only CA, a server
-certificate for ``localhost`` and 127.0.0.1, and a client certificate, and returns their
-paths. Nothing here is for a real node: there, certificates come from the unit's PKI.
+certificate for ``localhost`` and 127.0.0.1 (every stand-in's, and the gateway's NFFI
+listener's), and a client certificate (the gateway's towards its peers, and the simulated
+JAS 39's), and returns their paths. Made with ``cryptography`` on each start. Nothing here is
+for a real node: there, certificates come from the unit's PKI.
 """
 
 from __future__ import annotations
@@ -105,8 +107,8 @@ def make_demo_pki(directory: Path) -> DemoPki:
     ca = _issue("fischer-gateway demo CA", ca_key, None, usage=None, now=now)
     pki = DemoPki(
         ca_file=directory / "ca.pem",
-        server_cert=directory / "battery.pem",
-        server_key=directory / "battery.key",
+        server_cert=directory / "server.pem",
+        server_key=directory / "server.key",
         client_cert=directory / "gateway.pem",
         client_key=directory / "gateway.key",
     )

@@ -1,6 +1,6 @@
 """The CoT source's TCP side: a bounded listener for ATAK/WinTAK streams, and the splitter.
 
-A stream is XML events back to back, split after each ``</event>`` (``cot.md`` §6). The
+A stream is XML events back to back, split after each ``</event>`` (``cot.md`` §8). The
 splitter resynchronises on the last ``<event`` (with its ``<?xml`` declaration) before each
 end, so a stray fragment (a bare ``<detail>``, half an event after a reconnect) costs only
 itself: it is counted, and the event after it still parses.

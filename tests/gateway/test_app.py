@@ -258,7 +258,8 @@ def test_demo_runs_for_its_duration_and_archives_events(tmp_path: Path) -> None:
         check=False,
     )  # fmt: skip
     assert result.returncode == 0, result.stderr
-    assert "battery registered: GUTE II GUTE-1" in result.stdout
+    assert "[2/10] GUTE II battery registered: GUTE-1" in result.stdout
+    assert "stopped before the operation ended; not reached: [" in result.stdout
     kinds = {json.loads(line)["kind"] for line in archive.read_text().splitlines()}
     assert {"telemetry", "link_state"} <= kinds
 

@@ -232,6 +232,7 @@ class TestFiles:
     """What the wheel ships for installing without the source tree."""
 
     def test_out_writes_the_config_unit_and_docs_as_in_the_repository(self, tmp_path: Path) -> None:
+        """As in the repository, but for the docs' relative links, which point at the copies."""
         result = cli("files", "--out", str(tmp_path / "share"))
         assert result.returncode == 0, result.stderr
         for name, source in {
@@ -241,7 +242,12 @@ class TestFiles:
             "operations.md": "docs/operations.md",
             "writing-a-sink.md": "docs/writing-a-sink.md",
         }.items():
-            assert (tmp_path / "share" / name).read_text() == (ROOT / source).read_text(), name
+            original = (ROOT / source).read_text()
+            if name == "INSTALL.md":
+                original = original.replace("](../docs/", "](")
+            elif name == "operations.md":
+                original = original.replace("](../deploy/INSTALL.md", "](INSTALL.md")
+            assert (tmp_path / "share" / name).read_text() == original, name
 
     def test_one_file_is_printed_and_an_unknown_one_is_an_error(self) -> None:
         result = cli("files", "fischer-gateway.service")

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from datetime import UTC, datetime
+from datetime import UTC, datetime, timedelta
 
 from gateway.contract import sample_events
 from gateway.events import (
@@ -64,6 +64,18 @@ def test_tracks_are_told_when_their_fused_picture_changes_and_when_lost() -> Non
     assert story.tell(fused.model_copy(update={"event_id": "again"})) == []
     (line,) = story.tell(base.model_copy(update={"status": "lost"}))
     assert line.startswith("track T1 lost")
+
+
+def test_a_track_lost_within_a_second_of_its_last_detection_says_how_long_it_was_silent() -> None:
+    """The line is stamped to the second: "no detection since <that second>" read as nonsense."""
+    base = sample_events(frozenset({EventKind.TRACK}))[0]
+    assert isinstance(base, Track)
+    lost = base.model_copy(
+        update={"status": "lost", "time": base.last_seen + timedelta(milliseconds=600)}
+    )
+    (line,) = Story().tell(lost)
+    last = base.last_seen.astimezone(UTC).strftime("%H:%M:%S.%f")[:-5]
+    assert line == f"track T1 lost: no detection for 0.6 s (the last at {last}Z)"
 
 
 def test_a_merged_track_is_told_as_merged_and_its_superseded_cue_as_such() -> None:
