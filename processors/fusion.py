@@ -76,6 +76,12 @@ class FusionConfig(ProcessorConfig):
     update_interval_s: float = Field(
         default=1.0, ge=0, le=60, description="Updates of one track at most this often..."
     )
+    max_sigma_m: float = Field(
+        default=1000.0,
+        ge=1,
+        le=10_000,
+        description="Detections with a σ above this (m) are refused and counted (too_vague).",
+    )
     max_drift_m: float = Field(
         default=5.0,
         ge=0,
@@ -162,6 +168,7 @@ class FusionConfig(ProcessorConfig):
             max_tracks=self.max_tracks,
             update_interval_s=self.update_interval_s,
             max_drift_m=self.max_drift_m,
+            max_sigma_m=self.max_sigma_m,
             speed_scale=self.speed_scale,
             report_velocity_sigma_mps=self.report_velocity_sigma_mps,
             merge_sigma=self.merge_sigma,
@@ -241,6 +248,7 @@ class FusionProcessor:
             "merged": counts.merged,
             "speed_prior": counts.speed_prior,
             "refused_full": counts.refused_full,
+            "too_vague": counts.too_vague,
             "total_conflict": counts.total_conflict,
             "lost": counts.lost,
             "overload_refused": counts.overload_refused,

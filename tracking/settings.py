@@ -38,6 +38,7 @@ class TrackerSettings:
     max_tracks: int = 5000
     update_interval_s: float = 1.0
     max_drift_m: float = 5.0
+    max_sigma_m: float = 1000.0
     speed_scale: float = 1.0
     speed_prior_sigma: float = 0.2
     report_velocity_sigma_mps: float = 1.6
@@ -66,3 +67,5 @@ class TrackerCounts:
     merged: int = 0
     #: Detections refused because their frame used up its pair budget (``MAX_FRAME_PAIRS``).
     overload_refused: int = 0
+    #: Detections refused because their σ exceeds ``max_sigma_m``.
+    too_vague: int = 0

@@ -35,8 +35,10 @@ Source = tuple[str, Sensor]
 
 Stage = Literal["tentative", "confirmed", "coasting"]
 
-#: A σ below this (m) is taken as this: a zero σ would make the filter's S singular.
-MIN_SIGMA_M = 0.1
+#: A σ below this (m) is taken as this: a zero σ would make the filter's S singular, and no
+#: airborne EO/IR/RF fix places a ground object to centimetres (a claim that fine, honest or
+#: crafted, would make one detection outweigh a track's whole history).
+MIN_SIGMA_M = 1.0
 
 
 def fuse_sources(sources: Mapping[Source, MassFunction]) -> tuple[MassFunction, float]:

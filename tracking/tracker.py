@@ -127,7 +127,14 @@ class Tracker:
     # -- input -----------------------------------------------------------------------------
 
     def update(self, detection: Detection) -> list[Track]:
-        """Add ``detection`` to its frame; the events of any frame this completes."""
+        """Add ``detection`` to its frame; the events of any frame this completes.
+
+        A detection vaguer than ``max_sigma_m`` is refused and counted (``too_vague``): its
+        gate would reach tracks kilometres away and keep them alive without placing them.
+        """
+        if not detection.sigma_h_m <= self.settings.max_sigma_m:
+            self.counts.too_vague += 1
+            return []
         source: Source = (detection.airframe, detection.sensor)
         out: list[Track] = []
         held = self._frames.get(source)

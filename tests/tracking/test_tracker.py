@@ -434,3 +434,26 @@ class TestCrowdedFrames:
             tracker.update_frame([detection(t_s=t, east_m=50.0 * n + 10.0 * t) for n in range(20)])
         assert tracker.counts.overload_refused == 0
         assert module.MAX_FRAME_PAIRS > 20 * 20
+
+
+class TestVagueDetections:
+    """A detection too vague to place anything cannot keep a track alive from afar."""
+
+    def test_a_detection_vaguer_than_max_sigma_is_refused_and_the_track_is_lost(self) -> None:
+        tracker = Tracker(TrackerSettings(update_interval_s=0.0, lost_after_s=20.0))
+        events: list[Track] = []
+        for i in range(5):
+            events += tracker.update_frame([detection(t_s=i)])
+        # Then only a 9 km σ report from another airframe, 3 km north, every second.
+        for i in range(5, 40):
+            events += tracker.update_frame(
+                [detection(t_s=i, airframe="B", sensor=Sensor.IR, north_m=3000.0, sigma_m=9000.0)]
+            )
+            events += tracker.tick(T0 + timedelta(seconds=i))
+        assert tracker.counts.too_vague == 35
+        assert [e.status for e in events if e.status != "updated"] == ["created", "lost"]
+
+    def test_a_sigma_below_a_metre_counts_as_a_metre(self) -> None:
+        tracker = Tracker(TrackerSettings(update_interval_s=0.0, confirm_hits=1))
+        (created,) = tracker.update_frame([detection(sigma_m=0.0)])
+        assert created.cep50_m == pytest.approx(1.1774, abs=1e-3)  # CEP50 of σ 1 m
