@@ -200,7 +200,9 @@ class Picture:
 
     def _link_state(self, event: LinkState) -> list[Change]:
         old = self._layers["airframe"].get(event.airframe)
-        data = dict(old) if old is not None else {"id": event.airframe, **_where(None)}
+        data: dict[str, Any] = {"id": event.airframe, **_where(None)}
+        if old is not None:
+            data.update(old)
         data.setdefault("sidc", _AIRFRAME_SIDC)
         links = dict(data.get("links", {}))
         # An airframe has a handful of links; a peer cannot add more (the config names them).
@@ -334,17 +336,21 @@ class Picture:
 
     def _order_status(self, event: OrderStatus) -> list[Change]:
         old = self._layers["order"].get(event.order_event_id)
-        data = dict(old) if old is not None else {
-            "id": event.order_event_id,
-            "order_id": event.order_id,
-            "source": event.source,
-            "task": None,
-            "priority": None,
-            "lat": None,
-            "lon": None,
-            "mgrs": None,
-            "polygon": [],
-        }
+        data = (
+            dict(old)
+            if old is not None
+            else {
+                "id": event.order_event_id,
+                "order_id": event.order_id,
+                "source": event.source,
+                "task": None,
+                "priority": None,
+                "lat": None,
+                "lon": None,
+                "mgrs": None,
+                "polygon": [],
+            }
+        )
         data.update(
             time=event.time.isoformat(),
             airframe=event.airframe or data.get("airframe"),

@@ -124,4 +124,4 @@ async def serve_app(
     shutdown: asyncio.Event,
 ) -> None:
     """Serve ``app`` on ``sock`` until ``shutdown`` is set."""
-    await serve(app, _config(sock, tls), shutdown_trigger=shutdown.wait, mode="asgi")  # type: ignore[arg-type]
+    await serve(app, _config(sock, tls), shutdown_trigger=shutdown.wait, mode="asgi")

