@@ -62,6 +62,18 @@ _GENERIC_TRACK = {
 _AIRFRAME_SIDC = "SFAPMFQ--------"  # friendly air, military fixed wing, UAV
 _BLUE_SIDC = "SFGPU----------"  # friendly ground unit
 _BATTERY_SIDC = "SFGPUCDM-------"  # friendly air defence, missile
+#: An airframe heard of only through its links so far: every telemetry field unknown.
+_NO_TELEMETRY: dict[str, Any] = {
+    "time": None,
+    "sidc": _AIRFRAME_SIDC,
+    "heading_deg": None,
+    "groundspeed_mps": None,
+    "battery_pct": None,
+    "endurance_min": None,
+    "active_link": None,
+    "armed": None,
+    "links": {},
+}
 
 
 @dataclass(frozen=True, slots=True)
@@ -200,10 +212,9 @@ class Picture:
 
     def _link_state(self, event: LinkState) -> list[Change]:
         old = self._layers["airframe"].get(event.airframe)
-        data: dict[str, Any] = {"id": event.airframe, **_where(None)}
+        data: dict[str, Any] = {"id": event.airframe, **_where(None), **_NO_TELEMETRY}
         if old is not None:
             data.update(old)
-        data.setdefault("sidc", _AIRFRAME_SIDC)
         links = dict(data.get("links", {}))
         # An airframe has a handful of links; a peer cannot add more (the config names them).
         links[event.link] = {

@@ -9,6 +9,7 @@
   const LEADER_S = 60; // a course/speed leader shows where the entity is in this many seconds
 
   const map = L.map("map", { zoomControl: true, preferCanvas: false, worldCopyJump: true });
+  L.control.scale({ imperial: false }).addTo(map);
   map.setView([62.0, 17.0], 5);
   const groups = {};
   for (const layer of LAYERS) groups[layer] = L.layerGroup().addTo(map);
