@@ -223,6 +223,12 @@ def test_the_page_draws_the_picture_moves_a_track_and_shows_a_cue(
             assert matched[0] == matched[1]
             assert matched[0] > 0
 
+            # A symbol's tooltip is its entity, as text.
+            page.hover(".fg-layer-airframe", force=True)
+            tooltip = page.wait_for_selector(".leaflet-tooltip")
+            assert tooltip is not None
+            assert "battery" in tooltip.inner_text()
+
             page.mouse.move(640, 400)
             page.wait_for_function(
                 "() => document.getElementById('mgrs').textContent.startsWith('MGRS 3')"

@@ -107,41 +107,61 @@
   }
 
   // -- drawing ---------------------------------------------------------------------------
+  // One item per entity: its marker (a symbol, a dot or an area) and its extras (CEP circle,
+  // history, leader, cue line), each updated in place when the entity changes.
   function remove(layer, id) {
     const item = drawn[layer].get(id);
     if (item === undefined) return;
-    groups[layer].removeLayer(item.marker);
-    for (const extra of item.extras) groups[layer].removeLayer(extra);
+    if (item.marker !== null) groups[layer].removeLayer(item.marker);
+    for (const extra of Object.values(item.extras)) groups[layer].removeLayer(extra);
     drawn[layer].delete(id);
+    renderLists(layer);
   }
 
-  function extrasFor(layer, e) {
-    const extras = [];
+  function setExtra(layer, item, name, wanted, make, update) {
+    const have = item.extras[name];
+    if (!wanted) {
+      if (have !== undefined) { groups[layer].removeLayer(have); delete item.extras[name]; }
+      return;
+    }
+    if (have === undefined) {
+      item.extras[name] = make();
+      groups[layer].addLayer(item.extras[name]);
+    } else {
+      update(have);
+    }
+  }
+
+  function updateExtras(layer, item, e) {
     const here = [e.lat, e.lon];
+    const red = "#c0392b";
     if (layer === "track") {
-      if (e.cep50_m) extras.push(L.circle(here, { radius: e.cep50_m, color: "#c0392b", weight: 1, fillOpacity: 0.08, interactive: false }));
-      if (e.history && e.history.length > 1) extras.push(L.polyline(e.history, { color: "#c0392b", weight: 1, opacity: 0.6, dashArray: "2 3", interactive: false }));
+      setExtra(layer, item, "cep", e.cep50_m > 0,
+        () => L.circle(here, { radius: e.cep50_m, color: red, weight: 1, fillOpacity: 0.08, interactive: false }),
+        (c) => { c.setLatLng(here); c.setRadius(e.cep50_m); });
+      setExtra(layer, item, "history", e.history && e.history.length > 1,
+        () => L.polyline(e.history, { color: red, weight: 1, opacity: 0.6, dashArray: "2 3", interactive: false }),
+        (l) => l.setLatLngs(e.history));
     }
-    if ((layer === "track" || layer === "blue") && e.course_deg !== null && e.speed_mps) {
-      extras.push(L.polyline([here, ahead(e.lat, e.lon, e.course_deg, e.speed_mps * LEADER_S)], { color: layer === "track" ? "#c0392b" : "#1f5fa8", weight: 2, interactive: false }));
-    }
-    if (layer === "airframe" && e.heading_deg !== null && e.groundspeed_mps) {
-      extras.push(L.polyline([here, ahead(e.lat, e.lon, e.heading_deg, e.groundspeed_mps * LEADER_S)], { color: "#1f5fa8", weight: 2, interactive: false }));
+    if (layer === "track" || layer === "blue" || layer === "airframe") {
+      const course = layer === "airframe" ? e.heading_deg : e.course_deg;
+      const speed = layer === "airframe" ? e.groundspeed_mps : e.speed_mps;
+      const wanted = course !== null && course !== undefined && !!speed;
+      const line = () => [here, ahead(e.lat, e.lon, course, speed * LEADER_S)];
+      setExtra(layer, item, "leader", wanted,
+        () => L.polyline(line(), { color: layer === "track" ? red : "#1f5fa8", weight: 2, interactive: false }),
+        (l) => l.setLatLngs(line()));
     }
     if (layer === "cue") {
       const held = !e.clear || e.status !== "active";
-      extras.push(L.polyline([[e.battery_lat, e.battery_lon], here], { color: held ? "#a31515" : "#d35400", weight: 2, dashArray: held ? "6 4" : null, interactive: false }));
+      const style = { color: held ? "#a31515" : "#d35400", weight: 2, dashArray: held ? "6 4" : null, interactive: false };
+      setExtra(layer, item, "line", true,
+        () => L.polyline([[e.battery_lat, e.battery_lon], here], style),
+        (l) => { l.setLatLngs([[e.battery_lat, e.battery_lon], here]); l.setStyle(style); });
     }
-    return extras;
   }
 
-  function upsert(layer, e) {
-    remove(layer, e.id);
-    if (e.lat === null || e.lat === undefined) {
-      drawn[layer].set(e.id, { marker: L.layerGroup(), extras: [], data: e }); // listed, not drawn
-      renderLists(layer);
-      return;
-    }
+  function makeMarker(layer, e, item) {
     let marker;
     if (layer === "detection") {
       marker = L.circleMarker([e.lat, e.lon], { radius: 3, color: "#6c3483", weight: 1, fillOpacity: 0.7, className: "fg-detection" });
@@ -150,15 +170,46 @@
         ? L.polygon(e.polygon, { color: "#117a65", weight: 2, fillOpacity: 0.05, className: "fg-order" })
         : L.circleMarker([e.lat, e.lon], { radius: 9, color: "#117a65", weight: 2, fillOpacity: 0, className: "fg-order" });
     } else {
-      const where = layer === "cue" ? [e.battery_lat, e.battery_lon] : [e.lat, e.lon];
-      const held = layer === "cue" && (!e.clear || e.status !== "active");
-      marker = L.marker(where, { icon: symbolIcon(e.sidc, layer, held ? "fg-held" : ""), keyboard: false });
+      marker = L.marker(symbolAt(layer, e), { icon: symbolIcon(e.sidc, layer, iconClass(layer, e)), keyboard: false });
     }
-    marker.bindTooltip(label(describe(layer, e)), { direction: "top" });
-    const extras = extrasFor(layer, e);
-    groups[layer].addLayer(marker);
-    for (const extra of extras) groups[layer].addLayer(extra);
-    drawn[layer].set(e.id, { marker: marker, extras: extras, data: e });
+    // The tooltip is built when shown, from the entity's state then.
+    marker.bindTooltip(() => label(describe(layer, item.data)), { direction: "top" });
+    return marker;
+  }
+
+  function symbolAt(layer, e) {
+    return layer === "cue" ? [e.battery_lat, e.battery_lon] : [e.lat, e.lon];
+  }
+
+  function iconClass(layer, e) {
+    return layer === "cue" && (!e.clear || e.status !== "active") ? "fg-held" : "";
+  }
+
+  function upsert(layer, e) {
+    const placed = e.lat !== null && e.lat !== undefined;
+    const key = e.sidc + iconClass(layer, e);
+    let item = drawn[layer].get(e.id);
+    // An order's shape, and an entity gaining or losing its position, are drawn anew.
+    if (item !== undefined && (layer === "order" || !placed || item.marker === null)) {
+      remove(layer, e.id);
+      item = undefined;
+    }
+    if (item === undefined) {
+      item = { marker: null, extras: {}, data: e, iconKey: key };
+      drawn[layer].set(e.id, item);
+      if (placed) {
+        item.marker = makeMarker(layer, e, item);
+        groups[layer].addLayer(item.marker);
+      }
+    } else {
+      item.data = e;
+      item.marker.setLatLng(symbolAt(layer, e));
+      if (layer !== "detection" && item.iconKey !== key) {
+        item.marker.setIcon(symbolIcon(e.sidc, layer, iconClass(layer, e)));
+        item.iconKey = key;
+      }
+    }
+    if (placed) updateExtras(layer, item, e);
     renderLists(layer);
   }
 
@@ -166,12 +217,13 @@
     for (const layer of LAYERS) {
       groups[layer].clearLayers();
       drawn[layer].clear();
+      renderLists(layer);
     }
   }
 
   function fit() {
     const points = [];
-    for (const layer of SYMBOL_LAYERS) for (const item of drawn[layer].values()) if (item.data.lat !== null) points.push([item.data.lat, item.data.lon]);
+    for (const layer of SYMBOL_LAYERS) for (const item of drawn[layer].values()) if (item.marker !== null) points.push([item.data.lat, item.data.lon]);
     if (points.length === 0) return false;
     map.fitBounds(L.latLngBounds(points).pad(0.25), { maxZoom: 14, animate: false });
     return true;
@@ -207,7 +259,13 @@
     pendingLists.clear();
   }
 
+  let countsPending = false;
   function showCounts() {
+    if (countsPending) return;
+    countsPending = true;
+    requestAnimationFrame(() => { countsPending = false; writeCounts(); });
+  }
+  function writeCounts() {
     const parts = SYMBOL_LAYERS.map((layer) => layer + " " + drawn[layer].size);
     document.getElementById("counts").textContent = parts.join(" · ");
   }
@@ -273,7 +331,7 @@
     count: (layer) => drawn[layer].size,
     position: (layer, id) => {
       const item = drawn[layer].get(id);
-      if (item === undefined || !item.marker.getLatLng) return null;
+      if (item === undefined || item.marker === null || !item.marker.getLatLng) return null;
       const p = map.latLngToContainerPoint(item.marker.getLatLng());
       return { lat: item.data.lat, lon: item.data.lon, x: p.x, y: p.y };
     },
