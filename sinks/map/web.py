@@ -45,6 +45,8 @@ from sinks.map.picture import LAYERS, Picture
 __all__ = ["STATIC", "TOKEN_COOKIE", "MapState", "build_app"]
 
 STATIC = Path(__file__).with_name("static")
+#: A stream's write gathers what is queued up to about this size.
+_CHUNK_BYTES = 64 * 1024
 TOKEN_COOKIE = "fg_map_token"  # noqa: S105 - the cookie's name, not a secret
 
 Scope = MutableMapping[str, Any]
@@ -139,11 +141,19 @@ def build_app(
                     message = b": keepalive\n\n"
                     with anyio.move_on_after(state.keepalive_s):
                         message = await sub.queue.get()
+                    # What else is queued goes in the same write: fewer, larger writes.
+                    chunk = [message]
+                    size = len(message)
+                    while message != CLOSED and size < _CHUNK_BYTES and not sub.queue.empty():
+                        message = sub.queue.get_nowait()
+                        chunk.append(message)
+                        size += len(message)
                     if message == CLOSED:
                         if sub.overflowed:
-                            yield sse("overflow", {"reason": "client too slow: reconnect"})
+                            chunk.append(sse("overflow", {"reason": "client too slow: reconnect"}))
+                        yield b"".join(chunk)
                         return
-                    yield message
+                    yield b"".join(chunk)
             finally:
                 state.hub.unsubscribe(sub)
 
