@@ -85,10 +85,13 @@ class Hub:
         for change in changes:
             self.seq += 1
             self.published += 1
-            message = sse("change", {"seq": self.seq, **change}, self.seq)
             layer = change["layer"]
-            for sub in list(self._subscribers):
-                if layer in sub.layers and not sub.offer(message):
+            wanting = [sub for sub in self._subscribers if layer in sub.layers]
+            if not wanting:
+                continue  # encoded only when someone reads it
+            message = sse("change", {"seq": self.seq, **change}, self.seq)
+            for sub in wanting:
+                if not sub.offer(message):
                     self._subscribers.discard(sub)
                     self.cut_off += 1
 

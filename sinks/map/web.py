@@ -182,6 +182,7 @@ def build_app(
             Route("/api/picture", picture),
             Route("/api/stream", stream),
             Route("/api/mgrs", mgrs),
+            Route("/favicon.ico", lambda request: Response(status_code=204)),
             Mount("/static", StaticFiles(directory=STATIC), name="static"),
         ],
         middleware=[Middleware(TrustedHostMiddleware, allowed_hosts=allowed_hosts)],

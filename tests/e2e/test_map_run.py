@@ -146,9 +146,10 @@ def node(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Node]:
         sim = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
         yield Node(daemon, url, stream, sim)
     finally:
-        if sim is not None and sim.poll() is None:
-            sim.terminate()
-            sim.wait(timeout=10)
+        if sim is not None:
+            if sim.poll() is None:
+                sim.terminate()
+            sim.communicate(timeout=10)  # and its pipe closed
         assert daemon.stop() == 0
 
 

@@ -8,7 +8,7 @@
   const SYMBOL_LAYERS = ["airframe", "track", "blue", "cue"];
   const LEADER_S = 60; // a course/speed leader shows where the entity is in this many seconds
 
-  const map = L.map("map", { zoomControl: true, preferCanvas: false, worldCopyJump: true });
+  const map = L.map("map", { zoomControl: true, preferCanvas: true, worldCopyJump: true });
   L.control.scale({ imperial: false }).addTo(map);
   map.setView([62.0, 17.0], 5);
   const groups = {};
@@ -23,6 +23,7 @@
     .then((r) => r.json())
     .then((topo) => {
       const land = topojson.feature(topo, topo.objects.land);
+      unwrapAll(land);
       L.geoJSON(land, {
         interactive: false,
         style: { color: "#7d8b6a", weight: 0.6, fillColor: "#eef0e4", fillOpacity: 1 },
@@ -30,6 +31,37 @@
       state.baseMap = true;
     })
     .catch(() => { state.baseMap = false; });
+
+  // world-atlas is made for spherical drawing: its rings cross the antimeridian (Chukotka) and
+  // Antarctica's goes round the pole. On a flat map such a ring would get an edge across the
+  // whole world, so keep each ring's longitudes continuous (beyond ±180 where it crosses), and
+  // close a ring round the pole along the map's bottom edge.
+  function unwrap(ring) {
+    let offset = 0;
+    let previous = null;
+    const out = ring.map(([lon, lat]) => {
+      let x = lon + offset;
+      if (previous !== null && x - previous > 180) { offset -= 360; x -= 360; }
+      else if (previous !== null && x - previous < -180) { offset += 360; x += 360; }
+      previous = x;
+      return [x, lat];
+    });
+    if (offset !== 0) {
+      const pole = out[0][1] < 0 ? -89.9 : 89.9;
+      out.push([out[out.length - 1][0], pole], [out[0][0], pole], out[0]);
+    }
+    // Back into the world copy where most of the ring lies (Eurasia starts in Chukotka).
+    const mean = out.reduce((sum, p) => sum + p[0], 0) / out.length;
+    const shift = -360 * Math.round(mean / 360);
+    return shift === 0 ? out : out.map(([x, y]) => [x + shift, y]);
+  }
+  function unwrapAll(geo) {
+    if (geo.type === "FeatureCollection") geo.features.forEach(unwrapAll);
+    else if (geo.type === "Feature") unwrapAll(geo.geometry);
+    else if (geo.type === "GeometryCollection") geo.geometries.forEach(unwrapAll);
+    else if (geo.type === "Polygon") geo.coordinates = geo.coordinates.map(unwrap);
+    else if (geo.type === "MultiPolygon") geo.coordinates = geo.coordinates.map((p) => p.map(unwrap));
+  }
 
   // -- symbols ---------------------------------------------------------------------------
   function symbolIcon(sidc, layer, extraClass) {
