@@ -69,6 +69,15 @@ def test_the_wheel_ships_config_unit_docs_contract_and_example(tmp_path: Path) -
             == (ROOT / "config" / "example.yaml").read_text()
         )
     assert {"gateway/contract.py", "gateway/testing.py", "sinks/example.py"} <= names
+    # The map page runs on what the wheel ships: no network beyond the node.
+    assert {
+        "sinks/map/static/index.html",
+        "sinks/map/static/map.js",
+        "sinks/map/static/vendor/leaflet/leaflet.js",
+        "sinks/map/static/vendor/milsymbol/milsymbol.js",
+        "sinks/map/static/vendor/topojson-client/topojson-client.min.js",
+        "sinks/map/static/vendor/world-atlas/land-50m.json",
+    } <= names
 
 
 def _anchors(markdown: str) -> set[str]:

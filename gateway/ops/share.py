@@ -51,6 +51,7 @@ DESCRIPTIONS = {
     "counter-uas.md": "fusion into tracks, the counter-UAS cue and the GUTE II sink",
     "hopping.md": "AD9361 hop plans: checks, upload, acknowledgement, hop events",
     "klv.md": "STANAG 4609 / MISB ST 0601 KLV metadata over UDP and MPEG-TS",
+    "map.md": "the live map page and its change stream: JSON, options, security",
     "orders.md": "five-line orders to the airframes: checks, missions, statuses",
     "tracking.md": "scoring tracks against ground truth: truth files, GOSPA, the scenarios",
     "README.md": "what works today",

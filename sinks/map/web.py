@@ -1,0 +1,263 @@
+"""The map's web application (Starlette): the page, its files, the picture and its stream.
+
+Routes (docs/map.md §3):
+
+- ``GET /``: the page; ``GET /static/...``: its script, style and the vendored libraries;
+- ``GET /api/picture``: the whole picture as JSON (``seq`` says which change it includes);
+- ``GET /api/stream``: Server-Sent Events, a ``snapshot`` then one ``change`` per change;
+  ``?layers=track,detection`` limits both to those layers;
+- ``GET /api/mgrs?lat=..&lon=..``: the MGRS reference of a point (the page's cursor readout).
+
+``Guard`` wraps it all: the connection cap (HTTP 503 beyond ``max_connections`` requests and
+streams at once), the token (HTTP 401 without it) and the headers that keep a browser from
+running anything but the page's own files (``Content-Security-Policy``).
+"""
+
+from __future__ import annotations
+
+import hmac
+import math
+from collections.abc import AsyncIterator, Awaitable, Callable, MutableMapping
+from http.cookies import SimpleCookie
+from pathlib import Path
+from typing import Any
+from urllib.parse import parse_qs
+
+import anyio
+from starlette.applications import Starlette
+from starlette.middleware import Middleware
+from starlette.middleware.trustedhost import TrustedHostMiddleware
+from starlette.requests import Request
+from starlette.responses import (
+    FileResponse,
+    JSONResponse,
+    RedirectResponse,
+    Response,
+    StreamingResponse,
+)
+from starlette.routing import Mount, Route
+from starlette.staticfiles import StaticFiles
+
+from gateway.domain.geodesy import to_mgrs
+from sinks.map.hub import CLOSED, Hub, sse
+from sinks.map.picture import LAYERS, Picture
+
+__all__ = ["STATIC", "TOKEN_COOKIE", "MapState", "build_app"]
+
+STATIC = Path(__file__).with_name("static")
+#: A stream's write gathers what is queued up to about this size.
+_CHUNK_BYTES = 64 * 1024
+TOKEN_COOKIE = "fg_map_token"  # noqa: S105 - the cookie's name, not a secret
+
+Scope = MutableMapping[str, Any]
+Message = MutableMapping[str, Any]
+Receive = Callable[[], Awaitable[Message]]
+Send = Callable[[Message], Awaitable[None]]
+ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
+
+_CSP = (
+    "default-src 'none'; script-src 'self'; style-src 'self' 'unsafe-inline'; "
+    "img-src 'self' data:; connect-src 'self'; base-uri 'none'; form-action 'none'; "
+    "frame-ancestors 'none'"
+)
+_HEADERS = [
+    (b"content-security-policy", _CSP.encode()),
+    (b"x-content-type-options", b"nosniff"),
+    (b"referrer-policy", b"no-referrer"),
+    (b"x-frame-options", b"DENY"),
+    (b"cache-control", b"no-store"),
+]
+
+
+class MapState:
+    """What the application reads: the picture, the hub and the page's settings."""
+
+    def __init__(self, picture: Picture, hub: Hub, *, title: str, keepalive_s: float) -> None:
+        self.picture = picture
+        self.hub = hub
+        self.title = title
+        self.keepalive_s = keepalive_s
+        self.refused_busy = 0
+        self.refused_token = 0
+
+
+def _layers(request: Request) -> frozenset[str] | Response:
+    text = request.query_params.get("layers")
+    if text is None:
+        return frozenset(LAYERS)
+    wanted = frozenset(part.strip() for part in text.split(",") if part.strip())
+    unknown = sorted(wanted - set(LAYERS))
+    if unknown or not wanted:
+        return JSONResponse({"error": f"layers: give some of {', '.join(LAYERS)}"}, status_code=400)
+    return wanted
+
+
+def _snapshot(state: MapState, layers: frozenset[str]) -> dict[str, Any]:
+    full = state.picture.snapshot()
+    return {
+        "seq": state.hub.seq,
+        "title": state.title,
+        "layers": {layer: full[layer] for layer in LAYERS if layer in layers},
+    }
+
+
+def build_app(
+    state: MapState, *, allowed_hosts: list[str], token: str | None, max_connections: int
+) -> ASGIApp:
+    """The application, wrapped in its ``Guard``."""
+
+    async def page(request: Request) -> Response:
+        if token is not None and "token" in request.query_params:
+            # The token came in the address (a bookmark): keep it in a cookie, drop it from
+            # the address bar and the history.
+            response = RedirectResponse("/", status_code=303)
+            response.set_cookie(
+                TOKEN_COOKIE,
+                request.query_params["token"],
+                httponly=True,
+                samesite="strict",
+                secure=request.url.scheme == "https",
+            )
+            return response
+        return FileResponse(STATIC / "index.html", media_type="text/html")
+
+    async def picture(request: Request) -> Response:
+        layers = _layers(request)
+        if isinstance(layers, Response):
+            return layers
+        return JSONResponse(_snapshot(state, layers))
+
+    async def stream(request: Request) -> Response:
+        layers = _layers(request)
+        if isinstance(layers, Response):
+            return layers
+        sub = state.hub.subscribe(layers)
+        first = sse("snapshot", _snapshot(state, layers), state.hub.seq)
+
+        async def messages() -> AsyncIterator[bytes]:
+            try:
+                yield b"retry: 2000\n\n" + first
+                while True:
+                    message = b": keepalive\n\n"
+                    with anyio.move_on_after(state.keepalive_s):
+                        message = await sub.queue.get()
+                    # What else is queued goes in the same write: fewer, larger writes.
+                    chunk = [message]
+                    size = len(message)
+                    while message != CLOSED and size < _CHUNK_BYTES and not sub.queue.empty():
+                        message = sub.queue.get_nowait()
+                        chunk.append(message)
+                        size += len(message)
+                    if message == CLOSED:
+                        if sub.overflowed:
+                            chunk.append(sse("overflow", {"reason": "client too slow: reconnect"}))
+                        yield b"".join(chunk)
+                        return
+                    yield b"".join(chunk)
+            finally:
+                state.hub.unsubscribe(sub)
+
+        return StreamingResponse(
+            messages(),
+            media_type="text/event-stream",
+            headers={"x-accel-buffering": "no"},
+        )
+
+    async def mgrs(request: Request) -> Response:
+        try:
+            lat = float(request.query_params["lat"])
+            lon = float(request.query_params["lon"])
+        except (KeyError, ValueError):
+            return JSONResponse({"error": "give lat and lon in degrees"}, status_code=400)
+        if not (math.isfinite(lat) and math.isfinite(lon) and abs(lat) <= 90 and abs(lon) <= 180):
+            return JSONResponse({"error": "lat or lon out of range"}, status_code=400)
+        try:
+            return JSONResponse({"mgrs": to_mgrs(lat, lon, 1, spaced=True)})
+        except ValueError as exc:  # beyond MGRS's latitudes (UPS)
+            return JSONResponse({"mgrs": None, "error": str(exc)[:200]})
+
+    app = Starlette(
+        routes=[
+            Route("/", page),
+            Route("/api/picture", picture),
+            Route("/api/stream", stream),
+            Route("/api/mgrs", mgrs),
+            Route("/favicon.ico", lambda request: Response(status_code=204)),
+            Mount("/static", StaticFiles(directory=STATIC), name="static"),
+        ],
+        middleware=[Middleware(TrustedHostMiddleware, allowed_hosts=allowed_hosts)],
+    )
+    return Guard(app, state, token=token, max_connections=max_connections)
+
+
+class Guard:
+    """The connection cap, the token check and the security headers, around ``app``."""
+
+    def __init__(
+        self, app: ASGIApp, state: MapState, *, token: str | None, max_connections: int
+    ) -> None:
+        self.app = app
+        self.state = state
+        self.token = token
+        self.max_connections = max_connections
+        self.active = 0
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)  # lifespan
+            return
+
+        async def send_with_headers(message: Message) -> None:
+            if message["type"] == "http.response.start":
+                message["headers"] = [*message.get("headers", []), *_HEADERS]
+            await send(message)
+
+        if self.active >= self.max_connections:
+            self.state.refused_busy += 1
+            await _plain(send_with_headers, 503, b"busy: too many connections\n")
+            return
+        if self.token is not None and not self._authorised(scope):
+            self.state.refused_token += 1
+            await _plain(send_with_headers, 401, b"a token is required\n")
+            return
+        self.active += 1
+        try:
+            await self.app(scope, receive, send_with_headers)
+        finally:
+            self.active -= 1
+
+    def _authorised(self, scope: Scope) -> bool:
+        if self.token is None:
+            return True
+        offered: list[str] = []
+        for key, value in scope.get("headers", []):
+            if key == b"authorization":
+                scheme, _, credential = value.decode("latin-1").partition(" ")
+                if scheme.lower() == "bearer":
+                    offered.append(credential.strip())
+            elif key == b"cookie":
+                cookie: SimpleCookie = SimpleCookie()
+                try:
+                    cookie.load(value.decode("latin-1"))
+                except Exception:  # noqa: BLE001, S112 - a malformed cookie header is no token
+                    continue
+                if TOKEN_COOKIE in cookie:
+                    offered.append(cookie[TOKEN_COOKIE].value)
+        query = scope.get("query_string", b"").decode("latin-1")
+        offered += parse_qs(query).get("token", [])[:1]
+        expected = self.token.encode()
+        return any(hmac.compare_digest(o.encode("utf-8", "replace"), expected) for o in offered)
+
+
+async def _plain(send: Send, status: int, body: bytes) -> None:
+    await send(
+        {
+            "type": "http.response.start",
+            "status": status,
+            "headers": [
+                (b"content-type", b"text/plain; charset=utf-8"),
+                (b"content-length", str(len(body)).encode()),
+            ],
+        }
+    )
+    await send({"type": "http.response.body", "body": body})

@@ -1,0 +1,272 @@
+"""The live map through ``fischer-gateway run``: the brigade scenario on the page and its stream.
+
+The daemon runs as an operator runs it, with the ``fusion`` and ``counter_uas`` processors and
+a ``map`` sink on loopback (port 0: its URL is read from the ``map_listening`` log line).
+``fischer-gateway simulate --scenario brigade`` plays the operation faster than real time: two
+airframes over UDP, the platoons over CoT.
+
+- An integrator's client (plain HTTP, Server-Sent Events) receives the snapshot and then the
+  tracks, airframes, blue forces and cues as they change.
+- Debian's Chromium, headless and held to the node by its launch flags and a route that
+  aborts any other request, loads the page: the base map and the libraries come from the
+  node; the symbols drawn equal the picture's entities; a track's symbol moves when the track
+  does; a cue appears. The screenshot is kept in the test's temporary folder.
+"""
+
+from __future__ import annotations
+
+import http.client
+import json
+import shutil
+import subprocess
+import sys
+import threading
+import time
+import urllib.request
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+from urllib.parse import urlsplit
+
+import pytest
+from daemon_support import Daemon, free_udp_port, wait_until
+from tools import need, required
+
+from gateway.sim.scenario import load_scenario
+from sinks.map.picture import entity_count
+
+pytestmark = pytest.mark.timeout(150)
+
+SPEED = 6.0
+SYMBOL_LAYERS = ("airframe", "track", "blue", "cue")
+CHROMIUM_FLAGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+]
+
+
+def write_config(tmp_path: Path, link: int, cot: int) -> Path:
+    battery = load_scenario("brigade").batteries[0]
+    config = tmp_path / "node.yaml"
+    config.write_text(
+        f"""
+gateway: {{shutdown_deadline_s: 3}}
+health: {{port: 0}}
+airframes:
+  - {{id: F26E-001, sysid: 1, links: [{{uri: 'udp://127.0.0.1:{link}', security: unsecured,
+     name: fleet}}]}}
+  - {{id: F26E-002, sysid: 2, links: [{{uri: 'udp://127.0.0.1:{link}', security: unsecured,
+     name: fleet}}]}}
+sources:
+  - {{name: atak, uri: 'udp://127.0.0.1:{cot}'}}
+processors:
+  - {{name: fusion, type: fusion, options: {{speed_scale: {SPEED}}}}}
+  - name: cuas
+    type: counter_uas
+    options:
+      batteries:
+        - id: {battery.id}
+          lat_deg: {battery.lat_deg}
+          lon_deg: {battery.lon_deg}
+          effectors: {list(battery.effectors)}
+sinks:
+  - {{name: map, type: map, options: {{port: 0, title: Brigade}}}}
+routes:
+  - {{sinks: [map], kinds: [telemetry, link_state, detection, track, blue_force, handoff]}}
+"""
+    )
+    return config
+
+
+@dataclass
+class StreamReader:
+    """An integrator's client: reads the SSE stream in a thread and keeps every message."""
+
+    url: str
+    messages: list[tuple[str, dict[str, Any]]] = field(default_factory=list)
+    error: BaseException | None = None
+
+    def start(self) -> None:
+        threading.Thread(target=self._read, daemon=True).start()
+
+    def _read(self) -> None:
+        parts = urlsplit(self.url)
+        conn = http.client.HTTPConnection(parts.hostname or "", parts.port, timeout=60)
+        try:
+            conn.request("GET", "/api/stream", headers={"accept": "text/event-stream"})
+            response = conn.getresponse()
+            assert response.status == 200, response.status
+            kind = ""
+            while True:
+                line = response.readline()
+                if not line:
+                    return
+                text = line.decode().rstrip("\n")
+                if text.startswith("event: "):
+                    kind = text[7:]
+                elif text.startswith("data: "):
+                    self.messages.append((kind, json.loads(text[6:])))
+        except (OSError, AssertionError, ValueError) as exc:
+            self.error = exc
+        finally:
+            conn.close()
+
+    def changes(self, layer: str) -> list[dict[str, Any]]:
+        return [m for k, m in list(self.messages) if k == "change" and m["layer"] == layer]
+
+
+@dataclass
+class Node:
+    daemon: Daemon
+    url: str
+    stream: StreamReader
+    sim: subprocess.Popen[bytes]
+
+
+@pytest.fixture(scope="module")
+def node(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Node]:
+    tmp_path = tmp_path_factory.mktemp("map")
+    link, cot = free_udp_port(), free_udp_port()
+    daemon = Daemon(write_config(tmp_path, link, cot))
+    sim: subprocess.Popen[bytes] | None = None
+    try:
+        url = str(daemon.wait_event("map_listening", 20.0)["url"])
+        stream = StreamReader(url)
+        stream.start()
+        wait_until(lambda: bool(stream.messages), 10.0, "the stream's snapshot")
+        command = [sys.executable, "-m", "gateway", "simulate", "--scenario", "brigade"]
+        command += ["--to", f"udp://127.0.0.1:{link}", "--cot", f"udp://127.0.0.1:{cot}"]
+        command += ["--speed", str(SPEED)]
+        sim = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        yield Node(daemon, url, stream, sim)
+    finally:
+        if sim is not None:
+            if sim.poll() is None:
+                sim.terminate()
+            sim.communicate(timeout=10)  # and its pipe closed
+        assert daemon.stop() == 0
+
+
+def picture(url: str) -> dict[str, Any]:
+    with urllib.request.urlopen(url + "api/picture", timeout=10) as response:  # noqa: S310
+        return json.loads(response.read())  # type: ignore[no-any-return]
+
+
+def test_the_page_draws_the_picture_moves_a_track_and_shows_a_cue(
+    node: Node, tmp_path: Path
+) -> None:
+    need("chromium")
+    if required("chromium"):  # CI promised the browser test: no skip for a missing driver
+        import playwright.sync_api as sync_api
+    else:
+        sync_api = pytest.importorskip("playwright.sync_api", reason="playwright (test extra)")
+    origin = node.url.rstrip("/")
+    foreign: list[str] = []
+
+    def only_the_node(route: Any) -> None:
+        if route.request.url.startswith(origin + "/"):
+            route.continue_()
+        else:
+            foreign.append(route.request.url)
+            route.abort()
+
+    with sync_api.sync_playwright() as playwright:
+        browser = playwright.chromium.launch(
+            executable_path=shutil.which("chromium"), headless=True, args=CHROMIUM_FLAGS
+        )
+        try:
+            page = browser.new_page(viewport={"width": 1280, "height": 800})
+            page.route("**/*", only_the_node)
+            errors: list[str] = []
+            page.on("pageerror", lambda exc: errors.append(str(exc)))
+            page.goto(node.url)
+            page.wait_for_function("() => window.fgMap && window.fgMap.state.snapshots >= 1")
+            page.wait_for_function("() => window.fgMap.state.baseMap === true")
+
+            # A track's symbol moves when the track does.
+            page.wait_for_function("() => window.fgMap.ids('track').length > 0", timeout=60_000)
+            track_id = page.evaluate("window.fgMap.ids('track')[0]")
+            before = page.evaluate("id => window.fgMap.position('track', id)", track_id)
+            page.wait_for_function(
+                """([id, x, y]) => {
+                    const p = window.fgMap.position('track', id);
+                    return p === null || Math.hypot(p.x - x, p.y - y) >= 2;
+                }""",
+                arg=[track_id, before["x"], before["y"]],
+                timeout=60_000,
+            )
+            after = page.evaluate("id => window.fgMap.position('track', id)", track_id)
+            if after is not None:  # else it was lost or merged meanwhile: removed, not stuck
+                assert (after["lat"], after["lon"]) != (before["lat"], before["lon"])
+
+            # A GUTE II cue appears, with its battery's symbol.
+            page.wait_for_selector(".fg-layer-cue", timeout=60_000)
+            assert "GUTE-1" in page.inner_text("#cues")
+
+            # The symbols drawn are the picture's entities, compared at one seq.
+            matched = None
+            for _ in range(200):
+                drawn = page.evaluate(
+                    "({seq: window.fgMap.state.seq, symbols: window.fgMap.symbols()})"
+                )
+                current = picture(node.url)
+                if current["seq"] == drawn["seq"]:
+                    matched = (drawn["symbols"], entity_count(current["layers"], SYMBOL_LAYERS))
+                    break
+                time.sleep(0.05)
+            assert matched is not None, "the page never caught up with the picture"
+            assert matched[0] == matched[1]
+            assert matched[0] > 0
+
+            # A symbol's tooltip is its entity, as text.
+            page.hover(".fg-layer-airframe", force=True)
+            tooltip = page.wait_for_selector(".leaflet-tooltip")
+            assert tooltip is not None
+            assert "battery" in tooltip.inner_text()
+
+            page.mouse.move(640, 400)
+            page.wait_for_function(
+                "() => document.getElementById('mgrs').textContent.startsWith('MGRS 3')"
+            )
+            page.screenshot(path=str(tmp_path / "map.png"))
+            assert errors == []
+            assert foreign == []
+        finally:
+            browser.close()
+
+
+def test_an_integrators_stream_client_receives_tracks_airframes_blue_forces_and_cues(
+    node: Node,
+) -> None:
+    stream = node.stream
+
+    def seen_all() -> bool:
+        return all(stream.changes(layer) for layer in ("track", "airframe", "blue", "cue"))
+
+    wait_until(seen_all, 90.0, "tracks, airframes, blue forces and cues on the stream")
+    assert stream.error is None
+    kind, snapshot = stream.messages[0]
+    assert kind == "snapshot"
+    assert set(snapshot["layers"]) == {"order", "detection", "cue", "blue", "track", "airframe"}
+    seqs = [m["seq"] for k, m in list(stream.messages)[1:] if k == "change"]
+    assert seqs == list(range(snapshot["seq"] + 1, snapshot["seq"] + 1 + len(seqs)))
+    tracks = [c for c in stream.changes("track") if c["op"] == "upsert"]
+    assert {t["data"]["object_class"] for t in tracks} >= {"loitering_munition"}
+    for change in tracks:
+        data = change["data"]
+        assert data["sidc"]
+        assert data["cep50_m"] >= 0
+        assert data["history"][-1] == [data["lat"], data["lon"]]
+    airframes = {c["id"] for c in stream.changes("airframe")}
+    assert airframes == {"F26E-001", "F26E-002"}
+    assert any(c["data"]["battery_pct"] is not None for c in stream.changes("airframe"))
+    cue = stream.changes("cue")[0]["data"]
+    assert cue["battery"] == "GUTE-1"
+    assert cue["operator_authorisation_required"] is True
+    assert {c["data"]["callsign"] for c in stream.changes("blue")} >= {"VIDAR 1"}
