@@ -172,6 +172,7 @@ class Demo:
         async def run() -> None:
             self.story.on_closed = gateway.shutdown
             self._opening()
+            await self._map_address(gateway)
             for processor in gateway.processors.values():
                 for battery in getattr(processor.processor, "batteries", ()):
                     self.narrator.battery(
@@ -216,6 +217,20 @@ class Demo:
         )
         if self.radio.voice_directory is None:
             say("voice: espeak-ng is not installed, so the Ra 180 step has no Swedish WAV")
+
+    async def _map_address(self, gateway: Gateway) -> None:
+        """Say where the live map is, once its sink listens (the sink binds as it opens)."""
+        runner = gateway.runners.get("map")
+        if runner is None:
+            return
+        url = None
+        with anyio.move_on_after(_LISTEN_WAIT_S):
+            while url is None:
+                url = getattr(runner.sink, "url", None)
+                if url is None:
+                    await anyio.sleep(0.05)  # a poll: the sink offers no event for it
+        if url is not None:
+            self.narrator.say(f"the live map: {url} (open it in a browser on this machine)")
 
     async def _jas39(self, gateway: Gateway) -> None:
         port = 0

@@ -188,3 +188,8 @@ def test_a_reader_that_stops_early_ends_the_demo_quietly(tmp_path: Path) -> None
     assert b"scenario brigade" in first
     assert process.returncode == 0, errors
     assert errors == b""
+
+
+def test_the_demo_says_where_its_live_map_listens(demo: Run) -> None:
+    (line,) = [line for line in demo.lines if "the live map: " in line]
+    assert re.search(r"the live map: http://127\.0\.0\.1:\d+/", line), line
