@@ -95,31 +95,55 @@ class MapSinkConfig(SinkConfig):
     token_file: Path | None = Field(
         default=None, description="File holding the access token clients must present."
     )
-    tls: MapTls | None = None
+    tls: MapTls | None = Field(
+        default=None, description="Serve HTTPS with this certificate (and client certificates)."
+    )
     allowed_hosts: tuple[str, ...] = Field(
         default=(),
         max_length=32,
         description="Host names the page may be reached by, beside the listen address "
         "(browsers send it as Host; others are refused, against DNS rebinding).",
     )
-    title: str = Field(default="Fischer gateway", max_length=80)
-    kinds: frozenset[EventKind] = DEFAULT_KINDS
+    title: str = Field(default="Fischer gateway", max_length=80, description="The page's title.")
+    kinds: frozenset[EventKind] = Field(
+        default=DEFAULT_KINDS, description="Event kinds the map takes (of those it can draw)."
+    )
     max_connections: int = Field(
         default=32, ge=1, le=1024, description="Requests and streams served at once."
     )
     queue_max: int = Field(
         default=2048, ge=16, le=65536, description="Changes queued per stream before it is cut."
     )
-    keepalive_s: float = Field(default=15.0, gt=0, le=300)
-    max_airframes: int = Field(default=500, ge=1, le=10_000)
-    max_tracks: int = Field(default=2000, ge=1, le=50_000)
-    max_blue: int = Field(default=2000, ge=1, le=50_000)
-    max_cues: int = Field(default=500, ge=1, le=10_000)
-    max_orders: int = Field(default=500, ge=1, le=10_000)
-    max_detections: int = Field(default=500, ge=0, le=50_000)
-    history_points: int = Field(default=20, ge=1, le=500)
-    cue_revisions: int = Field(default=10, ge=1, le=100)
-    expire_after_s: float = Field(default=900.0, gt=0)
+    keepalive_s: float = Field(
+        default=15.0, gt=0, le=300, description="A comment line on idle streams this often (s)."
+    )
+    max_airframes: int = Field(
+        default=500, ge=1, le=10_000, description="Airframes kept; the oldest go first."
+    )
+    max_tracks: int = Field(
+        default=2000, ge=1, le=50_000, description="Tracks kept; the oldest go first."
+    )
+    max_blue: int = Field(
+        default=2000, ge=1, le=50_000, description="Friendly units kept; the oldest go first."
+    )
+    max_cues: int = Field(
+        default=500, ge=1, le=10_000, description="GUTE II cues kept; the oldest go first."
+    )
+    max_orders: int = Field(
+        default=500, ge=1, le=10_000, description="Orders kept; the oldest go first."
+    )
+    max_detections: int = Field(
+        default=500, ge=0, le=50_000, description="Newest detections drawn (0: none)."
+    )
+    history_points: int = Field(
+        default=20, ge=1, le=500, description="Past positions drawn behind each track."
+    )
+    cue_revisions: int = Field(
+        default=10, ge=1, le=100, description="Revisions kept per GUTE II cue."
+    )
+    expire_after_s: float = Field(
+        default=900.0, gt=0, description="An entity unheard this long leaves the map (s)."
+    )
 
     @field_validator("kinds")
     @classmethod
