@@ -36,6 +36,7 @@ from gateway.flow.processors import ProcessorRunner
 from gateway.flow.tasking import TaskingProcessor
 from gateway.ops.health import HealthServer
 from gateway.ops.instruments import Instruments
+from gateway.ops.pluginstatus import read_status
 from gateway.ops.sdnotify import SystemdNotifier
 from gateway.ops.supervise import Supervised, supervise
 from gateway.spool.commits import COMMIT_FAILURE_REASONS
@@ -375,9 +376,11 @@ class Gateway:
             "passthroughs": fleet["passthroughs"],
             "sources": [
                 {
-                    **s.status(),
+                    "source": s.name,
+                    **(read_status(s.status, f"source {s.name}") or {}),
                     "pinned_refused": p.refused["pinned"],
                     "own_refused": p.refused["own"],
+                    "extension_refused": p.refused["extension"],
                     "state": r.state,
                     "reason": r.reason,
                     "restarts": r.restarts,

@@ -42,6 +42,7 @@ from gateway.errors import PermanentSinkError, SpoolError, TransientSinkError
 from gateway.events import LATEST_WINS_KINDS, Event, EventKind, latest_key
 from gateway.ops.instruments import Instruments
 from gateway.ops.logsetup import RateLimit
+from gateway.ops.pluginstatus import read_status
 from gateway.spool.store import Spool
 
 __all__ = ["DEAD_LETTER_KEEP", "ERROR_ATTEMPTS", "IDLE_POLL_S", "MAX_LATEST_SLOTS", "SinkRunner"]
@@ -573,7 +574,7 @@ class SinkRunner:
         """The runner's state for /status, and the sink's own under ``detail`` if it has one."""
         latest, durable = self.depth
         own = getattr(self.sink, "status", None)
-        detail = own() if callable(own) else None
+        detail = read_status(own, f"sink {self.name}") if callable(own) else None
         return {
             "sink": self.name,
             "type": self.entry.type,

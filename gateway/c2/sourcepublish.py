@@ -7,7 +7,7 @@ from collections.abc import Callable
 
 import structlog
 
-from gateway.events import BlueForce, Event
+from gateway.events import BlueForce, Event, Extension
 from gateway.ops.logsetup import RateLimit
 
 __all__ = ["SourcePublish"]
@@ -27,6 +27,10 @@ class SourcePublish:
     sink's own-airframe uid heard back on a mesh the gateway also listens on) would make our
     airframe a second, "friendly" unit. Both are refused, counted (``pinned_refused``,
     ``own_refused`` on /status) and logged at most once per 10 s each.
+
+    An ``Extension`` is refused too (``extension_refused``): only a processor that declared
+    its type may publish one, and a source could otherwise name such a processor as its
+    ``publisher`` and pass data no model has checked.
     """
 
     def __init__(
@@ -39,11 +43,21 @@ class SourcePublish:
         self.source = source
         self.pinned = pinned
         self.own = own
-        self.refused = {"pinned": 0, "own": 0}
+        self.refused = {"pinned": 0, "own": 0, "extension": 0}
         self._publish = publish
         self._log_limit = RateLimit(interval_s=10.0)
 
     def __call__(self, event: Event) -> bool:
+        if isinstance(event, Extension):
+            self.refused["extension"] += 1
+            if self._log_limit.allow("extension"):
+                log.error(
+                    "source_extension_refused",
+                    source=self.source,
+                    refused=self.refused["extension"],
+                    note="only a processor that declares an extension type may publish it",
+                )
+            return False
         if isinstance(event, BlueForce):
             reason = (
                 "pinned" if event.uid in self.pinned else "own" if event.uid in self.own else None

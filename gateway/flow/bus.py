@@ -236,7 +236,7 @@ class Bus:
             log.error(
                 "extension_refused",
                 publisher=event.publisher[:64] or None,
-                type=event.type,
+                type=event.type[:64],
                 reason="undeclared",
                 note="only a processor that declares the type in extension_events may publish it",
             )

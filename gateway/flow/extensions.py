@@ -24,6 +24,7 @@ from collections.abc import Mapping
 
 import structlog
 from pydantic import BaseModel, ValidationError
+from pydantic_core import PydanticSerializationError
 
 from gateway.events import Extension
 from gateway.ops.instruments import Instruments
@@ -60,25 +61,34 @@ class ExtensionGate:
             if self._log_limit.allow("undeclared"):
                 self.log.error(
                     "extension_refused",
-                    type=event.type,
+                    type=event.type[:64],
                     reason="undeclared",
                     declared=sorted(self.declared),
                     refused=int(self._undeclared.value),
                 )
             return None
         try:
-            model.model_validate(event.data)
-        except ValidationError as exc:
+            # The whole event as the spool and the sinks will see it: through JSON and back,
+            # so an event built past its own checks (``model_construct``), a number JSON cannot
+            # hold, data nested past any limit or past the size limit, is refused here and
+            # never reaches the bus, then its model on the data.
+            stamped = event.model_copy(update={"publisher": self.publisher})
+            checked = Extension.model_validate_json(stamped.model_dump_json())
+            model.model_validate(checked.data)
+        except (ValidationError, PydanticSerializationError, ValueError, RecursionError) as exc:
             self._invalid.inc()
             if self._log_limit.allow("invalid"):
+                error = (
+                    str(exc.errors(include_url=False, include_input=False))
+                    if isinstance(exc, ValidationError)
+                    else f"{type(exc).__name__}: {exc}"
+                )
                 self.log.error(
                     "extension_refused",
-                    type=event.type,
+                    type=event.type[:64],
                     reason="invalid",
-                    error=str(exc.errors(include_url=False, include_input=False))[:500],
+                    error=error[:500],
                     refused=int(self._invalid.value),
                 )
             return None
-        if event.publisher == self.publisher:
-            return event
-        return event.model_copy(update={"publisher": self.publisher})
+        return checked

@@ -21,6 +21,7 @@ from gateway.flow.extensions import ExtensionGate
 from gateway.flow.processor import MissesEvents, Processor, Publish
 from gateway.ops.instruments import Instruments
 from gateway.ops.logsetup import RateLimit
+from gateway.ops.pluginstatus import read_status
 from gateway.ops.supervise import Supervised, supervise
 
 __all__ = ["ProcessorRunner"]
@@ -124,7 +125,7 @@ class ProcessorRunner:
     def status(self) -> dict[str, object]:
         """State and counters for /status, and the processor's own under ``detail``."""
         own = getattr(self.processor, "status", None)
-        detail = own() if callable(own) else None
+        detail = read_status(own, f"processor {self.name}") if callable(own) else None
         return {
             "processor": self.name,
             "type": self.type_name,

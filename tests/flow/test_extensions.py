@@ -169,3 +169,62 @@ def test_a_route_naming_extension_for_a_sink_that_cannot_take_it_is_a_config_err
         Bus(
             [RouteConfig(sinks=("cot",), kinds=(EventKind.EXTENSION,))], {"cot": cot}, Instruments()
         )
+
+
+class Loose(BaseModel):
+    """A declared model that takes anything (the envelope's own limits must still hold)."""
+
+    model_config = {"extra": "allow"}
+
+
+class LooseFeed(Feed):
+    extension_events: ClassVar[dict[str, type[BaseModel]]] = {"acme.loose": Loose}
+
+
+@pytest.mark.parametrize(
+    "data",
+    [
+        {"pad": "x" * (EXTENSION_DATA_MAX_BYTES + 100)},  # past the size limit
+        {"big": 10**5000},  # a number JSON readers cannot hold
+        {"deep": [[[[[[[[[[[[]]]]]]]]]]]]},  # past the depth limit
+    ],
+)
+def test_an_extension_built_past_its_own_checks_is_refused_before_the_bus(
+    data: dict[str, Any],
+) -> None:
+    """``model_construct`` skips the envelope's checks: the runner's gate makes the whole
+    event's JSON round trip, as the spool will, and refuses what does not come back."""
+    inst = Instruments()
+    passed: list[Event] = []
+    runner = ProcessorRunner("wx", "feed", LooseFeed("wx"), inst, passed.append, queue_max=4)
+    runner.close()
+    forged = Extension.model_construct(
+        event_id="e-1", type="acme.loose", time=T0, data=data, publisher="", airframe=None,
+        late_by_s=None, kind=EventKind.EXTENSION,
+    )  # fmt: skip
+    assert runner.publish(forged) is False
+    assert passed == []
+    assert inst.extension_refused.labels("wx", "invalid").value == 1
+
+
+def test_a_source_cannot_publish_an_extension_even_naming_a_processor() -> None:
+    from gateway.c2.sourcepublish import SourcePublish
+
+    passed: list[Event] = []
+    publish = SourcePublish("cot", frozenset(), frozenset(), lambda e: passed.append(e) or True)
+    assert publish(weather({"wind_mps": 1.0}, publisher="wx")) is False
+    assert passed == []
+    assert publish.refused["extension"] == 1
+
+
+def test_a_plugin_status_that_raises_is_reported_not_raised() -> None:
+    from gateway.ops.pluginstatus import read_status
+
+    def broken() -> dict[str, Any]:
+        raise RuntimeError("boom")
+
+    assert read_status(broken, "source x") == {"status_error": "RuntimeError: boom"}
+    assert read_status(lambda: {"a": 1}, "source y") == {"a": 1}
+    assert read_status(lambda: 3, "source z") == {
+        "status_error": "status() returned int, not a mapping"
+    }
