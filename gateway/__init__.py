@@ -18,6 +18,7 @@ if TYPE_CHECKING:
     from gateway.c2.sink import SinkConfig as SinkConfig
     from gateway.c2.source import Source as Source
     from gateway.c2.source import SourceConfig as SourceConfig
+    from gateway.clock import Clock as Clock
     from gateway.config import Config as Config
     from gateway.configfile import load_config as load_config
     from gateway.errors import GatewayError as GatewayError
@@ -30,6 +31,7 @@ if TYPE_CHECKING:
     from gateway.flow.processor import Publish as Publish
 
 __all__ = [
+    "Clock",
     "Config",
     "Event",
     "EventKind",
@@ -49,6 +51,7 @@ __all__ = [
 ]
 
 _HOME = {
+    "Clock": "gateway.clock",
     "Config": "gateway.config",
     "Event": "gateway.events",
     "EventKind": "gateway.events",
