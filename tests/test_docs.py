@@ -78,6 +78,15 @@ def test_the_wheel_ships_config_unit_docs_contract_and_example(tmp_path: Path) -
         "sinks/map/static/vendor/topojson-client/topojson-client.min.js",
         "sinks/map/static/vendor/world-atlas/land-50m.json",
     } <= names
+    # Each integration's schemas ship inside its own package.
+    assert {
+        "sinks/gute2/schemas/gute2-handoff.schema.json",
+        "sinks/gute2/schemas/gute2-handoff-1.schema.json",
+        "sinks/slb/schemas/slb-object-item.schema.json",
+        "sinks/slb/schemas/slb-order.schema.json",
+        "sinks/sweccis/schemas/sweccis-fas.xsd",
+        "sinks/sweccis/schemas/sweccis-fas-2.xsd",
+    } <= names
 
 
 def _anchors(markdown: str) -> set[str]:

@@ -7,7 +7,7 @@ command an effector: ``operator_authorisation_required`` is always ``true`` (a `
 the schema), the schema forbids any property it does not list, and authorising an engagement
 stays with the battery's human operator.
 
-The schema ships as package data (``gateway/data/schemas/gute2-handoff.schema.json``, JSON
+The schema ships as package data (``sinks/gute2/schemas/gute2-handoff.schema.json``, JSON
 Schema draft 2020-12); ``load_schema`` reads it. ``SCHEMA_ID`` versions the document: a change
 of shape is a new version, never a silent edit.
 
@@ -44,8 +44,8 @@ SCHEMA_ID = "fischer-gateway/gute2-handoff/2"
 SCHEMA_VERSION = 2
 #: Every version a reader understands, by ``schema`` member, and its schema resource.
 SCHEMA_VERSIONS = {
-    "fischer-gateway/gute2-handoff/1": "data/schemas/gute2-handoff-1.schema.json",
-    SCHEMA_ID: "data/schemas/gute2-handoff.schema.json",
+    "fischer-gateway/gute2-handoff/1": "schemas/gute2-handoff-1.schema.json",
+    SCHEMA_ID: "schemas/gute2-handoff.schema.json",
 }
 
 
@@ -65,7 +65,7 @@ def load_schema(version: int | str = SCHEMA_ID) -> dict[str, Any]:
         resource = SCHEMA_VERSIONS[version]
     except KeyError:
         raise KeyError(f"unknown GUTE II handoff schema {version!r}") from None
-    text = files("gateway").joinpath(resource).read_text(encoding="utf-8")
+    text = files("sinks.gute2").joinpath(resource).read_text(encoding="utf-8")
     schema: dict[str, Any] = json.loads(text)
     return schema
 

@@ -15,7 +15,7 @@ numbers allotted by the receiving database; SLB maps ours to its own.
 
 Every document is a pure function of its event (no clock), so a retry of the same event
 sends the same bytes under the same ``Idempotency-Key``. The schema ships as package data
-(``gateway/data/schemas/slb-object-item.schema.json``, JSON Schema draft 2020-12);
+(``sinks/slb/schemas/slb-object-item.schema.json``, JSON Schema draft 2020-12);
 ``SCHEMA_ID`` versions the document. The mapping tables are the ``CLASSES``, ``HOSTILITY``,
 ``ACCURACY`` and ``CREDIBILITY`` constants below, and nowhere else.
 """
@@ -51,7 +51,7 @@ __all__ = [
 
 #: The ``schema`` member of every document; its last part is the version.
 SCHEMA_ID = "fischer-gateway/slb-object-item/1"
-_SCHEMA_RESOURCE = "data/schemas/slb-object-item.schema.json"
+_SCHEMA_RESOURCE = "schemas/slb-object-item.schema.json"
 
 #: CEP50 of a circular normal error with per-axis σ: σ·√(2 ln 2).
 CEP50_PER_SIGMA = 1.1774
@@ -122,7 +122,7 @@ CREDIBILITY: tuple[tuple[float, str], ...] = ((0.9, "RPTFCT"), (0.5, "RPTPLA"), 
 
 def load_schema() -> dict[str, Any]:
     """The object item document's JSON Schema (draft 2020-12), read from package data."""
-    text = files("gateway").joinpath(_SCHEMA_RESOURCE).read_text(encoding="utf-8")
+    text = files("sinks.slb").joinpath(_SCHEMA_RESOURCE).read_text(encoding="utf-8")
     schema: dict[str, Any] = json.loads(text)
     return schema
 

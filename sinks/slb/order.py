@@ -1,7 +1,7 @@
 """SLB reconnaissance orders: the JSON SLB offers on ``GET /orders``, and our receipts.
 
 SLB answers ``GET {base_url}/orders?limit=N`` with ``{"orders": [ORDER, ...]}``; each ORDER
-is a five-line reconnaissance order (``gateway/data/schemas/slb-order.schema.json``, JSON
+is a five-line reconnaissance order (``sinks/slb/schemas/slb-order.schema.json``, JSON
 Schema draft 2020-12, whose ``$defs`` also hold the list and the receipt). ``read_order``
 turns one into a ``gateway.events.FiveLineOrder`` (event id ``slb-order-<order_id>``), taking
 a position as latitude and longitude, as an MGRS reference (decoded to its cell centre by
@@ -46,7 +46,7 @@ __all__ = [
     "receipt_payload",
 ]
 
-_SCHEMA_RESOURCE = "data/schemas/slb-order.schema.json"
+_SCHEMA_RESOURCE = "schemas/slb-order.schema.json"
 _ORDER_ID_CHARS = r"[A-Za-z0-9][A-Za-z0-9._:-]{0,127}"
 #: Order ids travel in a URL path (``/orders/<id>/receipt``): letters, digits and ``._:-``.
 ORDER_ID_PATTERN = f"^{_ORDER_ID_CHARS}$"
@@ -108,7 +108,7 @@ class SlbOrder(BaseModel):
 
 def load_order_schema() -> dict[str, Any]:
     """The order JSON Schema (draft 2020-12; ``$defs``: order_list, receipt), package data."""
-    text = files("gateway").joinpath(_SCHEMA_RESOURCE).read_text(encoding="utf-8")
+    text = files("sinks.slb").joinpath(_SCHEMA_RESOURCE).read_text(encoding="utf-8")
     schema: dict[str, Any] = json.loads(text)
     return schema
 

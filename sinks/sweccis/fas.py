@@ -1,7 +1,7 @@
 """SWECCIS Functional Area Service documents: the gateway's events as XML, and back for orders.
 
 No public SWECCIS schema exists, so the documents are ours, versioned and shipped:
-``data/schemas/sweccis-fas.xsd`` (version 1, namespace ``urn:fischer-gateway:sweccis:fas:1``)
+``schemas/sweccis-fas.xsd`` (version 1, namespace ``urn:fischer-gateway:sweccis:fas:1``)
 and ``sweccis-fas-2.xsd`` (version 2, ``...:fas:2``). Version 2 publishes a merge as what it
 is: a Track with Status ``merged`` naming the survivor in ``MergedInto``; version 1 has no
 such status, so there a merged track ends as ``lost``. Every encoder takes the ``version``

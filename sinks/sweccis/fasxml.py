@@ -2,7 +2,7 @@
 
 Shared by the document encoders (``sinks.sweccis.fas``) and the order decoder
 (``sinks.sweccis.order``). Writing checks every value against what the schema
-(``data/schemas/sweccis-fas.xsd``) allows and raises ``ValueError`` naming the field, so a
+(``schemas/sweccis-fas.xsd``) allows and raises ``ValueError`` naming the field, so a
 value the schema cannot hold is refused rather than sent as something it is not. Reading
 goes through defusedxml (no DTDs, entities or external references) within a byte bound, and
 every problem is a ``DocumentError`` naming the element.
@@ -52,7 +52,7 @@ SCHEMA_VERSIONS = {"1": NAMESPACE, "2": "urn:fischer-gateway:sweccis:fas:2"}
 _NAMESPACES = frozenset(SCHEMA_VERSIONS.values())
 #: The largest document read or written unless configured otherwise.
 MAX_DOCUMENT_BYTES = 65_536
-_SCHEMA_RESOURCES = {"1": "data/schemas/sweccis-fas.xsd", "2": "data/schemas/sweccis-fas-2.xsd"}
+_SCHEMA_RESOURCES = {"1": "schemas/sweccis-fas.xsd", "2": "schemas/sweccis-fas-2.xsd"}
 _ID = re.compile(r"[!-~]{1,200}")
 # Characters XML 1.0 cannot carry at all (control characters, lone surrogates, U+FFFE/F).
 _NOT_XML = re.compile("[^\t\n\r\x20-\ud7ff\ue000-\ufffd\U00010000-\U0010ffff]")
@@ -84,14 +84,14 @@ class DocumentError(Malformed):
 
 
 def load_schema(version: str = SCHEMA_VERSION) -> bytes:
-    """The XSD of every document of ``version`` (``data/schemas/sweccis-fas.xsd`` for 1,
+    """The XSD of every document of ``version`` (``schemas/sweccis-fas.xsd`` for 1,
     ``sweccis-fas-2.xsd`` for 2), from package data; ``ValueError`` for another version."""
     resource = _SCHEMA_RESOURCES.get(version)
     if resource is None:
         raise ValueError(
             f"SWECCIS FAS version {version!r} is not one of {sorted(_SCHEMA_RESOURCES)}"
         )
-    data: bytes = files("gateway").joinpath(resource).read_bytes()
+    data: bytes = files("sinks.sweccis").joinpath(resource).read_bytes()
     return data
 
 

@@ -1,7 +1,7 @@
 """A SWECCIS ``Orders`` document read into a ``FiveLineOrder``, every field checked.
 
 The document is untrusted: each element and attribute is checked against what the schema
-(``data/schemas/sweccis-fas.xsd``) allows, unknown elements and attributes are refused, and
+(``schemas/sweccis-fas.xsd``) allows, unknown elements and attributes are refused, and
 every failure is a ``DocumentError`` naming the element (``Orders/FiveLineOrder/Location/Mgrs``)
 and carrying the document's id, so the server is told which order was rejected and why. An
 MGRS location is decoded with ``gateway.domain.geodesy.from_mgrs`` to its cell centre and the
