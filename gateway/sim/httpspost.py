@@ -10,17 +10,15 @@ server for a node: enough HTTP for the gateway's own HTTPS sinks and no more.
 from __future__ import annotations
 
 import json
-import socket
-import ssl
 from collections.abc import Callable
 from typing import Any
 
 import anyio
 import anyio.abc
 from anyio.streams.buffered import BufferedByteReceiveStream
-from anyio.streams.tls import TLSListener
 
 from gateway.sim.pki import DemoPki
+from gateway.sim.tlspeer import TlsPeer
 
 __all__ = ["MAX_KEYS", "PostServer"]
 
@@ -31,29 +29,13 @@ MAX_KEYS = 100_000
 _REASONS = {201: "Created", 400: "Bad Request", 409: "Conflict", 413: "Content Too Large"}
 
 
-class PostServer:
+class PostServer(TlsPeer):
     """See the module docstring; its loopback port is bound (``port``) when it is made."""
 
     def __init__(self, pki: DemoPki, on_post: Callable[[str, dict[str, Any]], None]) -> None:
-        self._context = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH, cafile=pki.ca_file)
-        self._context.load_cert_chain(pki.server_cert, pki.server_key)
-        self._context.verify_mode = ssl.CERT_REQUIRED
+        super().__init__(pki)
         self._on_post = on_post
         self.keys: dict[str, None] = {}
-        self._socket = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-        self._socket.bind(("127.0.0.1", 0))
-        self._socket.listen(16)
-        self.port = int(self._socket.getsockname()[1])
-
-    async def serve(
-        self, *, task_status: anyio.abc.TaskStatus[None] = anyio.TASK_STATUS_IGNORED
-    ) -> None:
-        """Accept connections until cancelled."""
-        tcp = await anyio.abc.SocketListener.from_socket(self._socket)
-        listener = TLSListener(tcp, self._context, standard_compatible=False)
-        task_status.started()
-        async with listener:
-            await listener.serve(self._connection)
 
     async def _connection(self, stream: anyio.abc.ByteStream) -> None:
         async with stream:

@@ -12,8 +12,6 @@ cannot read: ``rejected`` with the reason). What it read of each Intel document 
 
 from __future__ import annotations
 
-import socket
-import ssl
 import struct
 import xml.etree.ElementTree as ET
 from collections.abc import Callable
@@ -22,10 +20,10 @@ from dataclasses import dataclass
 import anyio
 import anyio.abc
 from anyio.streams.buffered import BufferedByteReceiveStream
-from anyio.streams.tls import TLSListener
 from defusedxml import ElementTree as SafeET
 
 from gateway.sim.pki import DemoPki
+from gateway.sim.tlspeer import TlsPeer
 
 __all__ = ["MAX_FRAME", "NAMESPACE", "FasTrack", "SimulatedSweccis"]
 
@@ -63,29 +61,13 @@ def _frame(element: ET.Element) -> bytes:
     return _HEADER.pack(len(data)) + data
 
 
-class SimulatedSweccis:
+class SimulatedSweccis(TlsPeer):
     """See the module docstring; its loopback port is bound (``port``) when it is made."""
 
     def __init__(self, pki: DemoPki, on_track: Callable[[FasTrack], None]) -> None:
-        self._context = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH, cafile=pki.ca_file)
-        self._context.load_cert_chain(pki.server_cert, pki.server_key)
-        self._context.verify_mode = ssl.CERT_REQUIRED
+        super().__init__(pki)
         self._on_track = on_track
         self.ids: dict[str, None] = {}
-        self._socket = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-        self._socket.bind(("127.0.0.1", 0))
-        self._socket.listen(16)
-        self.port = int(self._socket.getsockname()[1])
-
-    async def serve(
-        self, *, task_status: anyio.abc.TaskStatus[None] = anyio.TASK_STATUS_IGNORED
-    ) -> None:
-        """Accept connections until cancelled."""
-        tcp = await anyio.abc.SocketListener.from_socket(self._socket)
-        listener = TLSListener(tcp, self._context, standard_compatible=False)
-        task_status.started()
-        async with listener:
-            await listener.serve(self._connection)
 
     async def _connection(self, stream: anyio.abc.ByteStream) -> None:
         client = ""
