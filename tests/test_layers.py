@@ -315,3 +315,29 @@ def test_the_import_graph_in_the_architecture_page_is_the_codes() -> None:
     assert import_graph.END in page
     expected = import_graph.page_with(page, import_graph.section())
     assert page == expected, "run: python tests/import_graph.py --write"
+
+
+#: Test directories that are not a package's mirror: runs of the whole daemon, and the
+#: stand-in plugins and type checks of the plugin face.
+CROSS_CUTTING = ("e2e", "attack", "faults", "plugins", "typing")
+
+
+def test_the_tests_mirror_the_packages() -> None:
+    """A test directory is named after the package it tests (``tests/gateway/fleet`` tests
+    ``gateway/fleet``), so whoever changes a package finds its tests at the same path."""
+    tests = ROOT / "tests"
+    strays = []
+    for directory in sorted(tests.rglob("*")):
+        if not directory.is_dir() or directory.name.startswith((".", "__")):
+            continue
+        relative = directory.relative_to(tests)
+        if relative.parts[0] in CROSS_CUTTING or "fake_plugins" in relative.parts:
+            continue
+        if not any(directory.glob("test_*.py")):
+            continue
+        if not (ROOT / relative / "__init__.py").is_file():
+            strays.append(str(relative))
+    assert strays == [], f"test directories with no package of that path: {strays}"
+    loose = sorted(p.name for p in (tests / "gateway").glob("test_*.py"))
+    top = {p.stem for p in (ROOT / "gateway").glob("*.py")}
+    assert [n for n in loose if not any(n.startswith(f"test_{m}") for m in top)] == []

@@ -18,7 +18,7 @@ frames, the CRC over header and payload with the message's CRC_EXTRA, incompatib
 flags other than "signed" refused, a signed frame's 13 signature bytes outside the CRC and
 not verified here (``gateway.fleet.security.signing`` does that, as today), a short
 payload zero-filled and a long one cut to the message's length. It was checked against
-pymavlink ``PYMAVLINK_CHECKED`` (tests/gateway/test_fastdecode.py: generated frames of
+pymavlink ``PYMAVLINK_CHECKED`` (tests/gateway/fleet/test_fastdecode.py: generated frames of
 every message and the shared corpus). With any other pymavlink installed, with
 ``MAV_IGNORE_CRC`` set or when the XML cannot be read, ``default_decoder()`` is empty:
 every frame falls back to pymavlink.

@@ -3,8 +3,9 @@ FISCHER_HOP_SCHEDULE_ACK (61003) and FISCHER_HOP_EVENT (61004), added to pymavli
 
 Defined here as pymavlink's generator would write them and registered in the
 ``ardupilotmega`` message map beside FISCHER_DETECTION (``gateway.fleet.dialect``).
-``gateway/fleet/fischer_dialect.xml`` is the source of truth; tests/gateway/test_hop_dialect.py
-checks these classes against what ``mavgen`` generates from it (same CRC_EXTRA, same bytes).
+``gateway/fleet/fischer_dialect.xml`` is the source of truth;
+tests/gateway/fleet/test_hop_dialect.py checks these classes against what ``mavgen``
+generates from it (same CRC_EXTRA, same bytes).
 Each message's fields are declared in wire order (by type size), so the constructor takes
 them in that order.
 

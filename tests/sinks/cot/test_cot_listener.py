@@ -24,7 +24,7 @@ from sinks.cot.source import NO_FIX_DEG, CotSource, CotSourceConfig
 from sinks.cot.stream import EventSplitter
 from sinks.cot.validate import parse_cot
 
-CORPUS = Path(__file__).resolve().parents[2].parent / "shared" / "corpus" / "cot"
+CORPUS = Path(__file__).resolve().parents[3].parent / "shared" / "corpus" / "cot"
 METRICS = CORPUS / "freetakserver_example_metrics" / "cot"
 
 FRIEND = (

@@ -43,7 +43,7 @@ from gateway.fleet.mavxml import pymavlink_xml_dir, read_dialect, x25_crc
 from gateway.ops.instruments import Instruments
 from gateway.sim.airframe import SimProfile, SimulatedAirframe
 from gateway.testing import fuzz_examples
-from tests.gateway.test_ingest import T0, make_ingest
+from tests.gateway.fleet.test_ingest import T0, make_ingest
 
 ROOT = next(p for p in Path(__file__).resolve().parents if (p / "pyproject.toml").is_file())
 CORPUS = ROOT.parent / "shared" / "corpus" / "mavlink"

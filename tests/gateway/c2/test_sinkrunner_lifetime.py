@@ -16,7 +16,7 @@ from gateway.errors import PermanentSinkError
 from gateway.events import Event
 from gateway.ops.instruments import Instruments
 from gateway.testing import MemorySink, eventually
-from tests.gateway.test_sinkrunner import detection, entry, telemetry
+from tests.gateway.c2.test_sinkrunner import detection, entry, telemetry
 
 
 class BackgroundSink(MemorySink):

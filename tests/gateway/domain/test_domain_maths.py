@@ -59,7 +59,7 @@ class TestEnergy:
 
         import yaml
 
-        example = Path(__file__).parents[2] / "config" / "example.yaml"
+        example = Path(__file__).parents[3] / "config" / "example.yaml"
         block = yaml.safe_load(example.read_text())["airframes"][0]["energy"]
         assert EnergyProfile(**block) == EnergyProfile()
 

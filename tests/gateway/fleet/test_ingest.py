@@ -21,7 +21,7 @@ from gateway.fleet.tlog import read_tlog
 from gateway.ops.instruments import Instruments
 from gateway.testing import fuzz_examples
 
-CORPUS = Path(__file__).resolve().parents[2].parent / "shared" / "corpus"
+CORPUS = Path(__file__).resolve().parents[3].parent / "shared" / "corpus"
 SMALL_TLOG = CORPUS / "mavlink" / "arducopter_hw_ground_small.tlog"
 T0 = datetime(2026, 11, 22, 12, 0, tzinfo=UTC)
 

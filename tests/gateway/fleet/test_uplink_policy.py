@@ -33,7 +33,7 @@ from gateway.fleet.uplinkpolicy import (
     check,
 )
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 KEY = hashlib.sha256(b"unit-test-station").digest()
 PEER = ("127.0.0.1", 40000)
 
