@@ -31,8 +31,13 @@ def test_all_is_sorted_and_exactly_the_public_names() -> None:
         assert getattr(gateway, name) is getattr(home, name)
 
 
+@pytest.mark.slow
 def test_every_module_imports_on_its_own() -> None:
-    """Each module imported alone in a fresh interpreter: no hidden import-order cycles."""
+    """Each module imported alone in a fresh interpreter: no hidden import-order cycles.
+
+    Slow (every module of the project imported afresh, ~200 times): CI runs it, the quick
+    loop does not.
+    """
     code = (
         "import importlib, sys\n"
         "for name in sys.argv[1:]:\n"
