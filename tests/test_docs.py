@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+import shutil
 import subprocess
 import sys
 import zipfile
@@ -52,8 +53,15 @@ def test_the_units_documentation_is_what_files_out_writes() -> None:
 
 
 def test_the_wheel_ships_config_unit_docs_contract_and_example(tmp_path: Path) -> None:
+    # Built from a copy: setuptools leaves build/ and egg-info in the tree it builds.
+    tree = tmp_path / "tree"
+    shutil.copytree(
+        ROOT,
+        tree,
+        ignore=shutil.ignore_patterns(".*", "build", "*.egg-info", "__pycache__", "tests"),
+    )
     subprocess.run(
-        [sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w", str(tmp_path), str(ROOT)],
+        [sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w", str(tmp_path), str(tree)],
         check=True,
         capture_output=True,
         timeout=120,
