@@ -118,7 +118,10 @@ def _parser() -> argparse.ArgumentParser:
     demo.add_argument("--health-port", type=_port, default=None, help="override the health port")
     demo.add_argument("--archive", type=Path, default=None, help="where the JSONL archive goes")
     check = sub.add_parser("check-config", help="validate a config file; exit 2 on errors")
-    check.add_argument("file", type=Path)
+    check.add_argument("file", type=Path, nargs="?", help="YAML config file")
+    check.add_argument(
+        "--config", type=Path, dest="config_file", help="the same, spelled as for run"
+    )
     check.add_argument(
         "--no-environment",
         action="store_true",
@@ -769,7 +772,14 @@ def _command(argv: Sequence[str] | None) -> int:
         print(json.dumps(config_schema(), indent=2))  # noqa: T201 - the output
         return EXIT_OK
     if args.command == "check-config":
-        return _check_config(args.file, environment=not args.no_environment)
+        if (args.file is None) == (args.config_file is None):
+            print(  # noqa: T201 - the command's answer
+                "fischer-gateway check-config: give one config file, as FILE or --config FILE",
+                file=sys.stderr,
+            )
+            return EXIT_CONFIG
+        path = args.file if args.file is not None else args.config_file
+        return _check_config(path, environment=not args.no_environment)
     if args.command == "files":
         from gateway.ops.share import files_command
 

@@ -228,6 +228,16 @@ def test_check_config_warns_about_a_dem_source_it_cannot_use(tmp_path: Path) -> 
     assert "is not a directory" in result.stderr
 
 
+def test_check_config_takes_the_file_as_run_does_or_alone(tmp_path: Path) -> None:
+    config = udp_config(tmp_path, 0)
+    assert cli("check-config", "--config", str(config)).returncode == 0
+    assert cli("check-config", str(config)).returncode == 0
+    for args in ([], [str(config), "--config", str(config)]):
+        result = cli("check-config", *args)
+        assert result.returncode == 2
+        assert "give one config file, as FILE or --config FILE" in result.stderr
+
+
 class TestFiles:
     """What the wheel ships for installing without the source tree."""
 
