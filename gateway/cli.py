@@ -213,6 +213,13 @@ def _parser() -> argparse.ArgumentParser:
         "radio can fly it)",
     )
     simulate.add_argument(
+        "--autopilot",
+        choices=("px4", "ardupilot"),
+        default=None,
+        help="whose HEARTBEAT, modes and command answers the airframes give (default "
+        "ardupilot; a scenario names each airframe's)",
+    )
+    simulate.add_argument(
         "--hop-ignore",
         type=int,
         default=0,
@@ -542,7 +549,9 @@ def _simulate(args: argparse.Namespace) -> int:
         raise _usage_error("--cot", "friendly units come from a scenario: add --scenario")
     if args.truth is not None:
         raise _usage_error("--truth", "ground truth comes from a scenario: add --scenario")
-    fleet = build_demo_fleet(args.airframes or 2, resend=_resend_policy(args))
+    fleet = build_demo_fleet(
+        args.airframes or 2, resend=_resend_policy(args), autopilot=args.autopilot or "ardupilot"
+    )
     if args.hop_ignore < 0:
         raise _usage_error("--hop-ignore", f"expected 0 or more, got {args.hop_ignore}")
     for airframe in fleet:
@@ -576,6 +585,8 @@ def _simulate_scenario(args: argparse.Namespace, host: str, port: int) -> int:
     if args.hop_result is not None or args.hop_ignore:
         option = "--hop-result" if args.hop_result is not None else "--hop-ignore"
         raise _usage_error(option, "applies to the demo fleet, not to a --scenario")
+    if args.autopilot is not None:
+        raise _usage_error("--autopilot", "the scenario names each airframe's autopilot")
     scenario = load_scenario(args.scenario)
     cot = _udp_target(args.cot, "--cot") if args.cot is not None else None
     if cot is None and scenario.blue_forces:

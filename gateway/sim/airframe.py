@@ -216,7 +216,8 @@ class SimulatedAirframe:
         # Hop reports are due only while the radio hops on a schedule (see next_due_s).
         self._hop_schedule = _Schedule(_period(p.hop_event_hz), self._hop_events)
         self._schedules.append(self._hop_schedule)
-        self._feed = feed
+        #: More messages on the same stream (a scenario's detections); settable once built.
+        self.feed = feed
         #: UNIX time of sim time 0, for FISCHER_DETECTION.time_usec (``run_udp`` sets it).
         self.boot_unix_s = 0.0
         #: Sim seconds per real second (``run_udp`` sets it): sim time t is UNIX time
@@ -272,8 +273,8 @@ class SimulatedAirframe:
             if schedule.next_s <= t_s + _EPS_S:
                 schedule.origin_s, schedule.slot = t_s, 1
             messages.extend(schedule.emit(t_s))
-        if self._feed is not None and self._feed.next_due_s() <= t_s + _EPS_S:
-            messages.extend(self._feed.messages_at(t_s, self.unix_s(t_s)))
+        if self.feed is not None and self.feed.next_due_s() <= t_s + _EPS_S:
+            messages.extend(self.feed.messages_at(t_s, self.unix_s(t_s)))
         messages.extend(self.autopilot.drain())
         return messages
 
@@ -302,7 +303,7 @@ class SimulatedAirframe:
             for schedule in self._schedules
             if schedule is not self._hop_schedule or self.radio.active is not None
         )
-        return due if self._feed is None else min(due, self._feed.next_due_s())
+        return due if self.feed is None else min(due, self.feed.next_due_s())
 
     def unix_s(self, t_s: float) -> float:
         """The UNIX time of sim time ``t_s`` (the real time it is sent)."""
@@ -636,10 +637,13 @@ def _period(rate_hz: float) -> float:
 
 
 def build_demo_fleet(
-    n: int = 2, *, resend: ResendPolicy | None = _DEFAULT_RESEND
+    n: int = 2,
+    *,
+    resend: ResendPolicy | None = _DEFAULT_RESEND,
+    autopilot: AutopilotName = "ardupilot",
 ) -> list[SimulatedAirframe]:
     """``n`` airframes (sysids 1..n) on neighbouring circles around Boden, at different phases,
-    re-sending unacknowledged detections as ``resend`` says."""
+    re-sending unacknowledged detections as ``resend`` says, each playing ``autopilot``."""
     if not 1 <= n <= 255:
         raise ValueError(f"n: expected 1..255 airframes, got {n!r}")
     return [
@@ -652,6 +656,7 @@ def build_demo_fleet(
             ),
             phase_rad=i * 2.0,
             resend=resend,
+            autopilot=autopilot,
         )
         for i in range(n)
     ]
