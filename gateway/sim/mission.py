@@ -9,8 +9,9 @@ and answers:
   re-requested after ``item_timeout_s`` up to ``item_retries`` times and then cancelled
   (MISSION_ACK OPERATION_CANCELLED); MISSION_ITEM_INT (or the older MISSION_ITEM) checked
   as it arrives: an unknown command is UNSUPPORTED, a frame the item cannot use
-  UNSUPPORTED_FRAME, a bad parameter or coordinate INVALID_PARAMn, each ending the upload
-  with the mission kept as it was; an item ahead of the one asked for is INVALID_SEQUENCE
+  UNSUPPORTED_FRAME, a bad parameter or coordinate INVALID_PARAMn (a latitude beyond ±89°
+  too: the simulator does not fly over a pole), each ending the upload with the mission
+  kept as it was; an item ahead of the one asked for is INVALID_SEQUENCE
   (the upload goes on), one already taken is ignored. More than ``max_items`` is NO_SPACE.
   A second ground station starting an upload while one runs is DENIED. The whole new
   mission replaces the old only with the final MISSION_ACK ACCEPTED; the last item sent
@@ -62,6 +63,7 @@ _POSITIONED = FLOWN_COMMANDS - {MAV_CMD_NAV_RETURN_TO_LAUNCH, MAV_CMD_DO_CHANGE_
 _GLOBAL_FRAMES = frozenset({0, 3, 5, 6})
 _MISSION_FRAME = 2
 _ALT_RANGE_M = (-500.0, 10_000.0)
+_MAX_LAT_DEG = 89.0
 _MAX_LOITER_S = 86_400.0
 _MAX_RADIUS_M = 10_000.0
 _MAX_TURNS = 255.0
@@ -119,7 +121,10 @@ def item_problem(
         return int(mav.MAV_MISSION_UNSUPPORTED_FRAME)
     if command == MAV_CMD_NAV_RETURN_TO_LAUNCH:
         return None
-    if not (math.isfinite(lat_deg) and -90 <= lat_deg <= 90) or (lat_deg == 0 and lon_deg == 0):
+    # The simulator flies in a local frame that does not cross a pole (as ``SimProfile``).
+    if not (math.isfinite(lat_deg) and -_MAX_LAT_DEG <= lat_deg <= _MAX_LAT_DEG) or (
+        lat_deg == 0 and lon_deg == 0
+    ):
         return int(mav.MAV_MISSION_INVALID_PARAM5_X)
     if not (math.isfinite(lon_deg) and -180 <= lon_deg <= 180):
         return int(mav.MAV_MISSION_INVALID_PARAM6_Y)

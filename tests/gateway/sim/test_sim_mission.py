@@ -164,6 +164,7 @@ class TestUpload:
             ({"frame": 10}, mav.MAV_MISSION_UNSUPPORTED_FRAME),  # terrain: no DEM aboard
             ({"frame": 2}, mav.MAV_MISSION_UNSUPPORTED_FRAME),  # a waypoint needs a place
             ({"lat": 91.0}, mav.MAV_MISSION_INVALID_PARAM5_X),
+            ({"lat": 89.5}, mav.MAV_MISSION_INVALID_PARAM5_X),  # no flying over a pole
             ({"lat": 0.0, "lon": 0.0}, mav.MAV_MISSION_INVALID_PARAM5_X),
             ({"lon": 181.0}, mav.MAV_MISSION_INVALID_PARAM6_Y),
             ({"alt": math.nan}, mav.MAV_MISSION_INVALID_PARAM7),
