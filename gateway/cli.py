@@ -214,10 +214,10 @@ def _parser() -> argparse.ArgumentParser:
     )
     simulate.add_argument(
         "--autopilot",
-        choices=("px4", "ardupilot"),
+        choices=("px4", "ardupilot", "arducopter"),
         default=None,
         help="whose HEARTBEAT, modes and command answers the airframes give (default "
-        "ardupilot; a scenario names each airframe's)",
+        "ardupilot, ArduPlane; a scenario names each airframe's)",
     )
     simulate.add_argument(
         "--hop-ignore",

@@ -174,8 +174,8 @@ class SimulatedAirframe:
     stream, in the same sequence numbering. ``resend`` is how unacknowledged detections are
     re-sent (None: never, for a gateway that does not acknowledge). With ``signing_key``
     (32 bytes) every frame is signed and only validly signed uplink frames are read.
-    ``autopilot`` (``px4`` or ``ardupilot``) is whose HEARTBEAT, modes and command answers
-    it gives; home is the orbit's centre on the ground (``home_alt_msl_m``).
+    ``autopilot`` (``px4``, ``ardupilot`` or ``arducopter``) is whose HEARTBEAT, modes and
+    command answers it gives; home is the orbit's centre on the ground (``home_alt_msl_m``).
     """
 
     def __init__(
@@ -337,7 +337,7 @@ class SimulatedAirframe:
     def _heartbeat(self, _t_s: float) -> list[Any]:
         pilot = self.autopilot
         heartbeat = self._mav.heartbeat_encode(
-            mav.MAV_TYPE_FIXED_WING, pilot.mav_autopilot, pilot.base_mode, pilot.custom_mode,
+            pilot.mav_type, pilot.mav_autopilot, pilot.base_mode, pilot.custom_mode,
             mav.MAV_STATE_ACTIVE,
         )  # fmt: skip
         # PX4 and ArduPilot report the mission's state steadily, not only as it changes.
@@ -618,7 +618,7 @@ class SimulatedAirframe:
             return [self._mav.command_ack_encode(command, result, **to), *extra]
         if name == "SET_MODE":
             result = self.autopilot.set_mode(int(msg.base_mode), int(msg.custom_mode), t_s)
-            acked = mav.MAVLINK_MSG_ID_SET_MODE if self.autopilot.name == "ardupilot" else 176
+            acked = 176 if self.autopilot.name == "px4" else mav.MAVLINK_MSG_ID_SET_MODE
             return [self._mav.command_ack_encode(acked, result, **to)]
         return []
 

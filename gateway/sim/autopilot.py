@@ -1,12 +1,14 @@
-"""The simulated airframe's autopilot: its modes as PX4 or ArduPlane names them, and its mission.
+"""The simulated airframe's autopilot: its modes as PX4 or ArduPilot names them, and its mission.
 
 ``Autopilot`` starts on the airframe's deterministic orbit (``SimulatedAirframe``'s circle,
-reported as PX4's AUTO.LOITER or ArduPlane's GUIDED) and takes over the flying itself, with
-``Kinematics``, from the first mode it is told to fly: ``hold`` (circle where it is: PX4
-AUTO.LOITER, ArduPlane LOITER, GUIDED or CIRCLE), ``mission`` (fly the stored items: PX4
-AUTO.MISSION, ArduPlane AUTO) or ``rtl`` (home, then circle it: PX4 AUTO.RTL, ArduPlane
-RTL). Modes come from MAV_CMD_DO_SET_MODE (custom modes only, as both autopilots require),
-SET_MODE, MAV_CMD_MISSION_START, MAV_CMD_NAV_RETURN_TO_LAUNCH and MAV_CMD_NAV_LOITER_UNLIM;
+reported as PX4's AUTO.LOITER, ArduPlane's or ArduCopter's GUIDED) and takes over the flying
+itself, with ``Kinematics``, from the first mode it is told to fly: ``hold`` (circle where it
+is: PX4 AUTO.LOITER; ArduPlane LOITER, GUIDED or CIRCLE; ArduCopter LOITER, GUIDED, CIRCLE or
+POSHOLD), ``mission`` (fly the stored items: PX4 AUTO.MISSION, ArduPilot AUTO) or ``rtl``
+(home, then circle it: PX4 AUTO.RTL, ArduPilot RTL). ArduCopter is flown with the same
+kinematics: it circles where a copter would hover. Modes come from MAV_CMD_DO_SET_MODE
+(custom modes only, as both autopilots require), SET_MODE, MAV_CMD_MISSION_START,
+MAV_CMD_NAV_RETURN_TO_LAUNCH and MAV_CMD_NAV_LOITER_UNLIM;
 ``command`` answers every COMMAND_LONG / COMMAND_INT with the MAV_RESULT the autopilot would
 give: a mode it cannot fly without a pilot's sticks (manual, stabilised, acro, VTOL modes),
 disarming in the air or a mission start with no mission is DENIED (PX4) or FAILED
@@ -20,7 +22,7 @@ direction, clockwise positive); LOITER_TURNS for param 1 turns; LOITER_UNLIM for
 RETURN_TO_LAUNCH flies home; DO_CHANGE_SPEED sets the airspeed. MISSION_CURRENT is sent when
 the current item changes (and with every heartbeat while a mission is stored),
 MISSION_ITEM_REACHED when an item is done. At the mission's end PX4 keeps circling the last
-item; ArduPlane switches to RTL, as both do.
+item; ArduPlane switches to RTL and ArduCopter holds where it is, as they do.
 """
 
 from __future__ import annotations
@@ -45,8 +47,10 @@ from gateway.sim.mission import (
 
 __all__ = ["AUTOPILOTS", "Autopilot", "AutopilotName", "Home", "Mode"]
 
-AutopilotName = Literal["px4", "ardupilot"]
-AUTOPILOTS: tuple[AutopilotName, ...] = ("px4", "ardupilot")
+AutopilotName = Literal["px4", "ardupilot", "arducopter"]
+"""PX4 (fixed wing), ArduPilot's ArduPlane, or ArduCopter (a multirotor's HEARTBEAT and mode
+numbers, flown with the same kinematics: it circles where a copter would hover)."""
+AUTOPILOTS: tuple[AutopilotName, ...] = ("px4", "ardupilot", "arducopter")
 Mode = Literal["orbit", "hold", "mission", "rtl"]
 
 _STEP_S = 0.1
@@ -82,6 +86,16 @@ _PX4_CUSTOM: dict[Mode, int] = {
 #: ArduPlane mode numbers flown here (CIRCLE 1, AUTO 10, RTL 11, LOITER 12, GUIDED 15).
 _PLANE_MODES: dict[int, Mode] = {1: "hold", 10: "mission", 11: "rtl", 12: "hold", 15: "hold"}
 _PLANE_CUSTOM: dict[Mode, int] = {"orbit": 15, "hold": 12, "mission": 10, "rtl": 11}
+#: ArduCopter's (AUTO 3, GUIDED 4, LOITER 5, RTL 6, CIRCLE 7, POSHOLD 16).
+_COPTER_MODES: dict[int, Mode] = {
+    3: "mission",
+    4: "hold",
+    5: "hold",
+    6: "rtl",
+    7: "hold",
+    16: "hold",
+}
+_COPTER_CUSTOM: dict[Mode, int] = {"orbit": 4, "hold": 5, "mission": 3, "rtl": 6}
 
 
 @dataclass(frozen=True, slots=True)
@@ -119,7 +133,7 @@ class Autopilot:
         cruise_mps: float,
     ) -> None:
         if name not in AUTOPILOTS:
-            raise ValueError(f"autopilot: expected px4 or ardupilot, got {name!r}")
+            raise ValueError(f"autopilot: expected px4, ardupilot or arducopter, got {name!r}")
         self.name = name
         self._mav = encoder
         self._orbit = orbit
@@ -142,6 +156,12 @@ class Autopilot:
     # -- what the airframe reports ------------------------------------------------------------
 
     @property
+    def mav_type(self) -> int:
+        """HEARTBEAT.type: a fixed wing, or ArduCopter's quadrotor."""
+        copter = self.name == "arducopter"
+        return int(mav.MAV_TYPE_QUADROTOR if copter else mav.MAV_TYPE_FIXED_WING)
+
+    @property
     def mav_autopilot(self) -> int:
         """HEARTBEAT.autopilot."""
         return int(mav.MAV_AUTOPILOT_PX4 if self.name == "px4" else mav.MAV_AUTOPILOT_ARDUPILOTMEGA)
@@ -149,7 +169,7 @@ class Autopilot:
     @property
     def custom_mode(self) -> int:
         """HEARTBEAT.custom_mode of the mode flown."""
-        table = _PX4_CUSTOM if self.name == "px4" else _PLANE_CUSTOM
+        table = {"px4": _PX4_CUSTOM, "ardupilot": _PLANE_CUSTOM}.get(self.name, _COPTER_CUSTOM)
         return table[self.mode]
 
     @property
@@ -285,7 +305,8 @@ class Autopilot:
         if self.name == "px4":
             wanted = _PX4_SUB.get(int(sub)) if int(main) == _PX4_AUTO else None
         else:
-            wanted = _PLANE_MODES.get(int(main))
+            modes = _PLANE_MODES if self.name == "ardupilot" else _COPTER_MODES
+            wanted = modes.get(int(main))
         if wanted is None:
             return self._refusal  # a manual mode, a VTOL mode, or no mode at all
         if wanted == "mission":
@@ -436,6 +457,8 @@ class Autopilot:
         self.outbox.append(self.mission_current())
         if self.name == "ardupilot":
             self._enter("rtl")  # ArduPlane: "Mission complete, changing mode to RTL"
+        elif self.name == "arducopter":  # ArduCopter stays in AUTO and holds where it is
+            self._hold_at = (f.lat_deg, f.lon_deg, f.alt_msl_m)
         elif item.command == MAV_CMD_NAV_RETURN_TO_LAUNCH:
             self._hold_at = (self.home.lat_deg, self.home.lon_deg, self.home.return_alt_msl_m)
         elif item.command == MAV_CMD_DO_CHANGE_SPEED:

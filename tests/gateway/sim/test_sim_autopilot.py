@@ -159,6 +159,47 @@ class TestModes:
         assert gcs.send("command_long", 2, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0) == []  # not ours
 
 
+@pytest.mark.parametrize(
+    ("autopilot", "fleet", "vehicle"),
+    [
+        ("px4", "px4", "plane"),
+        ("ardupilot", "ardupilot", "plane"),
+        ("arducopter", "ardupilot", "copter"),
+        ("px4", "mavlink", "plane"),
+        ("arducopter", "mavlink", "plane"),
+    ],
+)
+def test_the_fleets_mode_commands_are_what_each_simulated_autopilot_takes(
+    autopilot: Any, fleet: Any, vehicle: Any
+) -> None:
+    """The gateway's side (``gateway.fleet.missionitems``) against the simulated autopilots:
+    its start puts each in mission mode, its return sends each home."""
+    from gateway.fleet.missionitems import return_command, start_command
+
+    sim = SimulatedAirframe(1, autopilot=autopilot)
+    gcs = Gcs(sim)
+    gcs.upload(observe_mission())
+    command, params = start_command(fleet, 2, vehicle)
+    assert gcs.command(command, *params)[0] == mav.MAV_RESULT_ACCEPTED
+    assert sim.autopilot.mode == "mission"
+    command, params = return_command(fleet, vehicle)
+    assert gcs.command(command, *params)[0] == mav.MAV_RESULT_ACCEPTED
+    assert sim.autopilot.mode == "rtl"
+
+
+def test_arducopter_says_it_is_a_quadrotor_and_holds_at_the_mission_end() -> None:
+    sim = SimulatedAirframe(1, autopilot="arducopter")
+    gcs = Gcs(sim)
+    hb = heartbeat(gcs)
+    assert (hb.type, hb.autopilot, hb.custom_mode) == (mav.MAV_TYPE_QUADROTOR, 3, 4)
+    assert gcs.command(176, 1, 10)[0] == mav.MAV_RESULT_FAILED  # 10 is no copter mode
+    gcs.upload(observe_mission())
+    assert gcs.command(176, 1, 3)[0] == mav.MAV_RESULT_ACCEPTED  # AUTO
+    out = gcs.fly(240.0)
+    assert [m.seq for m in of(out, "MISSION_ITEM_REACHED")] == [0, 1]
+    assert of(out, "HEARTBEAT")[-1].custom_mode == 3  # still AUTO, holding
+
+
 class TestFlying:
     """The mission flown: items in order, reached where they are, telemetry following."""
 
