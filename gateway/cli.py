@@ -527,9 +527,12 @@ def _resend_policy(args: argparse.Namespace) -> ResendPolicy | None:
 
 def _print_summaries(airframes: dict[str, SimulatedAirframe]) -> None:
     """One line per airframe on stdout: what became of its detections (and, for one that
-    received hop schedules, a second line on them)."""
+    received hop schedules or was tasked, a line on each)."""
     for name, airframe in airframes.items():
         print(f"{name} (sysid {airframe.sysid}): {airframe.summary()}")  # noqa: T201 - the output
+        tasked = airframe.autopilot_summary()
+        if tasked is not None:
+            print(f"{name} (sysid {airframe.sysid}): {tasked}")  # noqa: T201 - the output
         radio = airframe.radio
         if radio.schedules:
             print(  # noqa: T201 - the output

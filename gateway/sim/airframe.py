@@ -65,6 +65,7 @@ _MISSION_MESSAGES = frozenset(
     }
 )  # fmt: skip
 _MAV_COMP_ID_ALL = 0
+_COMMANDS_KEPT = 1000
 # Callers' sim times (i × step) and schedule slots (n × period) differ by float rounding.
 _EPS_S = 1e-9
 # The sensors SYS_STATUS reports as present, enabled and healthy.
@@ -228,7 +229,7 @@ class SimulatedAirframe:
         self.frames_sent = 0
         #: Answer COMMAND_LONG with COMMAND_ACK (MAV_RESULT_ACCEPTED); False plays a lost uplink.
         self.ack_commands = True
-        #: (command id, confirmation) of every COMMAND_LONG for us that arrived.
+        #: (command id, confirmation) of the last 1000 COMMAND_LONG / COMMAND_INT for us.
         self.commands: list[tuple[int, int]] = []
         self._parser = mav.MAVLink(None, srcSystem=sysid, srcComponent=1)
         self._parser.robust_parsing = True
@@ -294,6 +295,20 @@ class SimulatedAirframe:
             f"{counts.acknowledged}, dropped {counts.dropped}, unacknowledged "
             f"{len(self.resend)}{off}; sends refused {self.link.refused}, uplink rejected "
             f"{self.link.uplink_rejected}"
+        )
+
+    def autopilot_summary(self) -> str | None:
+        """One line on missions and commands, or None if the airframe was never tasked."""
+        pilot, missions = self.autopilot, self.missions
+        refused = sum(missions.refused.values())
+        if not (missions.accepted or refused or pilot.answered):
+            return None
+        accepted = pilot.answered.get(int(mav.MAV_RESULT_ACCEPTED), 0)
+        done = ", complete" if pilot.complete else ""
+        return (
+            f"autopilot {pilot.name}: missions accepted {missions.accepted}, refused {refused};"
+            f" commands answered {sum(pilot.answered.values())}, accepted {accepted}; mode"
+            f" {pilot.mode}, item {pilot.current} of {len(pilot.items)}{done}"
         )
 
     def next_due_s(self) -> float:
@@ -611,6 +626,8 @@ class SimulatedAirframe:
         if name in ("COMMAND_LONG", "COMMAND_INT"):
             command = int(msg.command)
             self.commands.append((command, int(getattr(msg, "confirmation", 0))))
+            if len(self.commands) > _COMMANDS_KEPT:
+                del self.commands[:-_COMMANDS_KEPT]
             if not self.ack_commands:
                 return []
             params = (msg.param1, msg.param2, msg.param3, msg.param4)

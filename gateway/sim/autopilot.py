@@ -150,8 +150,8 @@ class Autopilot:
         self._hold_at: tuple[float, float, float] | None = None
         self._hold_radius_m = 0.0  # 0: the default circle
         self.outbox: list[Any] = []
-        #: Every command answered, (command, MAV_RESULT), for tests and the summary.
-        self.answered: list[tuple[int, int]] = []
+        #: Commands answered, by MAV_RESULT (bounded however many arrive).
+        self.answered: dict[int, int] = {}
 
     # -- what the airframe reports ------------------------------------------------------------
 
@@ -274,7 +274,7 @@ class Autopilot:
             extra.append(self.mission_current())
         else:
             result = mav.MAV_RESULT_UNSUPPORTED  # effector commands among them
-        self.answered.append((command, int(result)))
+        self.answered[int(result)] = self.answered.get(int(result), 0) + 1
         return int(result), extra
 
     def set_mode(self, base_mode: int, custom_mode: int, t_s: float) -> int:

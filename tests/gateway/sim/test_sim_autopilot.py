@@ -198,6 +198,11 @@ def test_arducopter_says_it_is_a_quadrotor_and_holds_at_the_mission_end() -> Non
     out = gcs.fly(240.0)
     assert [m.seq for m in of(out, "MISSION_ITEM_REACHED")] == [0, 1]
     assert of(out, "HEARTBEAT")[-1].custom_mode == 3  # still AUTO, holding
+    assert sim.autopilot_summary() == (
+        "autopilot arducopter: missions accepted 1, refused 0; commands answered 2, accepted 1;"
+        " mode mission, item 1 of 2, complete"
+    )
+    assert SimulatedAirframe(2).autopilot_summary() is None
 
 
 class TestFlying:
