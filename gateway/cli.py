@@ -543,7 +543,7 @@ def _print_summaries(airframes: dict[str, SimulatedAirframe]) -> None:
 
 
 def _simulate(args: argparse.Namespace) -> int:
-    from gateway.sim.airframe import build_demo_fleet, run_fleet
+    from gateway.sim.demofleet import build_demo_fleet, run_fleet
 
     host, port = _udp_target(args.to)
     if args.scenario is not None:

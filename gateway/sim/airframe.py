@@ -16,9 +16,8 @@ from __future__ import annotations
 import math
 import time
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, fields
-from functools import partial
 from typing import TYPE_CHECKING, Any, Protocol
 
 import anyio
@@ -32,8 +31,9 @@ from gateway.fleet.hopdialect import FischerHopSchedule
 from gateway.fleet.security.signing import mavlink_timestamp_now
 from gateway.sim.autopilot import Autopilot, AutopilotName, Home
 from gateway.sim.datalink import AirframeLink, LinkCounts
-from gateway.sim.kinematics import FlightState
+from gateway.sim.kinematics import FlightState, quaternion
 from gateway.sim.mission import MissionServer
+from gateway.sim.power import power_messages
 from gateway.sim.radio import SimRadio
 from gateway.sim.resend import ResendPolicy, ResendStore
 
@@ -45,8 +45,6 @@ __all__ = [
     "SentPosition",
     "SimProfile",
     "SimulatedAirframe",
-    "build_demo_fleet",
-    "run_fleet",
 ]
 
 log = structlog.get_logger(__name__)
@@ -55,9 +53,6 @@ _WGS84_A_M = 6_378_137.0
 _WGS84_E2 = 6.694379990141317e-3
 _G_MPS2 = 9.80665
 _PITCH_RAD = 0.05  # angle of attack in level cruise
-_CELLS = 6  # 6S Li-ion: 4.2 V full, 3.3 V empty, linear in between
-_CELL_FULL_V, _CELL_EMPTY_V = 4.2, 3.3
-_UINT16_MAX = 0xFFFF
 _MISSION_MESSAGES = frozenset(
     {
         "MISSION_COUNT", "MISSION_ITEM_INT", "MISSION_ITEM", "MISSION_REQUEST_LIST",
@@ -68,13 +63,6 @@ _MAV_COMP_ID_ALL = 0
 _COMMANDS_KEPT = 1000
 # Callers' sim times (i × step) and schedule slots (n × period) differ by float rounding.
 _EPS_S = 1e-9
-# The sensors SYS_STATUS reports as present, enabled and healthy.
-_SENSORS = (
-    mav.MAV_SYS_STATUS_SENSOR_3D_GYRO | mav.MAV_SYS_STATUS_SENSOR_3D_ACCEL
-    | mav.MAV_SYS_STATUS_SENSOR_3D_MAG | mav.MAV_SYS_STATUS_SENSOR_ABSOLUTE_PRESSURE
-    | mav.MAV_SYS_STATUS_SENSOR_DIFFERENTIAL_PRESSURE | mav.MAV_SYS_STATUS_SENSOR_GPS
-    | mav.MAV_SYS_STATUS_SENSOR_BATTERY
-)  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -444,8 +432,8 @@ class SimulatedAirframe:
             yaw = math.radians(bearing_deg)
             relative_yaw = yaw - s.track_rad
         boot_ms = round(t_s * 1000) % 2**32
-        gimbal = _quaternion(0.0, -depression, relative_yaw)  # yaw relative to the nose
-        camera = _quaternion(0.0, -depression, yaw)
+        gimbal = quaternion(0.0, -depression, relative_yaw)  # yaw relative to the nose
+        camera = quaternion(0.0, -depression, yaw)
         return [
             self._mav.gimbal_device_attitude_status_encode(
                 0, 0, boot_ms, mav.GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME, gimbal,
@@ -459,30 +447,7 @@ class SimulatedAirframe:
         ]  # fmt: skip
 
     def _status(self, t_s: float) -> list[Any]:
-        p = self.profile
-        used_wh = min(p.power_w * t_s / 3600.0, p.battery_wh)
-        soc = 1.0 - used_wh / p.battery_wh
-        cell_v = _CELL_EMPTY_V + (_CELL_FULL_V - _CELL_EMPTY_V) * soc
-        current_ca = round(p.power_w / (_CELLS * cell_v) * 100) if soc > 0 else 0
-        # Charge drawn at constant power from a voltage linear in state of charge, in closed
-        # form: Q = ∫ E dsoc / V(soc) = E / ΔV · ln(V_full / V).
-        delta_v = _CELLS * (_CELL_FULL_V - _CELL_EMPTY_V)
-        used_mah = round(p.battery_wh / delta_v * math.log(_CELL_FULL_V / cell_v) * 1000)
-        remaining = round(100 * soc)
-        low = remaining <= 20
-        charge_state = mav.MAV_BATTERY_CHARGE_STATE_LOW if low else mav.MAV_BATTERY_CHARGE_STATE_OK
-        status = self._mav.sys_status_encode(
-            _SENSORS, _SENSORS, _SENSORS, 300, round(_CELLS * cell_v * 1000), current_ca,
-            remaining, 0, 0, 0, 0, 0, 0,
-        )  # fmt: skip
-        battery = self._mav.battery_status_encode(
-            0, mav.MAV_BATTERY_FUNCTION_ALL, mav.MAV_BATTERY_TYPE_LION, 2500,
-            [round(cell_v * 1000)] * _CELLS + [_UINT16_MAX] * (10 - _CELLS),
-            current_ca, used_mah, round(used_wh * 36), remaining,
-            time_remaining=round((p.battery_wh - used_wh) / p.power_w * 3600),
-            charge_state=charge_state,
-        )  # fmt: skip
-        return [status, battery]
+        return power_messages(self._mav, self.profile, t_s)
 
     async def run_udp(
         self,
@@ -640,78 +605,5 @@ class SimulatedAirframe:
         return []
 
 
-def _quaternion(roll: float, pitch: float, yaw: float) -> list[float]:
-    """[w, x, y, z] of Z-Y-X Euler angles (radians), as MAVLink sends attitudes."""
-    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
-    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
-    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
-    return [cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy,
-            cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy]  # fmt: skip
-
-
 def _period(rate_hz: float) -> float:
     return 1.0 / rate_hz if rate_hz > 0 else math.inf
-
-
-def build_demo_fleet(
-    n: int = 2,
-    *,
-    resend: ResendPolicy | None = _DEFAULT_RESEND,
-    autopilot: AutopilotName = "ardupilot",
-) -> list[SimulatedAirframe]:
-    """``n`` airframes (sysids 1..n) on neighbouring circles around Boden, at different phases,
-    re-sending unacknowledged detections as ``resend`` says, each playing ``autopilot``."""
-    if not 1 <= n <= 255:
-        raise ValueError(f"n: expected 1..255 airframes, got {n!r}")
-    return [
-        SimulatedAirframe(
-            i + 1,
-            SimProfile(
-                centre_lat_deg=65.8252 + 0.01 * i,
-                centre_lon_deg=21.6886 + 0.02 * i,
-                detection_hz=0.2,  # a FISCHER_DETECTION every 5 s
-            ),
-            phase_rad=i * 2.0,
-            resend=resend,
-            autopilot=autopilot,
-        )
-        for i in range(n)
-    ]
-
-
-async def run_fleet(
-    airframes: Sequence[SimulatedAirframe],
-    host: str,
-    ports: Sequence[int],
-    *,
-    duration_s: float | None = None,
-    speed: float = 1.0,
-    sealers: Sequence[Sealer | None] | None = None,
-    linger_s: float = 0.0,
-    task_status: anyio.abc.TaskStatus[None] = anyio.TASK_STATUS_IGNORED,
-) -> None:
-    """Run several airframes in one task group, airframe ``i`` sending to ``ports[i]``.
-
-    ``linger_s`` is each airframe's wait for its last acknowledgements (``run_udp``).
-    ``task_status.started()`` is called once every airframe's socket exists. Raises
-    ``ValueError`` if ``ports`` (or ``sealers``) does not match ``airframes`` in length.
-    """
-    seals = list(sealers) if sealers is not None else [None] * len(airframes)
-    if not len(airframes) == len(ports) == len(seals):
-        raise ValueError(
-            f"run_fleet: {len(airframes)} airframes but {len(ports)} ports and {len(seals)} sealers"
-        )
-    async with anyio.create_task_group() as tg:
-        for airframe, port, sealer in zip(airframes, ports, seals, strict=True):
-            await tg.start(
-                partial(
-                    airframe.run_udp,
-                    host,
-                    port,
-                    duration_s=duration_s,
-                    speed=speed,
-                    sealer=sealer,
-                    linger_s=linger_s,
-                )
-            )
-        task_status.started()

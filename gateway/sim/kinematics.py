@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 from gateway.domain.geodesy import distance_bearing
 
-__all__ = ["FlightState", "Kinematics", "wrap"]
+__all__ = ["FlightState", "Kinematics", "quaternion", "wrap"]
 
 _WGS84_A_M = 6_378_137.0
 _WGS84_E2 = 6.694379990141317e-3
@@ -131,3 +131,12 @@ class Kinematics:
     def _limit(self, turn_rps: float) -> float:
         limit = self.max_turn_rps
         return max(-limit, min(limit, turn_rps))
+
+
+def quaternion(roll: float, pitch: float, yaw: float) -> list[float]:
+    """[w, x, y, z] of Z-Y-X Euler angles (radians), as MAVLink sends attitudes."""
+    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
+    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
+    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
+    return [cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy,
+            cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy]  # fmt: skip
