@@ -216,6 +216,13 @@ def _parser() -> argparse.ArgumentParser:
         "radio can fly it)",
     )
     simulate.add_argument(
+        "--autopilot",
+        choices=("px4", "ardupilot", "arducopter"),
+        default=None,
+        help="whose HEARTBEAT, modes and command answers the airframes give (default "
+        "ardupilot, ArduPlane; a scenario names each airframe's)",
+    )
+    simulate.add_argument(
         "--hop-ignore",
         type=int,
         default=0,
@@ -523,9 +530,12 @@ def _resend_policy(args: argparse.Namespace) -> ResendPolicy | None:
 
 def _print_summaries(airframes: dict[str, SimulatedAirframe]) -> None:
     """One line per airframe on stdout: what became of its detections (and, for one that
-    received hop schedules, a second line on them)."""
+    received hop schedules or was tasked, a line on each)."""
     for name, airframe in airframes.items():
         print(f"{name} (sysid {airframe.sysid}): {airframe.summary()}")  # noqa: T201 - the output
+        tasked = airframe.autopilot_summary()
+        if tasked is not None:
+            print(f"{name} (sysid {airframe.sysid}): {tasked}")  # noqa: T201 - the output
         radio = airframe.radio
         if radio.schedules:
             print(  # noqa: T201 - the output
@@ -536,7 +546,7 @@ def _print_summaries(airframes: dict[str, SimulatedAirframe]) -> None:
 
 
 def _simulate(args: argparse.Namespace) -> int:
-    from gateway.sim.airframe import build_demo_fleet, run_fleet
+    from gateway.sim.demofleet import build_demo_fleet, run_fleet
 
     host, port = _udp_target(args.to)
     if args.scenario is not None:
@@ -545,7 +555,9 @@ def _simulate(args: argparse.Namespace) -> int:
         raise _usage_error("--cot", "friendly units come from a scenario: add --scenario")
     if args.truth is not None:
         raise _usage_error("--truth", "ground truth comes from a scenario: add --scenario")
-    fleet = build_demo_fleet(args.airframes or 2, resend=_resend_policy(args))
+    fleet = build_demo_fleet(
+        args.airframes or 2, resend=_resend_policy(args), autopilot=args.autopilot or "ardupilot"
+    )
     if args.hop_ignore < 0:
         raise _usage_error("--hop-ignore", f"expected 0 or more, got {args.hop_ignore}")
     for airframe in fleet:
@@ -579,6 +591,8 @@ def _simulate_scenario(args: argparse.Namespace, host: str, port: int) -> int:
     if args.hop_result is not None or args.hop_ignore:
         option = "--hop-result" if args.hop_result is not None else "--hop-ignore"
         raise _usage_error(option, "applies to the demo fleet, not to a --scenario")
+    if args.autopilot is not None:
+        raise _usage_error("--autopilot", "the scenario names each airframe's autopilot")
     scenario = load_scenario(args.scenario)
     cot = _udp_target(args.cot, "--cot") if args.cot is not None else None
     if cot is None and scenario.blue_forces:

@@ -444,6 +444,29 @@ class AirframeConfig(BaseModel):
         description="An AD9361 hop plan uploaded to the airframe once it is linked "
         "(FISCHER_HOP_SCHEDULE; docs/hopping.md).",
     )
+    autopilot: Literal["px4", "ardupilot", "mavlink"] | None = Field(
+        default=None,
+        description="Whose modes start its missions and send it home: px4 (AUTO.MISSION, "
+        "AUTO.RTL), ardupilot (AUTO, RTL by number: ArduPlane, or ArduCopter when its "
+        "HEARTBEAT says multirotor) or mavlink (MISSION_START, NAV_RETURN_TO_LAUNCH). "
+        "Unset: the autopilot its HEARTBEAT names, else the orders processor's mode_commands.",
+    )
+    mode_commands: Literal["px4", "mavlink"] | None = Field(
+        default=None, description="The older name of autopilot (px4 or mavlink)."
+    )
+
+    @model_validator(mode="before")
+    @classmethod
+    def _mode_commands_alias(cls, data: object) -> object:
+        if isinstance(data, dict) and data.get("mode_commands") is not None:
+            given = data.get("autopilot")
+            if given is not None and given != data["mode_commands"]:
+                raise ValueError(
+                    f"autopilot: {given} and mode_commands: {data['mode_commands']} disagree;"
+                    " mode_commands is the older name of autopilot: give one"
+                )
+            data = {**data, "autopilot": data["mode_commands"]}
+        return data
 
     @field_validator("passthrough", mode="before")
     @classmethod

@@ -2,8 +2,10 @@
 
 ``FleetCommander`` implements ``gateway.flow.tasking.AirframeCommander`` over the airframe
 sessions: it takes intents (upload these mission steps, start the mission, return to base)
-and chooses the MAVLink for them (``gateway.fleet.missionitems``: the items, and PX4 modes or
-plain MAVLink commands as the caller's ``ModeCommands`` says). Commands go through
+and chooses the MAVLink for them (``gateway.fleet.missionitems``: the items, and the modes of
+the airframe's autopilot: its ``autopilot`` in the config; else the one its HEARTBEAT names,
+PX4 or ArduPilot, with ArduCopter's numbers for a multirotor; else the caller's
+``ModeCommands``, PX4 modes or plain MAVLink commands). Commands go through
 ``AirframeSession.command_long`` (COMMAND_ACK correlated, retried). A mission goes up with
 MAVLink's mission protocol: MISSION_COUNT, then each MISSION_ITEM_INT the airframe asks for
 (MISSION_REQUEST_INT, or MISSION_REQUEST from older autopilots), until its MISSION_ACK. A
@@ -35,7 +37,9 @@ from gateway.fleet.missionitems import (
     MAV_CMD_NAV_LOITER_TIME,
     MAV_CMD_NAV_RETURN_TO_LAUNCH,
     MAV_CMD_NAV_WAYPOINT,
+    Autopilot,
     MissionItem,
+    Vehicle,
     mission_item,
     return_command,
     start_command,
@@ -59,6 +63,11 @@ _ITEMS = frozenset({MAV_CMD_NAV_WAYPOINT, MAV_CMD_NAV_LOITER_TIME})
 #: DO_SET_MODE's base mode may only say "custom mode": never MAV_MODE_FLAG_SAFETY_ARMED.
 _CUSTOM_MODE_ONLY = 1.0
 _QUEUE_MAX = 256
+_MAV_AUTOPILOT_ARDUPILOTMEGA = 3
+_MAV_AUTOPILOT_PX4 = 12
+_MAV_AUTOPILOT_INVALID = 8
+#: MAV_TYPEs ArduCopter flies (quad, coaxial, heli, hexa, octo, tri, dodeca, decarotor).
+_COPTER_TYPES = frozenset({2, 3, 4, 13, 14, 15, 29, 35})
 
 
 @dataclass(slots=True)
@@ -88,7 +97,10 @@ class FleetCommander:
         self._listeners: list[MissionListener] = []
         self._locks: dict[str, anyio.Lock] = {}
         self._queue: MemoryObjectSendStream[tuple[AirframeSession, bytes]] | None = None
+        #: (HEARTBEAT.autopilot, HEARTBEAT.type) each airframe's flight controller last sent.
+        self._heard: dict[str, tuple[int, int]] = {}
         for session in sessions.values():
+            session.on("HEARTBEAT", self._on_heartbeat)
             for name in ("MISSION_REQUEST_INT", "MISSION_REQUEST"):
                 session.on(name, self._on_request)
             session.on("MISSION_ACK", self._on_ack)
@@ -128,16 +140,40 @@ class FleetCommander:
         timeout_s: float,
         retries: int,
     ) -> Outcome:
-        """Start the uploaded mission of ``items`` items, as ``mode_commands`` says."""
-        command, params = start_command(mode_commands, items)
+        """Start the uploaded mission of ``items`` items in the airframe's autopilot's way
+        (``mode_commands`` when neither the config nor its HEARTBEAT names it)."""
+        command, params = start_command(*self._autopilot(airframe, mode_commands, items))
         return await self.command(airframe, command, params, timeout_s=timeout_s, retries=retries)
 
     async def return_to_base(
         self, airframe: str, mode_commands: ModeCommands, *, timeout_s: float, retries: int
     ) -> Outcome:
-        """Send the airframe home (its autopilot's return), as ``mode_commands`` says."""
-        command, params = return_command(mode_commands)
+        """Send the airframe home (its autopilot's return), as for ``start_mission``."""
+        autopilot, _, vehicle = self._autopilot(airframe, mode_commands, 0)
+        command, params = return_command(autopilot, vehicle)
         return await self.command(airframe, command, params, timeout_s=timeout_s, retries=retries)
+
+    def autopilot(self, airframe: str, fallback: ModeCommands) -> tuple[Autopilot, Vehicle]:
+        """Whose modes task ``airframe``: its config's ``autopilot``, else the autopilot its
+        HEARTBEAT names (PX4, or ArduPilot: copter numbers for a multirotor), else
+        ``fallback``."""
+        autopilot, _, vehicle = self._autopilot(airframe, fallback, 0)
+        return autopilot, vehicle
+
+    def _autopilot(
+        self, airframe: str, fallback: ModeCommands, items: int
+    ) -> tuple[Autopilot, int, Vehicle]:
+        heard_autopilot, heard_type = self._heard.get(airframe, (None, None))
+        vehicle: Vehicle = "copter" if heard_type in _COPTER_TYPES else "plane"
+        session = self._sessions.get(airframe)
+        configured = None if session is None else session.config.autopilot
+        if configured is not None:
+            return configured, items, vehicle
+        if heard_autopilot == _MAV_AUTOPILOT_PX4:
+            return "px4", items, vehicle
+        if heard_autopilot == _MAV_AUTOPILOT_ARDUPILOTMEGA:
+            return "ardupilot", items, vehicle
+        return fallback, items, vehicle
 
     async def command(
         self,
@@ -286,6 +322,11 @@ class FleetCommander:
         )
         for listener in self._listeners:
             listener(session.id, what, int(msg.seq))
+
+    def _on_heartbeat(self, session: AirframeSession, _label: str, msg: MavMessage) -> None:
+        # A ground station or companion computer under the same sysid is no autopilot.
+        if msg.autopilot != _MAV_AUTOPILOT_INVALID:
+            self._heard[session.id] = (int(msg.autopilot), int(msg.type))
 
     def _on_home(self, session: AirframeSession, _label: str, msg: MavMessage) -> None:
         if msg.latitude or msg.longitude:

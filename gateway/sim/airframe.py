@@ -1,11 +1,14 @@
-"""A simulated Fischer 26E that flies a circle and speaks real MAVLink 2 (pymavlink-encoded).
+"""A simulated Fischer 26E that flies a circle, or its mission, and speaks real MAVLink 2.
 
 ``frames_at`` has no I/O and no clock of its own (sim time in, frames out), so tests can
 compare what the gateway delivers with what was sent. ``run_udp`` paces it on the event
 loop's clock and sends one frame per datagram, sealed in the tunnel when given a ``Sealer``
 (and signed when the airframe has a signing key). It reads the uplink in every link mode:
-it answers commands, and it keeps each FISCHER_DETECTION it sent in a ``ResendStore``,
-re-sending it until the gateway's FISCHER_DETECTION_ACK for it arrives.
+it answers commands and the mission protocol as PX4 or ArduPilot would (``autopilot``;
+``gateway.sim.autopilot``, ``gateway.sim.mission``) and flies what it is told, and it keeps
+each FISCHER_DETECTION it sent in a ``ResendStore``, re-sending it until the gateway's
+FISCHER_DETECTION_ACK for it arrives. ``answer`` is the uplink without I/O (message and times
+in, replies out).
 """
 
 from __future__ import annotations
@@ -13,9 +16,8 @@ from __future__ import annotations
 import math
 import time
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, fields
-from functools import partial
 from typing import TYPE_CHECKING, Any, Protocol
 
 import anyio
@@ -23,10 +25,15 @@ import anyio.abc
 import structlog
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
+from gateway.domain.geodesy import distance_bearing
 from gateway.fleet.dialect import FischerDetection, FischerDetectionAck, fischer_detection
 from gateway.fleet.hopdialect import FischerHopSchedule
 from gateway.fleet.security.signing import mavlink_timestamp_now
+from gateway.sim.autopilot import Autopilot, AutopilotName, Home
 from gateway.sim.datalink import AirframeLink, LinkCounts
+from gateway.sim.kinematics import FlightState, quaternion
+from gateway.sim.mission import MissionServer
+from gateway.sim.power import power_messages
 from gateway.sim.radio import SimRadio
 from gateway.sim.resend import ResendPolicy, ResendStore
 
@@ -38,8 +45,6 @@ __all__ = [
     "SentPosition",
     "SimProfile",
     "SimulatedAirframe",
-    "build_demo_fleet",
-    "run_fleet",
 ]
 
 log = structlog.get_logger(__name__)
@@ -48,18 +53,16 @@ _WGS84_A_M = 6_378_137.0
 _WGS84_E2 = 6.694379990141317e-3
 _G_MPS2 = 9.80665
 _PITCH_RAD = 0.05  # angle of attack in level cruise
-_CELLS = 6  # 6S Li-ion: 4.2 V full, 3.3 V empty, linear in between
-_CELL_FULL_V, _CELL_EMPTY_V = 4.2, 3.3
-_UINT16_MAX = 0xFFFF
+_MISSION_MESSAGES = frozenset(
+    {
+        "MISSION_COUNT", "MISSION_ITEM_INT", "MISSION_ITEM", "MISSION_REQUEST_LIST",
+        "MISSION_REQUEST_INT", "MISSION_REQUEST", "MISSION_CLEAR_ALL", "MISSION_SET_CURRENT",
+    }
+)  # fmt: skip
+_MAV_COMP_ID_ALL = 0
+_COMMANDS_KEPT = 1000
 # Callers' sim times (i × step) and schedule slots (n × period) differ by float rounding.
 _EPS_S = 1e-9
-# The sensors SYS_STATUS reports as present, enabled and healthy.
-_SENSORS = (
-    mav.MAV_SYS_STATUS_SENSOR_3D_GYRO | mav.MAV_SYS_STATUS_SENSOR_3D_ACCEL
-    | mav.MAV_SYS_STATUS_SENSOR_3D_MAG | mav.MAV_SYS_STATUS_SENSOR_ABSOLUTE_PRESSURE
-    | mav.MAV_SYS_STATUS_SENSOR_DIFFERENTIAL_PRESSURE | mav.MAV_SYS_STATUS_SENSOR_GPS
-    | mav.MAV_SYS_STATUS_SENSOR_BATTERY
-)  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -160,6 +163,8 @@ class SimulatedAirframe:
     stream, in the same sequence numbering. ``resend`` is how unacknowledged detections are
     re-sent (None: never, for a gateway that does not acknowledge). With ``signing_key``
     (32 bytes) every frame is signed and only validly signed uplink frames are read.
+    ``autopilot`` (``px4``, ``ardupilot`` or ``arducopter``) is whose HEARTBEAT, modes and
+    command answers it gives; home is the orbit's centre on the ground (``home_alt_msl_m``).
     """
 
     def __init__(
@@ -172,6 +177,7 @@ class SimulatedAirframe:
         feed: MessageFeed | None = None,
         resend: ResendPolicy | None = _DEFAULT_RESEND,
         signing_key: bytes | None = None,
+        autopilot: AutopilotName = "ardupilot",
     ) -> None:
         if not 1 <= sysid <= 255:
             raise ValueError(f"sysid: expected 1..255, got {sysid!r}")
@@ -199,7 +205,8 @@ class SimulatedAirframe:
         # Hop reports are due only while the radio hops on a schedule (see next_due_s).
         self._hop_schedule = _Schedule(_period(p.hop_event_hz), self._hop_events)
         self._schedules.append(self._hop_schedule)
-        self._feed = feed
+        #: More messages on the same stream (a scenario's detections); settable once built.
+        self.feed = feed
         #: UNIX time of sim time 0, for FISCHER_DETECTION.time_usec (``run_udp`` sets it).
         self.boot_unix_s = 0.0
         #: Sim seconds per real second (``run_udp`` sets it): sim time t is UNIX time
@@ -210,7 +217,7 @@ class SimulatedAirframe:
         self.frames_sent = 0
         #: Answer COMMAND_LONG with COMMAND_ACK (MAV_RESULT_ACCEPTED); False plays a lost uplink.
         self.ack_commands = True
-        #: (command id, confirmation) of every COMMAND_LONG for us that arrived.
+        #: (command id, confirmation) of the last 1000 COMMAND_LONG / COMMAND_INT for us.
         self.commands: list[tuple[int, int]] = []
         self._parser = mav.MAVLink(None, srcSystem=sysid, srcComponent=1)
         self._parser.robust_parsing = True
@@ -227,6 +234,13 @@ class SimulatedAirframe:
         self._acked: anyio.Event | None = None  # set by each acknowledgement, wakes the sender
         #: The AD9361: answers FISCHER_HOP_SCHEDULE, reports hops while a schedule is active.
         self.radio = SimRadio(sysid)
+        home = Home(p.centre_lat_deg, p.centre_lon_deg, p.home_alt_msl_m, p.alt_msl_m)
+        #: Modes, commands and the mission flown (the orbit until a mode is commanded).
+        self.autopilot = Autopilot(autopilot, self._mav, self._orbit_state, home, p.speed_mps)
+        #: The mission protocol: uploads, downloads, clearing.
+        self.missions = MissionServer(sysid, self.autopilot, self._mav)
+        self._origin_s = 0.0  # loop time of sim time 0 (``run_udp``)
+        self._mission_wake: anyio.Event | None = None
 
     def frames_at(self, t_s: float) -> list[bytes]:
         """The frames due at sim time ``t_s`` (seconds since boot), in a fixed order.
@@ -239,6 +253,7 @@ class SimulatedAirframe:
 
     def messages_at(self, t_s: float) -> list[Any]:
         """The messages ``frames_at(t_s)`` would pack, as pymavlink message objects."""
+        self.autopilot.advance(t_s)
         messages: list[Any] = []
         for schedule in self._schedules:
             if t_s + _EPS_S < schedule.next_s:
@@ -247,8 +262,9 @@ class SimulatedAirframe:
             if schedule.next_s <= t_s + _EPS_S:
                 schedule.origin_s, schedule.slot = t_s, 1
             messages.extend(schedule.emit(t_s))
-        if self._feed is not None and self._feed.next_due_s() <= t_s + _EPS_S:
-            messages.extend(self._feed.messages_at(t_s, self.unix_s(t_s)))
+        if self.feed is not None and self.feed.next_due_s() <= t_s + _EPS_S:
+            messages.extend(self.feed.messages_at(t_s, self.unix_s(t_s)))
+        messages.extend(self.autopilot.drain())
         return messages
 
     def _pack(self, msg: Any) -> bytes:
@@ -269,6 +285,20 @@ class SimulatedAirframe:
             f"{self.link.uplink_rejected}"
         )
 
+    def autopilot_summary(self) -> str | None:
+        """One line on missions and commands, or None if the airframe was never tasked."""
+        pilot, missions = self.autopilot, self.missions
+        refused = sum(missions.refused.values())
+        if not (missions.accepted or refused or pilot.answered):
+            return None
+        accepted = pilot.answered.get(int(mav.MAV_RESULT_ACCEPTED), 0)
+        done = ", complete" if pilot.complete else ""
+        return (
+            f"autopilot {pilot.name}: missions accepted {missions.accepted}, refused {refused};"
+            f" commands answered {sum(pilot.answered.values())}, accepted {accepted}; mode"
+            f" {pilot.mode}, item {pilot.current} of {len(pilot.items)}{done}"
+        )
+
     def next_due_s(self) -> float:
         """The sim time at which ``frames_at`` will next return frames (inf if never)."""
         due = min(
@@ -276,16 +306,25 @@ class SimulatedAirframe:
             for schedule in self._schedules
             if schedule is not self._hop_schedule or self.radio.active is not None
         )
-        return due if self._feed is None else min(due, self._feed.next_due_s())
+        return due if self.feed is None else min(due, self.feed.next_due_s())
 
     def unix_s(self, t_s: float) -> float:
         """The UNIX time of sim time ``t_s`` (the real time it is sent)."""
         return self.boot_unix_s + t_s / self.speed
 
     def position_at(self, t_s: float) -> tuple[float, float]:
-        """Latitude and longitude (degrees) on the orbit at sim time ``t_s``."""
-        lat_deg, lon_deg, _ = self._state(t_s)
-        return lat_deg, lon_deg
+        """Latitude and longitude (degrees) at sim time ``t_s``: on the orbit until a mode is
+        commanded, then as flown (which moves the flight on to ``t_s``: never go back)."""
+        state = self.autopilot.state(t_s)
+        return state.lat_deg, state.lon_deg
+
+    def _orbit_state(self, t_s: float) -> FlightState:
+        p = self.profile
+        lat_deg, lon_deg, track_rad = self._state(t_s)
+        return FlightState(
+            lat_deg, lon_deg, p.alt_msl_m, track_rad, p.speed_mps, self._omega_rps, 0.0,
+            self._bank_rad,
+        )  # fmt: skip
 
     def _state(self, t_s: float) -> tuple[float, float, float]:
         """Latitude and longitude (degrees), and track (radians from north, clockwise)."""
@@ -299,31 +338,33 @@ class SimulatedAirframe:
         )
 
     def _heartbeat(self, _t_s: float) -> list[Any]:
-        base_mode = mav.MAV_MODE_FLAG_SAFETY_ARMED | mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
-        return [
-            self._mav.heartbeat_encode(
-                mav.MAV_TYPE_FIXED_WING, mav.MAV_AUTOPILOT_ARDUPILOTMEGA, base_mode,
-                15, mav.MAV_STATE_ACTIVE,  # custom_mode 15 is ArduPlane GUIDED
-            )
-        ]  # fmt: skip
+        pilot = self.autopilot
+        heartbeat = self._mav.heartbeat_encode(
+            pilot.mav_type, pilot.mav_autopilot, pilot.base_mode, pilot.custom_mode,
+            mav.MAV_STATE_ACTIVE,
+        )  # fmt: skip
+        # PX4 and ArduPilot report the mission's state steadily, not only as it changes.
+        return [heartbeat, pilot.mission_current()] if pilot.items else [heartbeat]
 
     def _position(self, t_s: float) -> list[Any]:
         p = self.profile
-        lat_deg, lon_deg, track_rad = self._state(t_s)
+        s = self.autopilot.state(t_s)
+        track_rad = s.track_rad
         boot_ms = round(t_s * 1000) % 2**32
-        lat_e7, lon_e7 = round(lat_deg * 1e7), round(lon_deg * 1e7)
-        alt_mm = round(p.alt_msl_m * 1000)
+        lat_e7, lon_e7 = round(s.lat_deg * 1e7), round(s.lon_deg * 1e7)
+        alt_mm = round(s.alt_msl_m * 1000)
         self.sent_positions.append(SentPosition(boot_ms, lat_e7, lon_e7, alt_mm))
-        vx = round(p.speed_mps * math.cos(track_rad) * 100)
-        vy = round(p.speed_mps * math.sin(track_rad) * 100)
+        vx = round(s.speed_mps * math.cos(track_rad) * 100)
+        vy = round(s.speed_mps * math.sin(track_rad) * 100)
+        vz = round(-s.climb_mps * 100)
         hdg = round(math.degrees(track_rad) * 100) % 36000
-        rel_mm = round((p.alt_msl_m - p.home_alt_msl_m) * 1000)
+        rel_mm = round((s.alt_msl_m - p.home_alt_msl_m) * 1000)
         yaw = (track_rad + math.pi) % math.tau - math.pi
-        # A coordinated level right turn: right wing down, body rates from the turn rate.
-        bank, omega = self._bank_rad, self._omega_rps
+        # A coordinated level turn: the wing down on the inside, body rates from the turn rate.
+        bank, omega = s.bank_rad, s.turn_rps
         return [
             self._mav.global_position_int_encode(
-                boot_ms, lat_e7, lon_e7, alt_mm, rel_mm, vx, vy, 0, hdg
+                boot_ms, lat_e7, lon_e7, alt_mm, rel_mm, vx, vy, vz, hdg
             ),
             self._mav.attitude_encode(
                 boot_ms, bank, _PITCH_RAD, yaw, 0.0, omega * math.sin(bank), omega * math.cos(bank)
@@ -332,18 +373,18 @@ class SimulatedAirframe:
 
     def _gps(self, t_s: float) -> list[Any]:
         p = self.profile
-        lat_deg, lon_deg, track_rad = self._state(t_s)
-        alt_mm = round(p.alt_msl_m * 1000)
-        track_deg = math.degrees(track_rad)
+        s = self.autopilot.state(t_s)
+        alt_mm = round(s.alt_msl_m * 1000)
+        track_deg = math.degrees(s.track_rad)
         gps = self._mav.gps_raw_int_encode(
             round(t_s * 1e6), mav.GPS_FIX_TYPE_3D_FIX,
-            round(lat_deg * 1e7), round(lon_deg * 1e7), alt_mm,
-            80, 120, round(p.speed_mps * 100), round(track_deg * 100) % 36000, 17,
+            round(s.lat_deg * 1e7), round(s.lon_deg * 1e7), alt_mm,
+            80, 120, round(s.speed_mps * 100), round(track_deg * 100) % 36000, 17,
             alt_ellipsoid=alt_mm + round(p.geoid_sep_m * 1000), h_acc=1200, v_acc=2000,
             vel_acc=300,
         )  # fmt: skip
         hud = self._mav.vfr_hud_encode(
-            p.speed_mps, p.speed_mps, round(track_deg) % 360, 55, p.alt_msl_m, 0.0
+            s.speed_mps, s.speed_mps, round(track_deg) % 360, 55, s.alt_msl_m, s.climb_mps
         )
         return [gps, hud]
 
@@ -375,49 +416,38 @@ class SimulatedAirframe:
         # The gimbal holds the orbit's centre (on the ground at home altitude) in view: to the
         # right of the clockwise circle, looking down at the angle the height and radius give.
         p = self.profile
-        lat_deg, lon_deg, track_rad = self._state(t_s)
+        look = self.autopilot.look_point()
+        if look is None:
+            lat_deg, lon_deg, track_rad = self._state(t_s)
+            alt_msl_m = p.alt_msl_m
+            depression = math.atan2(p.alt_msl_m - p.home_alt_msl_m, p.radius_m)
+            yaw = track_rad + math.pi / 2  # absolute bearing to the centre
+            relative_yaw = math.pi / 2
+            look = (p.centre_lat_deg, p.centre_lon_deg)
+        else:  # flying itself: the camera holds what it flies to
+            s = self.autopilot.state(t_s)
+            lat_deg, lon_deg, alt_msl_m = s.lat_deg, s.lon_deg, s.alt_msl_m
+            distance_m, bearing_deg = distance_bearing(lat_deg, lon_deg, *look)
+            depression = math.atan2(alt_msl_m - p.home_alt_msl_m, max(distance_m, 1.0))
+            yaw = math.radians(bearing_deg)
+            relative_yaw = yaw - s.track_rad
         boot_ms = round(t_s * 1000) % 2**32
-        depression = math.atan2(p.alt_msl_m - p.home_alt_msl_m, p.radius_m)
-        yaw = track_rad + math.pi / 2  # absolute bearing to the centre
-        gimbal = _quaternion(0.0, -depression, math.pi / 2)  # yaw relative to the nose
-        camera = _quaternion(0.0, -depression, yaw)
+        gimbal = quaternion(0.0, -depression, relative_yaw)  # yaw relative to the nose
+        camera = quaternion(0.0, -depression, yaw)
         return [
             self._mav.gimbal_device_attitude_status_encode(
                 0, 0, boot_ms, mav.GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME, gimbal,
                 math.nan, math.nan, math.nan, 0,
             ),
             self._mav.camera_fov_status_encode(
-                boot_ms, round(lat_deg * 1e7), round(lon_deg * 1e7), round(p.alt_msl_m * 1000),
-                round(p.centre_lat_deg * 1e7), round(p.centre_lon_deg * 1e7),
+                boot_ms, round(lat_deg * 1e7), round(lon_deg * 1e7), round(alt_msl_m * 1000),
+                round(look[0] * 1e7), round(look[1] * 1e7),
                 round(p.home_alt_msl_m * 1000), camera, 12.5, 7.0,
             ),
         ]  # fmt: skip
 
     def _status(self, t_s: float) -> list[Any]:
-        p = self.profile
-        used_wh = min(p.power_w * t_s / 3600.0, p.battery_wh)
-        soc = 1.0 - used_wh / p.battery_wh
-        cell_v = _CELL_EMPTY_V + (_CELL_FULL_V - _CELL_EMPTY_V) * soc
-        current_ca = round(p.power_w / (_CELLS * cell_v) * 100) if soc > 0 else 0
-        # Charge drawn at constant power from a voltage linear in state of charge, in closed
-        # form: Q = ∫ E dsoc / V(soc) = E / ΔV · ln(V_full / V).
-        delta_v = _CELLS * (_CELL_FULL_V - _CELL_EMPTY_V)
-        used_mah = round(p.battery_wh / delta_v * math.log(_CELL_FULL_V / cell_v) * 1000)
-        remaining = round(100 * soc)
-        low = remaining <= 20
-        charge_state = mav.MAV_BATTERY_CHARGE_STATE_LOW if low else mav.MAV_BATTERY_CHARGE_STATE_OK
-        status = self._mav.sys_status_encode(
-            _SENSORS, _SENSORS, _SENSORS, 300, round(_CELLS * cell_v * 1000), current_ca,
-            remaining, 0, 0, 0, 0, 0, 0,
-        )  # fmt: skip
-        battery = self._mav.battery_status_encode(
-            0, mav.MAV_BATTERY_FUNCTION_ALL, mav.MAV_BATTERY_TYPE_LION, 2500,
-            [round(cell_v * 1000)] * _CELLS + [_UINT16_MAX] * (10 - _CELLS),
-            current_ca, used_mah, round(used_wh * 36), remaining,
-            time_remaining=round((p.battery_wh - used_wh) / p.power_w * 3600),
-            charge_state=charge_state,
-        )  # fmt: skip
-        return [status, battery]
+        return power_messages(self._mav, self.profile, t_s)
 
     async def run_udp(
         self,
@@ -449,9 +479,11 @@ class SimulatedAirframe:
             await AirframeLink.connect(host, port, sealer=sealer, counts=self.link) as link,
             anyio.create_task_group() as tg,
         ):
+            self._origin_s = anyio.current_time()
             tg.start_soon(self._read_uplink, link)
+            tg.start_soon(self._mission_timer, link)
             task_status.started()
-            start = anyio.current_time()
+            start = self._origin_s = anyio.current_time()
             self.boot_unix_s = time.time()
             self.speed = speed
             end_s = math.inf if duration_s is None else duration_s + _EPS_S
@@ -502,7 +534,8 @@ class SimulatedAirframe:
                 return
 
     async def _read_uplink(self, link: AirframeLink) -> None:
-        """Read what the gateway sends: acknowledgements of our detections, commands for us."""
+        """Read what the gateway sends: acknowledgements of our detections, hop schedules,
+        commands, mode changes and the mission protocol (``answer``)."""
         while True:
             payload = await link.receive()
             try:
@@ -514,91 +547,63 @@ class SimulatedAirframe:
                     self.resend.acknowledge(msg)
                     if self._acked is not None:
                         self._acked.set()
-                elif isinstance(msg, FischerHopSchedule):
+                    continue
+                if isinstance(msg, FischerHopSchedule):
                     answer = self.radio.answer(msg, time.time())
-                    if answer is not None and await link.send(self._pack(answer)):
+                    replies = [] if answer is None else [answer]
+                else:
+                    t_s = (anyio.current_time() - self._origin_s) * self.speed
+                    replies = self.answer(msg, t_s, anyio.current_time())
+                    if msg.get_type() in _MISSION_MESSAGES and self._mission_wake is not None:
+                        self._mission_wake.set()
+                for reply in replies:
+                    if await link.send(self._pack(reply)):
                         self.frames_sent += 1
-                elif msg.get_type() == "COMMAND_LONG" and msg.target_system == self.sysid:
-                    self.commands.append((int(msg.command), int(msg.confirmation)))
-                    if self.ack_commands:
-                        ack = self._mav.command_ack_encode(
-                            msg.command,
-                            mav.MAV_RESULT_ACCEPTED,
-                            target_system=msg.get_srcSystem(),
-                            target_component=msg.get_srcComponent(),
-                        )
-                        if await link.send(self._pack(ack)):
-                            self.frames_sent += 1
 
+    async def _mission_timer(self, link: AirframeLink) -> None:
+        """Re-request a mission item the gateway did not send in time; cancel after retries."""
+        while True:
+            wake = self._mission_wake = anyio.Event()
+            with anyio.move_on_after(self.missions.next_deadline_s() - anyio.current_time()):
+                await wake.wait()
+            for reply in self.missions.poll(anyio.current_time()):
+                if await link.send(self._pack(reply)):
+                    self.frames_sent += 1
 
-def _quaternion(roll: float, pitch: float, yaw: float) -> list[float]:
-    """[w, x, y, z] of Z-Y-X Euler angles (radians), as MAVLink sends attitudes."""
-    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
-    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
-    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
-    return [cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy,
-            cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy]  # fmt: skip
+    def answer(self, msg: Any, t_s: float, now_s: float) -> list[Any]:
+        """The replies to one uplink message at sim time ``t_s`` and monotonic ``now_s``.
+
+        COMMAND_LONG and COMMAND_INT for us get a COMMAND_ACK (unless ``ack_commands`` is
+        False, which plays the command lost: nothing happens), SET_MODE too (ArduPilot
+        acknowledges it as command 11, the message's id; PX4 as DO_SET_MODE); the mission
+        protocol goes to ``missions``. Anything else, or for another system, gets nothing.
+        Never raises on a message's values.
+        """
+        name = msg.get_type()
+        if name in _MISSION_MESSAGES:
+            self.autopilot.advance(t_s)
+            return self.missions.handle(msg, now_s)
+        if int(getattr(msg, "target_system", -1)) != self.sysid or int(
+            getattr(msg, "target_component", _MAV_COMP_ID_ALL)
+        ) not in (_MAV_COMP_ID_ALL, 1):
+            return []
+        to = {"target_system": msg.get_srcSystem(), "target_component": msg.get_srcComponent()}
+        if name in ("COMMAND_LONG", "COMMAND_INT"):
+            command = int(msg.command)
+            self.commands.append((command, int(getattr(msg, "confirmation", 0))))
+            if len(self.commands) > _COMMANDS_KEPT:
+                del self.commands[:-_COMMANDS_KEPT]
+            if not self.ack_commands:
+                return []
+            params = (msg.param1, msg.param2, msg.param3, msg.param4)
+            result, extra = self.autopilot.command(command, tuple(map(float, params)), t_s)
+            return [self._mav.command_ack_encode(command, result, **to), *extra]
+        if name == "SET_MODE":
+            result = self.autopilot.set_mode(int(msg.base_mode), int(msg.custom_mode), t_s)
+            acked = 176 if self.autopilot.name == "px4" else mav.MAVLINK_MSG_ID_SET_MODE
+            return [self._mav.command_ack_encode(acked, result, **to)]
+        return []
 
 
 def _period(rate_hz: float) -> float:
     return 1.0 / rate_hz if rate_hz > 0 else math.inf
-
-
-def build_demo_fleet(
-    n: int = 2, *, resend: ResendPolicy | None = _DEFAULT_RESEND
-) -> list[SimulatedAirframe]:
-    """``n`` airframes (sysids 1..n) on neighbouring circles around Boden, at different phases,
-    re-sending unacknowledged detections as ``resend`` says."""
-    if not 1 <= n <= 255:
-        raise ValueError(f"n: expected 1..255 airframes, got {n!r}")
-    return [
-        SimulatedAirframe(
-            i + 1,
-            SimProfile(
-                centre_lat_deg=65.8252 + 0.01 * i,
-                centre_lon_deg=21.6886 + 0.02 * i,
-                detection_hz=0.2,  # a FISCHER_DETECTION every 5 s
-            ),
-            phase_rad=i * 2.0,
-            resend=resend,
-        )
-        for i in range(n)
-    ]
-
-
-async def run_fleet(
-    airframes: Sequence[SimulatedAirframe],
-    host: str,
-    ports: Sequence[int],
-    *,
-    duration_s: float | None = None,
-    speed: float = 1.0,
-    sealers: Sequence[Sealer | None] | None = None,
-    linger_s: float = 0.0,
-    task_status: anyio.abc.TaskStatus[None] = anyio.TASK_STATUS_IGNORED,
-) -> None:
-    """Run several airframes in one task group, airframe ``i`` sending to ``ports[i]``.
-
-    ``linger_s`` is each airframe's wait for its last acknowledgements (``run_udp``).
-    ``task_status.started()`` is called once every airframe's socket exists. Raises
-    ``ValueError`` if ``ports`` (or ``sealers``) does not match ``airframes`` in length.
-    """
-    seals = list(sealers) if sealers is not None else [None] * len(airframes)
-    if not len(airframes) == len(ports) == len(seals):
-        raise ValueError(
-            f"run_fleet: {len(airframes)} airframes but {len(ports)} ports and {len(seals)} sealers"
-        )
-    async with anyio.create_task_group() as tg:
-        for airframe, port, sealer in zip(airframes, ports, seals, strict=True):
-            await tg.start(
-                partial(
-                    airframe.run_udp,
-                    host,
-                    port,
-                    duration_s=duration_s,
-                    speed=speed,
-                    sealer=sealer,
-                    linger_s=linger_s,
-                )
-            )
-        task_status.started()

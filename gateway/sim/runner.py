@@ -1,7 +1,8 @@
 """Playing a scenario to a gateway: MAVLink from each airframe, CoT from the friendly units.
 
-Each scenario airframe is a ``SimulatedAirframe`` flying its orbit (real telemetry) with the
-scenario's detections for it fed into the same MAVLink stream as FISCHER_DETECTION frames,
+Each scenario airframe is a ``SimulatedAirframe`` flying its orbit (real telemetry), or the
+mission it is given, with the scenario's detections for it fed into the same MAVLink stream
+as FISCHER_DETECTION frames (each look made from where the airframe is at that moment),
 ``time_usec`` the UTC time the observation is sent. Friendly units' reports go as CoT XML
 datagrams (``sinks.cot``: what ATAK sends on its SA mesh) to the gateway's CoT source.
 Sim time ``t`` is played at ``start + t / speed``. Each airframe keeps the detections it sent
@@ -11,10 +12,11 @@ until the gateway acknowledges them, re-sending as its ``ResendPolicy`` says.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime, timedelta
 from functools import partial
+from itertools import count
 from typing import TYPE_CHECKING, Any
 
 import anyio
@@ -25,14 +27,21 @@ from gateway.domain.geoid import bundled_geoid
 from gateway.fleet.dialect import fischer_detection
 from gateway.sim.airframe import SimulatedAirframe
 from gateway.sim.resend import ResendPolicy
-from gateway.sim.schedule import BlueReport, SimDetection, blue_reports, detections
+from gateway.sim.schedule import (
+    BlueReport,
+    SimDetection,
+    blue_reports,
+    seen_at,
+    sensor_looks,
+    target_tracks,
+)
 from sinks.cot.codec import to_xml
 from sinks.cot.event import CotEvent
 from sinks.cot.validate import UNKNOWN
 
 if TYPE_CHECKING:
     from gateway.fleet.security.tunnel import Sealer
-    from gateway.sim.scenario import Scenario
+    from gateway.sim.scenario import Airframe, Scenario
 
 __all__ = ["DetectionFeed", "PlayStats", "blue_force_cot", "play_scenario", "send_blue_forces"]
 
@@ -47,40 +56,59 @@ _DEFAULT_RESEND = ResendPolicy()
 
 
 class DetectionFeed:
-    """One airframe's scenario detections as a ``MessageFeed`` of FISCHER_DETECTION messages."""
+    """One airframe's scenario detections as a ``MessageFeed`` of FISCHER_DETECTION messages.
 
-    def __init__(self, events: Iterable[SimDetection]) -> None:
-        self._events: Iterator[SimDetection] = iter(events)
-        self._next = next(self._events, None)
+    Each look is made when it falls due, from where ``where`` (sim time → lat, lon) says the
+    airframe is then: on its orbit, or wherever its mission took it.
+    """
+
+    def __init__(
+        self,
+        scenario: Scenario,
+        airframe: Airframe,
+        end_s: float,
+        where: Callable[[float], tuple[float, float]],
+    ) -> None:
+        self._scenario, self._airframe, self._where = scenario, airframe, where
+        self._tracks = target_tracks(scenario)
+        self._looks = sensor_looks(airframe, end_s)
+        self._next = next(self._looks, None)
+        self._ids = count(1)
         #: Detections handed out so far.
         self.sent = 0
 
     def next_due_s(self) -> float:
-        """The sim time of the next detection (inf when there are no more)."""
-        return math.inf if self._next is None else self._next.t_s
+        """The sim time of the next look (inf when there are no more)."""
+        return math.inf if self._next is None else self._next[0]
 
     def messages_at(self, t_s: float, unix_s: float) -> list[Any]:
-        """Every detection due by ``t_s``, observed at UNIX time ``unix_s``."""
-        messages = []
-        while self._next is not None and self._next.t_s <= t_s + _EPS_S:
-            d = self._next
-            messages.append(
-                fischer_detection(
-                    time_usec=round(unix_s * 1e6),
-                    detection_id=d.detection_id,
-                    lat_e7=round(d.lat_deg * 1e7),
-                    lon_e7=round(d.lon_deg * 1e7),
-                    alt_msl_m=d.alt_msl_m,
-                    sigma_h_m=d.sigma_h_m,
-                    class_id=d.class_id,
-                    sensor=d.sensor_id,
-                    confidence_pct=round(d.confidence * 100),
-                    subtype=d.subtype,
-                )
+        """Every detection of the looks due by ``t_s``, observed at UNIX time ``unix_s``."""
+        seen: list[SimDetection] = []
+        while self._next is not None and self._next[0] <= t_s + _EPS_S:
+            look = self._next
+            here = self._where(look[0])
+            seen.extend(
+                seen_at(self._scenario, self._airframe, self._tracks, look, here, self._ids)
             )
-            self._next = next(self._events, None)
+            self._next = next(self._looks, None)
+        messages = [_detection_message(d, unix_s) for d in seen]
         self.sent += len(messages)
         return messages
+
+
+def _detection_message(d: SimDetection, unix_s: float) -> Any:
+    return fischer_detection(
+        time_usec=round(unix_s * 1e6),
+        detection_id=d.detection_id,
+        lat_e7=round(d.lat_deg * 1e7),
+        lon_e7=round(d.lon_deg * 1e7),
+        alt_msl_m=d.alt_msl_m,
+        sigma_h_m=d.sigma_h_m,
+        class_id=d.class_id,
+        sensor=d.sensor_id,
+        confidence_pct=round(d.confidence * 100),
+        subtype=d.subtype,
+    )
 
 
 def blue_force_cot(report: BlueReport, now: datetime, stale_after: timedelta) -> bytes:
@@ -174,17 +202,20 @@ async def play_scenario(
         raise ValueError(f"{len(scenario.airframes)} airframes but {len(seals)} sealers")
     end_s = scenario.duration_s if duration_s is None else duration_s
     stats = stats if stats is not None else PlayStats()
-    feeds = [DetectionFeed(detections(scenario, a, end_s)) for a in scenario.airframes]
-    flyers = [
-        SimulatedAirframe(
+    flyers: list[SimulatedAirframe] = []
+    feeds: list[DetectionFeed] = []
+    for a in scenario.airframes:
+        flyer = SimulatedAirframe(
             a.sysid,
             a.profile(),
             phase_rad=math.radians(a.orbit.phase_deg),
-            feed=feed,
             resend=resend,
+            autopilot=a.autopilot,
         )
-        for a, feed in zip(scenario.airframes, feeds, strict=True)
-    ]
+        feed = DetectionFeed(scenario, a, end_s, flyer.position_at)
+        flyer.feed = feed
+        flyers.append(flyer)
+        feeds.append(feed)
     stats.airframes = {a.id: flyer for a, flyer in zip(scenario.airframes, flyers, strict=True)}
     async with anyio.create_task_group() as tg:
         for flyer, sealer in zip(flyers, seals, strict=True):

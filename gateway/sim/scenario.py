@@ -24,6 +24,7 @@ from gateway.configfile import Loc, load_model_text, read_bounded_text
 from gateway.errors import ConfigError, ConfigIssue
 from gateway.fleet.dialect import CLASS_NAMES, SENSOR_NAMES
 from gateway.sim.airframe import SimProfile
+from gateway.sim.autopilot import AutopilotName
 
 __all__ = [
     "CLASS_IDS",
@@ -110,7 +111,8 @@ class SensorSpec(BaseModel):
 
 
 class Airframe(BaseModel):
-    """A simulated Fischer 26E: its id (as in the gateway's config), sysid, orbit, sensors."""
+    """A simulated Fischer 26E: its id (as in the gateway's config), sysid, orbit, sensors,
+    and the autopilot it plays (PX4 or ArduPilot: its HEARTBEAT, modes and answers)."""
 
     model_config = _MODEL
 
@@ -121,6 +123,7 @@ class Airframe(BaseModel):
     camera_hz: float = Field(
         default=0.0, ge=0.0, le=60.0, description="CAMERA_FOV_STATUS and gimbal reports a second"
     )
+    autopilot: AutopilotName = "ardupilot"
 
     def profile(self) -> SimProfile:
         """The flight ``SimulatedAirframe`` flies (its own detections off)."""

@@ -4,10 +4,12 @@
 time order (sim seconds from 0 to ``duration_s``). Each sensor of each airframe looks every
 ``1 / rate_hz`` seconds and reports each target it can see: a target on its path at that
 time, of a class the sensor reports, within ``range_m`` (geodesic, horizontal) of the
-airframe's position on its orbit. The reported position is the target's with Gaussian noise
-of ``sigma_h_m`` per axis, drawn from a generator seeded by the scenario's ``seed`` and the
-observation (airframe, sensor, target, look), so the same scenario gives the same noise
-whatever is asked before it. Detection ids count up from 1 per airframe, in time order.
+airframe's position on its orbit (or, in a live run, where it flies: ``sensor_looks`` and
+``seen_at`` answer one look at a time, at the position the caller gives). The reported
+position is the target's with Gaussian noise of ``sigma_h_m`` per axis, drawn from a
+generator seeded by the scenario's ``seed`` and the observation (airframe, sensor, target,
+look), so the same scenario gives the same noise whatever is asked before it. Detection ids
+count up from 1 per airframe, in time order.
 """
 
 from __future__ import annotations
@@ -42,6 +44,8 @@ __all__ = [
     "detections",
     "events_at",
     "schedule",
+    "seen_at",
+    "sensor_looks",
     "target_tracks",
 ]
 
@@ -183,55 +187,73 @@ def _looks(rate_hz: float, end_s: float) -> Iterator[tuple[int, float]]:
         yield k, t_s
 
 
+def sensor_looks(airframe: Airframe, end_s: float) -> Iterator[tuple[float, int, int]]:
+    """Every look of every sensor of ``airframe`` up to ``end_s``: (sim time, sensor index,
+    look number), in time order."""
+    return heapq.merge(
+        *(
+            ((t_s, s, k) for k, t_s in _looks(sensor.rate_hz, end_s))
+            for s, sensor in enumerate(airframe.sensors)
+        )
+    )
+
+
+def seen_at(
+    scenario: Scenario,
+    airframe: Airframe,
+    tracks: Sequence[TargetTrack],
+    look: tuple[float, int, int],
+    here: tuple[float, float],
+    ids: Iterator[int],
+) -> Iterator[SimDetection]:
+    """What one look sees from ``here`` (lat, lon); detection ids are taken from ``ids``."""
+    t_s, s, k = look
+    sensor = airframe.sensors[s]
+    here_lat, here_lon = here
+    for track in tracks:
+        target = track.target
+        confidence = sensor.confidence_for(target.object_class)
+        where = track.position(t_s)
+        if confidence is None or where is None:
+            continue
+        lat, lon, alt = where
+        if distance_bearing(here_lat, here_lon, lat, lon)[0] > sensor.range_m:
+            continue
+        # Simulated sensor noise, reproducible by design: not for secrets.
+        rng = random.Random(f"{scenario.seed}/{airframe.id}/{s}/{track.id}/{k}")  # noqa: S311
+        seen_lat, seen_lon = _noisy(rng, lat, lon, sensor.sigma_h_m)
+        yield SimDetection(
+            t_s=t_s,
+            airframe=airframe.id,
+            sysid=airframe.sysid,
+            detection_id=next(ids),
+            sensor=sensor.sensor,
+            sensor_id=SENSOR_IDS[sensor.sensor],
+            target=track.id,
+            object_class=target.object_class,
+            class_id=CLASS_IDS[target.object_class],
+            subtype=target.subtype,
+            confidence=confidence,
+            lat_deg=seen_lat,
+            lon_deg=seen_lon,
+            alt_msl_m=alt,
+            sigma_h_m=sensor.sigma_h_m,
+            true_lat_deg=lat,
+            true_lon_deg=lon,
+        )
+
+
 def detections(
     scenario: Scenario, airframe: Airframe, end_s: float | None = None
 ) -> Iterator[SimDetection]:
     """The detections ``airframe`` reports, in time order, up to ``end_s`` (the scenario's
-    ``duration_s`` by default)."""
+    ``duration_s`` by default), flying its orbit."""
     end = scenario.duration_s if end_s is None else end_s
     flyer = _flyer(airframe)
     tracks = target_tracks(scenario)
-    looks = heapq.merge(
-        *(
-            ((t_s, s, k) for k, t_s in _looks(sensor.rate_hz, end))
-            for s, sensor in enumerate(airframe.sensors)
-        )
-    )
     ids = count(1)
-    for t_s, s, k in looks:
-        sensor = airframe.sensors[s]
-        here_lat, here_lon = flyer.position_at(t_s)
-        for track in tracks:
-            target = track.target
-            confidence = sensor.confidence_for(target.object_class)
-            where = track.position(t_s)
-            if confidence is None or where is None:
-                continue
-            lat, lon, alt = where
-            if distance_bearing(here_lat, here_lon, lat, lon)[0] > sensor.range_m:
-                continue
-            # Simulated sensor noise, reproducible by design: not for secrets.
-            rng = random.Random(f"{scenario.seed}/{airframe.id}/{s}/{track.id}/{k}")  # noqa: S311
-            seen_lat, seen_lon = _noisy(rng, lat, lon, sensor.sigma_h_m)
-            yield SimDetection(
-                t_s=t_s,
-                airframe=airframe.id,
-                sysid=airframe.sysid,
-                detection_id=next(ids),
-                sensor=sensor.sensor,
-                sensor_id=SENSOR_IDS[sensor.sensor],
-                target=track.id,
-                object_class=target.object_class,
-                class_id=CLASS_IDS[target.object_class],
-                subtype=target.subtype,
-                confidence=confidence,
-                lat_deg=seen_lat,
-                lon_deg=seen_lon,
-                alt_msl_m=alt,
-                sigma_h_m=sensor.sigma_h_m,
-                true_lat_deg=lat,
-                true_lon_deg=lon,
-            )
+    for look in sensor_looks(airframe, end):
+        yield from seen_at(scenario, airframe, tracks, look, flyer.position_at(look[0]), ids)
 
 
 def _unit_reports(unit: BlueForceUnit, end_s: float) -> Iterator[BlueReport]:

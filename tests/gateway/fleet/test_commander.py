@@ -128,3 +128,114 @@ async def test_the_fleet_picks_the_mavlink_of_an_intent(
         ("command", start),
         ("command", home),
     ]
+
+
+def _heartbeat(autopilot: int, mav_type: int) -> object:
+    from pymavlink.dialects.v20 import ardupilotmega as apm
+
+    sender = apm.MAVLink(None, srcSystem=1, srcComponent=1)
+    msg = sender.heartbeat_encode(mav_type, autopilot, 0, 0, 4)
+    (parsed,) = apm.MAVLink(None).parse_buffer(bytes(msg.pack(sender)))
+    return parsed
+
+
+class _Heard(FleetCommander):
+    """The assembly's commander for one airframe (config ``extra``), commands recorded."""
+
+    def __init__(self, extra: dict[str, object]) -> None:
+        gw = gateway_with([{"name": "orders", "type": "orders"}], extra)
+        assert gw.fleet.commander is not None
+        super().__init__(gw.fleet.sessions, lambda _airframe: True)
+        self.session = gw.fleet.sessions["F26E-001"]
+        self.sent: list[tuple[int, tuple[float, ...]]] = []
+
+    def hear(self, autopilot: int, mav_type: int) -> None:
+        self.session.dispatch("fleet", "HEARTBEAT", _heartbeat(autopilot, mav_type))
+
+    async def command(
+        self,
+        airframe: str,
+        command: int,
+        params: Sequence[float],
+        *,
+        timeout_s: float,
+        retries: int,
+    ) -> Outcome:
+        self.sent.append((command, tuple(params)))
+        return Outcome(True, "MAV_RESULT_ACCEPTED")
+
+    async def intents(self, fallback: ModeCommands) -> list[tuple[int, tuple[float, ...]]]:
+        self.sent.clear()
+        await self.start_mission("F26E-001", 3, fallback, timeout_s=1.0, retries=0)
+        await self.return_to_base("F26E-001", fallback, timeout_s=1.0, retries=0)
+        return list(self.sent)
+
+
+def gateway_with(processors: list[dict[str, object]], extra: dict[str, object]) -> Gateway:
+    config = Config.model_validate(
+        {
+            "health": {"enabled": False},
+            "airframes": [
+                {
+                    "id": "F26E-001",
+                    "sysid": 1,
+                    "links": [{"uri": "udp://127.0.0.1:0", "security": "unsecured"}],
+                    **extra,
+                }
+            ],
+            "processors": processors,
+        }
+    )
+    built.append(Gateway(config))
+    return built[-1]
+
+
+PX4 = [(176, (1.0, 4.0, 4.0)), (176, (1.0, 4.0, 5.0))]
+PLANE = [(176, (1.0, 10.0, 0.0)), (176, (1.0, 11.0, 0.0))]
+COPTER = [(176, (1.0, 3.0, 0.0)), (176, (1.0, 6.0, 0.0))]
+PLAIN = [(300, (0.0, 2.0)), (20, ())]
+
+
+@pytest.mark.anyio
+async def test_the_autopilot_comes_from_the_config_then_the_heartbeat_then_the_caller() -> None:
+    """``autopilot`` in the config wins; else the HEARTBEAT's autopilot (ArduCopter's
+    numbers for a multirotor); else what the orders processor asks (``mode_commands``)."""
+    heard = _Heard({})
+    assert await heard.intents("px4") == PX4
+    assert await heard.intents("mavlink") == PLAIN
+    heard.hear(3, 1)  # ArduPilot, fixed wing: ArduPlane
+    assert await heard.intents("px4") == PLANE
+    heard.hear(3, 2)  # ArduPilot, quadrotor: ArduCopter
+    assert await heard.intents("mavlink") == COPTER
+    heard.hear(8, 6)  # a ground station's heartbeat under the same sysid: not the autopilot
+    assert await heard.intents("mavlink") == COPTER
+    heard.hear(12, 1)  # PX4
+    assert await heard.intents("mavlink") == PX4
+    assert heard.autopilot("F26E-001", "mavlink") == ("px4", "plane")
+    configured = _Heard({"autopilot": "mavlink"})
+    configured.hear(12, 1)
+    assert await configured.intents("px4") == PLAIN
+    plane = _Heard({"autopilot": "ardupilot"})
+    assert await plane.intents("px4") == PLANE
+
+
+def test_mode_commands_is_the_older_name_of_autopilot() -> None:
+    from gateway.configfile import load_model_text
+    from gateway.errors import ConfigError
+
+    assert (
+        gateway_with([], {"mode_commands": "mavlink"}).fleet.sessions["F26E-001"].config.autopilot
+        == "mavlink"
+    )
+    text = """
+airframes:
+  - {id: F26E-001, sysid: 1, links: [{uri: 'udp://127.0.0.1:0', security: unsecured}],
+     autopilot: ardupilot, mode_commands: px4}
+  - {id: F26E-002, sysid: 2, links: [{uri: 'udp://127.0.0.1:1', security: unsecured}],
+     autopilot: inav}
+"""
+    with pytest.raises(ConfigError) as caught:
+        load_model_text(text, "node.yaml", Config)
+    messages = {issue.key_path: issue.message for issue in caught.value.issues}
+    assert "disagree" in messages["airframes[0]"]
+    assert "px4" in messages["airframes[1].autopilot"]

@@ -13,7 +13,8 @@ import pytest
 from geographiclib.geodesic import Geodesic  # type: ignore[import-untyped]
 from pymavlink.dialects.v20 import ardupilotmega as apm
 
-from gateway.sim.airframe import SimProfile, SimulatedAirframe, build_demo_fleet, run_fleet
+from gateway.sim.airframe import SimProfile, SimulatedAirframe
+from gateway.sim.demofleet import build_demo_fleet, run_fleet
 
 LAP_S = 2 * math.pi * 400.0 / 22.0
 

@@ -220,7 +220,8 @@ class TestEncoding:
 
     def test_feed_encodes_detections_with_the_observation_time(self) -> None:
         s = load_scenario_text(scenario_text())
-        feed = DetectionFeed(detections(s, s.airframes[0]))
+        flyer = s.airframes[0]
+        feed = DetectionFeed(s, flyer, s.duration_s, lambda _t: (65.83, 21.70))
         assert feed.next_due_s() == 0.0
         (msg,) = feed.messages_at(0.0, 1_700_000_000.5)
         assert msg.time_usec == 1_700_000_000_500_000
