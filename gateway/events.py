@@ -12,6 +12,7 @@ stale threshold, when it says how many seconds the event waited.
 
 from __future__ import annotations
 
+import hashlib
 import re
 import secrets
 from collections.abc import Callable, Mapping
@@ -664,6 +665,12 @@ class FiveLineOrder(BaseModel):
             raise ValueError("not_after is before not_before")
         return self
 
+    def content_digest(self) -> str:
+        """A digest of what the issuer ordered (not who took it in, nor when it was spooled):
+        the same ``order_id`` with another digest is a changed order, a conflict."""
+        content = self.model_dump_json(exclude={"event_id", "source", "late_by_s"})
+        return hashlib.sha256(content.encode()).hexdigest()
+
 
 class HopReason(StrEnum):
     """Why an airframe's radio hopped (FISCHER_HOP_REASON)."""
@@ -778,8 +785,13 @@ class OrderState(StrEnum):
     """Where an order stands: taken in, then accepted or rejected, then executed."""
 
     RECEIVED = "received"
+    WAITING = "waiting"
+    """Not yet heard: the airframe has no link (or no position) yet; checked again as it is
+    heard, until the order's window ends (then ``rejected`` naming the check)."""
     ACCEPTED = "accepted"
     REJECTED = "rejected"
+    CONFLICT = "conflict"
+    """The order id was already taken with other content: the changed order is not taken."""
     EXECUTING = "executing"
     COMPLETED = "completed"
     FAILED = "failed"
