@@ -802,9 +802,11 @@ class OrderStatus(BaseModel):
 
     ``order_event_id`` is the order's ``event_id``; ``order_id`` and ``source`` are copied
     from it so the source that took the order in can answer its issuer. ``event_id`` is
-    ``<order_event_id>-<status>``: each state is reported once per order. ``check`` names what
-    decided a rejection or failure (``airframe``, ``link``, ``endurance``, ``geofence``,
-    ``terrain``, ``window``, ``command``, ``mission``) and ``reason`` gives its numbers.
+    ``<order_event_id>-<status>``: each state is reported once per order (a ``conflict``
+    adds the changed order's digest: one per changed content). ``check`` names what decided a
+    waiting, rejection, conflict or failure (``airframe``, ``link``, ``endurance``,
+    ``geofence``, ``terrain``, ``area``, ``window``, ``command``, ``mission``, ``order_id``,
+    ``track``) and ``reason`` gives its numbers.
     """
 
     model_config = _FROZEN
@@ -825,14 +827,15 @@ class OrderStatus(BaseModel):
     status: OrderState
     """The state reached."""
     check: str | None = Field(default=None, max_length=32)
-    """What decided a rejection or failure (``airframe``, ``link``, ``endurance``, ``geofence``,
-    ``terrain``, ``window``, ``command``, ``mission``)."""
+    """What decided a waiting, rejection, conflict or failure (``airframe``, ``link``,
+    ``endurance``, ``geofence``, ``terrain``, ``area``, ``window``, ``command``, ``mission``,
+    ``order_id``, ``track``)."""
     reason: str | None = Field(default=None, max_length=512)
     """The check's finding with its numbers, in words."""
     mission_items: int | None = Field(default=None, ge=0)
     """How many mission items the order uploaded (from ``accepted`` on); None otherwise."""
     current_item: int | None = Field(default=None, ge=0)
-    """For ``completed``: the last mission item reached."""
+    """For ``completed``: the last mission item, reached and flown to."""
     late_by_s: float | None = Field(default=None, ge=0.0)
     """Set when the spool delivers the event after its kind's stale threshold: how many seconds
     it waited."""
