@@ -666,9 +666,10 @@ class FiveLineOrder(BaseModel):
         return self
 
     def content_digest(self) -> str:
-        """A digest of what the issuer ordered (not who took it in, nor when it was spooled):
-        the same ``order_id`` with another digest is a changed order, a conflict."""
-        content = self.model_dump_json(exclude={"event_id", "source", "late_by_s"})
+        """A digest of what the issuer ordered (not when it was issued, who took it in, nor
+        when it was spooled): the same ``order_id`` with another digest is a changed order,
+        a conflict."""
+        content = self.model_dump_json(exclude={"event_id", "source", "time", "late_by_s"})
         return hashlib.sha256(content.encode()).hexdigest()
 
 
