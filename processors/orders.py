@@ -415,8 +415,19 @@ class OrdersProcessor:
         tg = self._tg
         if tg is None:
             return
+        heard = self._telemetry[airframe]
+        # An airframe just heard may not have reported all the checks need yet: its first
+        # messages are not the last word on an order that waited for it.
+        unready = None
+        if heard.position is None:
+            unready = Refusal("link", f"{airframe} has reported no position")
+        elif heard.endurance_remaining_min is None:
+            unready = Refusal("endurance", f"{airframe} reports no battery state")
         for event_id, waiting in list(self._waiting.items()):
             if waiting.order.airframe not in (None, airframe):
+                continue
+            if unready is not None:
+                waiting.refusal = unready
                 continue
             got_airframe, chosen = self._decide(waiting.order)
             if isinstance(chosen, Refusal) and chosen.check == "link":

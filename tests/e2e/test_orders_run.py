@@ -17,16 +17,19 @@ the start command is retried and the order reported ``failed`` after the configu
 from __future__ import annotations
 
 import json
+import math
 import socket
 import stat
 import subprocess
 import sys
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 from daemon_support import archive_events, free_udp_port, running, wait_until
+from footprints import covered_fraction
 from mavsdk_autopilot import MavsdkAutopilot
 from slb_peer import SlbPeer
 from sweccis_peer import NS, SweccisPeer, order_document
@@ -182,21 +185,95 @@ def test_area_order_round_trips_through_mavsdk(
 ) -> None:
     peer, airframe, _, events = tasked
     assert statuses(peer, "AREA") == ["received", "accepted", "executing", "completed"]
-    # MAVSDK's mission server took the perimeter: 4 corners and back to the first.
+    # MAVSDK's mission server took a lawnmower over the area: two turn points per line.
     (mission,) = airframe.missions
-    assert [item[1] for item in mission] == [16] * 5
-    corners = [(round(lat, 5), round(lon, 5)) for _, _, lat, lon, _ in mission]
-    assert corners == [*AREA, AREA[0]]
+    assert len(mission) >= 8
+    assert len(mission) % 2 == 0
+    assert [item[1] for item in mission] == [16] * len(mission)
     assert all(item[4] == pytest.approx(500.0) for item in mission)
+    # The camera (60° across, the default) 400 m above the DEM's 100 m ground sees a swath
+    # 2 · 400 · tan 30° wide: the union of its footprints along the uploaded legs covers the
+    # ordered area (computed on geographiclib's plane by tests/footprints.py).
+    swath = 2 * 400.0 * math.tan(math.radians(30.0))
+    points = [(lat, lon) for _, _, lat, lon, _ in mission]
+    assert covered_fraction(AREA, points, swath) >= 0.95
     assert airframe.flight_modes == ["MISSION"]
-    assert airframe.items_completed == 5
+    assert airframe.items_completed == len(mission)
+    assert airframe.flown == points  # it was there: completion needed it
     assert airframe.uplink.count("MISSION_COUNT") == 1
     archived = [e for e in events if e["kind"] == "order_status"]
     area = [e for e in archived if e["order_id"] == "AREA"]
     assert [e["status"] for e in area] == ["accepted", "executing", "completed"]
-    assert area[-1]["mission_items"] == 5
+    assert area[-1]["mission_items"] == len(mission)
     receipt = peer.receipts_for("AREA")[-1]
     assert receipt["event_id"] == "slb-order-AREA-completed"
+
+
+def window_ending_in(seconds: float) -> str:
+    return (datetime.now(UTC) + timedelta(seconds=seconds)).isoformat().replace("+00:00", "Z")
+
+
+@pytest.fixture(scope="module")
+def before_heard(
+    tmp_path_factory: pytest.TempPathFactory,
+) -> tuple[SlbPeer, MavsdkAutopilot, list[str]]:
+    """Orders offered while the airframe is not heard yet; then it comes up."""
+    tmp_path = tmp_path_factory.mktemp("orders-wait")
+    link = free_udp_port()
+    with SlbPeer(tmp_path / "pki").in_thread() as peer:
+        config, _ = write_config(tmp_path, slb_source(peer), link)
+        with running(config) as daemon:
+            # SHORT's window ends while the airframe is unheard; LATE's lasts (bounded by the
+            # test's own timeout, not asserted as a time).
+            peer.queue_order(
+                {**order("SHORT", point(65.85, 21.10)), "not_after": window_ending_in(2)}
+            )
+            late = {**order("LATE", point(65.85, 21.10)), "not_after": window_ending_in(600)}
+            peer.queue_order(late)
+            wait_until(lambda: "rejected" in statuses(peer, "SHORT"), 30.0, "SHORT rejected")
+            assert "waiting" in statuses(peer, "LATE")
+            assert not linked(daemon)
+            # LATE again with another point: a conflict, the first LATE stands.
+            peer.queue_order({**late, "location": point(65.86, 21.12)})
+            wait_until(lambda: "conflict" in statuses(peer, "LATE"), 30.0, "LATE conflict")
+            with MavsdkAutopilot(link).running() as airframe:
+                wait_until(lambda: "completed" in statuses(peer, "LATE"), 60.0, "LATE completed")
+            uplink = list(airframe.uplink)
+        return peer, airframe, uplink
+
+
+def test_an_order_offered_before_the_airframe_is_heard_is_flown_once_it_is(
+    before_heard: tuple[SlbPeer, MavsdkAutopilot, list[str]],
+) -> None:
+    peer, airframe, _ = before_heard
+    assert statuses(peer, "LATE") == [
+        "received",
+        "waiting",
+        "conflict",
+        "accepted",
+        "executing",
+        "completed",
+    ]
+    waiting = peer.receipts_for("LATE")[1]
+    assert waiting["reason"].startswith("link: F26E-001 has no active link; waiting for it until")
+    conflict = peer.receipts_for("LATE")[2]
+    assert conflict["reason"].startswith("order_id: LATE was already taken with other content")
+    # The first LATE was flown: MAVSDK's mission is the waypoint and loiter at its point.
+    (mission,) = airframe.missions
+    assert [(round(lat, 5), round(lon, 5)) for _, _, lat, lon, _ in mission] == [
+        (65.85, 21.10),
+        (65.85, 21.10),
+    ]
+
+
+def test_an_order_whose_window_ends_unheard_is_rejected_naming_the_check(
+    before_heard: tuple[SlbPeer, MavsdkAutopilot, list[str]],
+) -> None:
+    peer, _, _ = before_heard
+    assert statuses(peer, "SHORT") == ["received", "waiting", "rejected"]
+    reason = peer.receipts_for("SHORT")[-1]["reason"]
+    assert reason.startswith("link: F26E-001 has no active link; waited ")
+    assert ", until the window's end at " in reason
 
 
 @pytest.fixture(scope="module")
@@ -341,10 +418,13 @@ def test_a_leg_along_the_fence_edge_is_checked_on_the_ellipsoid(
         assert code == 1
         assert [line["status"] for line in lines] == ["received", "rejected"]
         assert lines[-1]["check"] == "geofence"
+    # The survey's first line runs along the area's 65 N edge, half a line spacing inside
+    # it (65.00244 N, 65.00564 N): still outside the geodesic edge, and the second still
+    # outside only as the rhumb line it is flown as.
     assert runs["edge"][1][-1]["reason"] == (
-        "the route leaves the geofence at 65.00080, 20.20000 (lat, lon), 194 m outside"
+        "the route leaves the geofence at 65.00244, 20.20000 (lat, lon), 11 m outside"
     )
     assert runs["rhumb"][1][-1]["reason"] == (
-        "the route leaves the geofence at 65.00400, 22.00000 (lat, lon), 1047 m outside,"
-        " on the leg 65.00400, 20.10000 to 65.00400, 23.90000 flown as the rhumb line"
+        "the route leaves the geofence at 65.00564, 22.00000 (lat, lon), 863 m outside,"
+        " on the leg 65.00564, 20.10000 to 65.00564, 23.90000 flown as the rhumb line"
     )
