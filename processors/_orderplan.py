@@ -157,7 +157,8 @@ def _ground_m(
     corners: tuple[LatLon, ...], telemetry: Telemetry, terrain: TerrainModel | None
 ) -> float | None:
     """The highest ground found on the area's edge and at its centre, from the DEM; else the
-    ground under the airframe (its MSL less its AGL altitude); None when neither is known."""
+    ground under the airframe (its MSL less its AGL altitude); else its home's (its MSL less
+    its altitude above home); None when none is known."""
     if terrain is not None:
         centre = (
             sum(c[0] for c in corners) / len(corners),
@@ -170,8 +171,12 @@ def _ground_m(
         if heights:
             return max(heights)
     here = telemetry.position
-    if here is not None and here.alt_msl_m is not None and telemetry.alt_agl_m is not None:
+    if here is None or here.alt_msl_m is None:
+        return None
+    if telemetry.alt_agl_m is not None:
         return here.alt_msl_m - telemetry.alt_agl_m
+    if here.alt_rel_home_m is not None:
+        return here.alt_msl_m - here.alt_rel_home_m
     return None
 
 
@@ -189,7 +194,7 @@ def _survey(
         return Refusal(
             "area",
             "no height above ground to size the sensor footprint: no DEM covers the area and"
-            f" {telemetry.airframe} reports no height above ground",
+            f" {telemetry.airframe} reports no height above ground nor above home",
         )
     height = alt - ground
     if height <= 0:

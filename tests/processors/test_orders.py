@@ -225,6 +225,14 @@ class TestPlan:
         assert isinstance(got, Refusal)
         assert got.check == "area"
         assert got.reason.startswith("no height above ground to size the sensor footprint")
+        # Its height above home stands in (the area's ground taken as home's): 300 m up.
+        assert blind.position is not None
+        homed = blind.model_copy(
+            update={"position": blind.position.model_copy(update={"alt_rel_home_m": 300.0})}
+        )
+        got = plan(order(task=OrderTask.RECON_AREA, polygon=corners), homed, None, limits())
+        assert isinstance(got, Plan)
+        assert got.swath_m == pytest.approx(2 * 300 * math.tan(math.radians(30)))
 
     def test_return_to_base_is_no_mission(self) -> None:
         got = plan(order(task=OrderTask.RETURN_TO_BASE), telemetry(), (65.9, 21.2), limits())
