@@ -1,8 +1,10 @@
 """What an order asks of an airframe, and whether the airframe can do it: pure, no I/O.
 
 ``plan`` turns a ``FiveLineOrder`` and the airframe's latest ``Telemetry`` into a ``Plan``:
-the mission steps to upload (none for return to base), the points the airframe will fly
-through (from where it is, over the task, back home) and the time it will spend on task.
+the mission steps to upload (none for return to base; a lawnmower over an area, sized by
+the sensor's footprint at the height above ground, ``processors._coverage``), the points the
+airframe will fly through (from where it is, over the task, back home) and the time it will
+spend on task. An area whose survey cannot be planned is refused (``area``).
 ``check`` runs the acceptance checks on a plan, in order, and returns the first that fails
 as a ``Refusal`` naming the check and its numbers:
 

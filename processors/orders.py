@@ -1,29 +1,35 @@
 """The orders processor: five-line orders checked, sent to the airframe, and answered.
 
-``OrdersProcessor`` consumes ``order`` and ``telemetry`` events and publishes an
-``OrderStatus`` for each state an order reaches: ``accepted`` or ``rejected`` (with the check
-that failed and its numbers), then ``executing``, then ``completed`` or ``failed``. The source
-that took the order in reports each to its issuer (``gateway.c2.source.OrderStatusListener``).
+``OrdersProcessor`` consumes ``order``, ``telemetry`` and ``track`` events and publishes an
+``OrderStatus`` for each state an order reaches: ``waiting`` (its airframe is not heard
+yet), ``accepted`` or ``rejected`` (with the check that failed and its numbers), then
+``executing``, then ``completed`` or ``failed``; ``conflict`` for an order event seen before
+with other content. The source that took the order in reports each to its issuer
+(``gateway.c2.source.OrderStatusListener``).
 
 Before anything is sent, the order must pass, in this order: the airframe is configured
 (``airframe``), linked and reporting a position (``link``), the time window is not over
-(``window``), and the checks of ``processors._orderplan`` (``geofence``, ``terrain``,
-``endurance``). A rejected order sends nothing to the airframe.
+(``window``), and the checks of ``processors._orderplan`` (``area``, ``geofence``,
+``terrain``, ``endurance``). A rejected order sends nothing to the airframe. An order
+refused only by ``link`` waits, within its window (``not_after``, else ``link_wait_s``),
+and is checked again as its airframe is heard; at the window's end it is rejected naming
+the check that still failed.
 
 An accepted order is carried out through the airframe commander the assembly attaches
 (``gateway.flow.tasking``): observe point and track target upload a waypoint and a timed
-loiter at the point; area reconnaissance uploads the area's perimeter as waypoints; then the
-mission is started. Return to base is one command. The processor asks for these as intents
-(``upload_mission``, ``start_mission``, ``return_to_base``) and passes its ``mode_commands``
-option on with them: the airframe side picks the MAVLink (PX4's AUTO.MISSION and AUTO.RTL
-modes with ``px4``, plain MAVLink commands with ``mavlink``). Progress comes from the
-airframe's mission reports: ``completed`` once the last item is reached. A return to base
-completes when the airframe reports itself disarmed.
+loiter at the point; area reconnaissance uploads a lawnmower sized by the sensor's
+footprint (``processors._coverage``); then the mission is started. Return to base is one
+command. The processor asks for these as intents (``upload_mission``, ``start_mission``,
+``return_to_base``) and passes its ``mode_commands`` option on with them. Completion is the
+airframe's MISSION_ITEM_REACHED of the last item *and* its position there, with time on
+task at a final loiter (``processors._orderdone``); MISSION_CURRENT does not count. A
+return to base completes when the airframe reports itself disarmed.
 One order per airframe at a time: a newer accepted order supersedes the running one, which
 is reported ``failed`` saying so. A ``track_target`` order naming the ``track_id`` of a live
-fused track flies to that track's newest position (at the order's altitude, if it gives one)
-instead of the order's location; it does not follow the track afterwards. Reconnaissance
-only: nothing here arms or releases.
+fused track flies to that track's newest position and follows it: the orbit is planned,
+checked and uploaded again as the track moves (at most once every ``track_replan_s``), and
+the order completes when the track is lost or its window ends. Reconnaissance only: nothing
+here arms or releases.
 """
 
 from __future__ import annotations
