@@ -13,6 +13,7 @@ import math
 from collections.abc import Sequence
 from itertools import pairwise
 
+import numpy as np
 from geographiclib.geodesic import Geodesic
 
 __all__ = ["covered_fraction"]
@@ -30,9 +31,15 @@ def _plane(centre: LatLon, points: Sequence[LatLon]) -> list[tuple[float, float]
 
 
 def covered_fraction(
-    area: Sequence[LatLon], waypoints: Sequence[LatLon], swath_m: float, raster_m: float = 10.0
+    area: Sequence[LatLon],
+    waypoints: Sequence[LatLon],
+    swath_m: float,
+    raster_m: float = 10.0,
+    *,
+    exact: bool = True,
 ) -> float:
-    """The fraction of ``area`` inside the footprints swept between consecutive waypoints."""
+    """The fraction of ``area`` inside the footprints swept between consecutive waypoints
+    (``exact``: with shapely when it is installed; else on the raster)."""
     centre = (sum(p[0] for p in area) / len(area), sum(p[1] for p in area) / len(area))
     polygon = _plane(centre, area)
     legs = list(pairwise(_plane(centre, waypoints)))
@@ -40,33 +47,12 @@ def covered_fraction(
         from shapely.geometry import LineString, Polygon
         from shapely.ops import unary_union
     except ImportError:
+        exact = False
+    if not exact:
         return _raster(polygon, legs, swath_m, raster_m)
     seen = unary_union([LineString(leg).buffer(swath_m / 2, cap_style="flat") for leg in legs])
     shape = Polygon(polygon)
     return float(shape.intersection(seen).area / shape.area)
-
-
-def _inside(point: tuple[float, float], polygon: Sequence[tuple[float, float]]) -> bool:
-    x, y = point
-    inside = False
-    for (x1, y1), (x2, y2) in zip(polygon, (*polygon[1:], polygon[0]), strict=True):
-        if (y1 > y) != (y2 > y) and x < x1 + (y - y1) / (y2 - y1) * (x2 - x1):
-            inside = not inside
-    return inside
-
-
-def _near_leg(
-    point: tuple[float, float], leg: tuple[tuple[float, float], ...], half: float
-) -> bool:
-    (x1, y1), (x2, y2) = leg
-    dx, dy = x2 - x1, y2 - y1
-    length2 = dx * dx + dy * dy
-    if length2 == 0:
-        return False
-    t = ((point[0] - x1) * dx + (point[1] - y1) * dy) / length2
-    if not 0 <= t <= 1:
-        return False
-    return abs((point[0] - x1) * dy - (point[1] - y1) * dx) / math.sqrt(length2) <= half
 
 
 def _raster(
@@ -75,15 +61,29 @@ def _raster(
     swath_m: float,
     cell_m: float,
 ) -> float:
-    xs, ys = [p[0] for p in polygon], [p[1] for p in polygon]
-    total = seen = 0
-    y = min(ys) + cell_m / 2
-    while y < max(ys):
-        x = min(xs) + cell_m / 2
-        while x < max(xs):
-            if _inside((x, y), polygon):
-                total += 1
-                seen += any(_near_leg((x, y), leg, swath_m / 2) for leg in legs)
-            x += cell_m
-        y += cell_m
-    return seen / total
+    """The covered fraction on a raster: cells of ``cell_m`` (coarser for a large area, at
+    most about 250 × 250 cells), each counted by its centre."""
+    xs = np.array([p[0] for p in polygon])
+    ys = np.array([p[1] for p in polygon])
+    cell_m = max(cell_m, float(max(np.ptp(xs), np.ptp(ys))) / 250.0)
+    gx, gy = np.meshgrid(
+        np.arange(xs.min() + cell_m / 2, xs.max(), cell_m),
+        np.arange(ys.min() + cell_m / 2, ys.max(), cell_m),
+    )
+    px, py = gx.ravel(), gy.ravel()
+    inside = np.zeros(px.shape, dtype=bool)
+    for (x1, y1), (x2, y2) in zip(polygon, (*polygon[1:], polygon[0]), strict=True):
+        if y1 == y2:
+            continue
+        crosses = (y1 > py) != (y2 > py)
+        inside ^= crosses & (px < x1 + (py - y1) / (y2 - y1) * (x2 - x1))
+    seen = np.zeros(px.shape, dtype=bool)
+    for (x1, y1), (x2, y2) in legs:
+        dx, dy = x2 - x1, y2 - y1
+        length = math.hypot(dx, dy)
+        if length == 0:
+            continue
+        along = ((px - x1) * dx + (py - y1) * dy) / length
+        across = np.abs((px - x1) * dy - (py - y1) * dx) / length
+        seen |= (along >= 0) & (along <= length) & (across <= swath_m / 2)
+    return float(np.count_nonzero(seen & inside) / np.count_nonzero(inside))

@@ -31,6 +31,26 @@ def test_the_footprints_cover_the_area(name: str, overlap: float) -> None:
     assert covered_fraction(area, survey.points, survey.swath_m) >= 0.95
 
 
+@pytest.mark.parametrize("name", sorted(AREAS))
+def test_the_raster_and_shapely_agree(name: str) -> None:
+    """Where shapely is not installed the raster decides: it must say what shapely says."""
+    pytest.importorskip("shapely")
+    area = AREAS[name]
+    survey = lawnmower(area, height_agl_m=400.0, hfov_deg=60.0, overlap=0.0, max_lines=100)
+    assert isinstance(survey, Survey)
+    exact = covered_fraction(area, survey.points, survey.swath_m)
+    raster = covered_fraction(area, survey.points, survey.swath_m, exact=False)
+    assert raster == pytest.approx(exact, abs=0.01)
+
+
+def test_a_sparse_pattern_is_found_short() -> None:
+    """The measure can fail: lines twice the swath apart cover about half the area."""
+    area = AREAS["square"]
+    survey = lawnmower(area, height_agl_m=400.0, hfov_deg=60.0, overlap=0.0, max_lines=100)
+    assert isinstance(survey, Survey)
+    assert covered_fraction(area, survey.points, survey.swath_m / 2) < 0.6
+
+
 def test_the_swath_is_the_footprint_at_the_height() -> None:
     assert swath_m(400.0, 60.0) == pytest.approx(800 * math.tan(math.radians(30)))
     low = lawnmower(AREAS["square"], height_agl_m=100.0, hfov_deg=60.0, overlap=0.2, max_lines=100)
