@@ -226,7 +226,7 @@ def before_heard(
             # SHORT's window ends while the airframe is unheard; LATE's lasts (bounded by the
             # test's own timeout, not asserted as a time).
             peer.queue_order(
-                {**order("SHORT", point(65.85, 21.10)), "not_after": window_ending_in(2)}
+                {**order("SHORT", point(65.85, 21.10)), "not_after": window_ending_in(5)}
             )
             late = {**order("LATE", point(65.85, 21.10)), "not_after": window_ending_in(600)}
             peer.queue_order(late)

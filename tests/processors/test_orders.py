@@ -472,6 +472,24 @@ class TestProcessor:
         published = await run_orders(Commander(), [telemetry(), late])
         assert published[0].check == "window"
 
+    async def test_an_order_for_any_airframe_waits_for_one_to_report(self) -> None:
+        def heard(c: Commander) -> list[Event]:
+            return [telemetry(battery_pct=None), telemetry()]  # no battery state yet, then one
+
+        published = await run_orders(
+            Commander(),
+            [order(airframe=None)],
+            after=heard,
+            after_state=OrderState.WAITING,
+            until=lambda s: any(x.status is OrderState.EXECUTING for x in s),
+        )
+        assert states(published) == ["waiting", "accepted", "executing"]
+        assert published[0].reason is not None
+        assert published[0].reason.startswith(
+            "the order names no airframe and none is reporting; waiting for it until"
+        )
+        assert published[1].airframe == "F26E-001"
+
     async def test_an_order_for_any_airframe_takes_one_that_reports(self) -> None:
         commander = Commander()
         published = await run_orders(
