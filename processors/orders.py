@@ -655,23 +655,23 @@ class OrdersProcessor:
         moved = running.order.model_copy(update={"location": OrderArea(point=point)})
         limits = self._limits(airframe)
         planned = plan(moved, telemetry, commander.home(airframe), limits, self._terrain)
-        refusal = planned if isinstance(planned, Refusal) else None
         if isinstance(planned, Plan):
             refusal = check(planned, telemetry, self._terrain, limits)
-        if refusal is not None or not isinstance(planned, Plan):
-            why = refusal.reason if refusal is not None else "no plan"
-            self._report(
-                running.order,
-                OrderState.FAILED,
-                airframe,
-                check=refusal.check if refusal is not None else "track",
-                reason=f"the track moved to {to.lat_deg:.5f}, {to.lon_deg:.5f}: {why}",
-            )
-            return False
-        running.plan = planned
-        running.replanned_s = now_s
-        self.counts["track_replanned"] = self.counts.get("track_replanned", 0) + 1
-        return await self._fly(airframe, running) is None
+            if refusal is None:
+                running.plan = planned
+                running.replanned_s = now_s
+                self.counts["track_replanned"] = self.counts.get("track_replanned", 0) + 1
+                return await self._fly(airframe, running) is None
+        else:
+            refusal = planned
+        self._report(
+            running.order,
+            OrderState.FAILED,
+            airframe,
+            check=refusal.check,
+            reason=f"the track moved to {to.lat_deg:.5f}, {to.lon_deg:.5f}: {refusal.reason}",
+        )
+        return False
 
     def _live_track(self, order: FiveLineOrder) -> str | None:
         """The live fused track a track_target order names (a merged one's survivor)."""

@@ -644,6 +644,28 @@ class TestProcessor:
         assert published[-1].reason == "track T-7 was lost"
 
 
+@pytest.mark.anyio
+async def test_a_followed_track_that_leaves_the_fence_fails_the_order() -> None:
+    commander = Commander()
+    follow = order(task=OrderTask.TRACK_TARGET, track_id="T-8")
+
+    def flee(c: Commander) -> list[Event]:
+        return [track("T-8", at=(64.5, 21.0)), telemetry()]
+
+    published = await run_orders(
+        commander,
+        [telemetry(), track("T-8", at=(65.85, 21.10)), follow],
+        options={"track_replan_s": 0.05},
+        after=flee,
+        until=lambda s: any(x.status is OrderState.FAILED for x in s),
+    )
+    assert states(published) == ["accepted", "executing", "failed"]
+    assert published[-1].check == "geofence"
+    assert published[-1].reason is not None
+    assert published[-1].reason.startswith("the track moved to 64.50000, 21.00000: the route")
+    assert len(commander.uploads) == 1  # nothing went up for the refused orbit
+
+
 def test_order_status_round_trips_as_json() -> None:
     status = OrderStatus(
         event_id="slb-order-X-rejected",
