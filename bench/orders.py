@@ -6,8 +6,10 @@ The orders processor checks an order synchronously, on the event loop ingest sha
 cost is a pause of ingest. Measured, in the same run, for an observe-point order and for an
 area order of ``--corners`` corners (radius about 30 km) over a flat SRTM tile made here:
 
-* **checks**: ``processors._orderplan.plan`` then ``check`` (geofence, terrain floor along
-  every leg every 250 m, endurance with the return leg), as the processor runs them;
+* **checks**: ``processors._orderplan.plan`` (for the area, its lawnmower: 162 lines 400 m
+  above the tile's ground, ``max_survey_lines`` at its ceiling) then ``check`` (geofence,
+  terrain floor along every leg every 250 m, endurance with the return leg), as the
+  processor runs them;
 * **geofence**: ``gateway.domain.mission.route_exit`` alone on the route the check gives it
   (every point in the ellipsoidal gnomonic plane, each leg as geodesic and rhumb line);
 * **geodesic peer**: the same terrain samples placed along the geodesic with geographiclib
@@ -39,7 +41,14 @@ from processors._orderplan import Limits, Plan, _samples, check, plan
 
 NOW = datetime(2026, 11, 22, 12, 0, tzinfo=UTC)
 LIMITS = Limits(
-    25.0, 10.0, 600.0, 300.0, 0.0, 0.5, ((65.0, 20.0), (65.0, 23.0), (66.5, 23.0), (66.5, 20.0))
+    25.0,
+    10.0,
+    600.0,
+    300.0,
+    0.0,
+    0.5,
+    ((65.0, 20.0), (65.0, 23.0), (66.5, 23.0), (66.5, 20.0)),
+    max_survey_lines=1000,  # the option's ceiling: the area's survey is 162 lines
 )
 
 
@@ -110,11 +119,11 @@ def main() -> None:
         print(f"| {' | '.join(head)} |")
         print("| --- | ---: | ---: | ---: | ---: | ---: | ---: |")
         for name, order in orders(args.corners).items():
-            chosen = plan(order, here, None, LIMITS)
+            chosen = plan(order, here, None, LIMITS, terrain)
             assert isinstance(chosen, Plan)
 
             def ours_once(o: FiveLineOrder = order) -> None:
-                check(plan(o, here, None, LIMITS), here, terrain, LIMITS)  # type: ignore[arg-type]
+                check(plan(o, here, None, LIMITS, terrain), here, terrain, LIMITS)  # type: ignore[arg-type]
 
             ours = timed(ours_once, args.runs)
             route = (chosen.route[0], *chosen.task_points, chosen.route[-1])

@@ -12,6 +12,7 @@ stale threshold, when it says how many seconds the event waited.
 
 from __future__ import annotations
 
+import hashlib
 import re
 import secrets
 from collections.abc import Callable, Mapping
@@ -664,6 +665,13 @@ class FiveLineOrder(BaseModel):
             raise ValueError("not_after is before not_before")
         return self
 
+    def content_digest(self) -> str:
+        """A digest of what the issuer ordered (not when it was issued, who took it in, nor
+        when it was spooled): the same ``order_id`` with another digest is a changed order,
+        a conflict."""
+        content = self.model_dump_json(exclude={"event_id", "source", "time", "late_by_s"})
+        return hashlib.sha256(content.encode()).hexdigest()
+
 
 class HopReason(StrEnum):
     """Why an airframe's radio hopped (FISCHER_HOP_REASON)."""
@@ -778,8 +786,13 @@ class OrderState(StrEnum):
     """Where an order stands: taken in, then accepted or rejected, then executed."""
 
     RECEIVED = "received"
+    WAITING = "waiting"
+    """Not yet heard: the airframe has no link (or no position) yet; checked again as it is
+    heard, until the order's window ends (then ``rejected`` naming the check)."""
     ACCEPTED = "accepted"
     REJECTED = "rejected"
+    CONFLICT = "conflict"
+    """The order id was already taken with other content: the changed order is not taken."""
     EXECUTING = "executing"
     COMPLETED = "completed"
     FAILED = "failed"
@@ -790,9 +803,11 @@ class OrderStatus(BaseModel):
 
     ``order_event_id`` is the order's ``event_id``; ``order_id`` and ``source`` are copied
     from it so the source that took the order in can answer its issuer. ``event_id`` is
-    ``<order_event_id>-<status>``: each state is reported once per order. ``check`` names what
-    decided a rejection or failure (``airframe``, ``link``, ``endurance``, ``geofence``,
-    ``terrain``, ``window``, ``command``, ``mission``) and ``reason`` gives its numbers.
+    ``<order_event_id>-<status>``: each state is reported once per order (a ``conflict``
+    adds the changed order's digest: one per changed content). ``check`` names what decided a
+    waiting, rejection, conflict or failure (``airframe``, ``link``, ``endurance``,
+    ``geofence``, ``terrain``, ``area``, ``window``, ``command``, ``mission``, ``order_id``,
+    ``track``) and ``reason`` gives its numbers.
     """
 
     model_config = _FROZEN
@@ -813,14 +828,15 @@ class OrderStatus(BaseModel):
     status: OrderState
     """The state reached."""
     check: str | None = Field(default=None, max_length=32)
-    """What decided a rejection or failure (``airframe``, ``link``, ``endurance``, ``geofence``,
-    ``terrain``, ``window``, ``command``, ``mission``)."""
+    """What decided a waiting, rejection, conflict or failure (``airframe``, ``link``,
+    ``endurance``, ``geofence``, ``terrain``, ``area``, ``window``, ``command``, ``mission``,
+    ``order_id``, ``track``)."""
     reason: str | None = Field(default=None, max_length=512)
     """The check's finding with its numbers, in words."""
     mission_items: int | None = Field(default=None, ge=0)
     """How many mission items the order uploaded (from ``accepted`` on); None otherwise."""
     current_item: int | None = Field(default=None, ge=0)
-    """For ``completed``: the last mission item reached."""
+    """For ``completed``: the last mission item, reached and flown to."""
     late_by_s: float | None = Field(default=None, ge=0.0)
     """Set when the spool delivers the event after its kind's stale threshold: how many seconds
     it waited."""

@@ -3,9 +3,13 @@
 Writes one order as a line of JSON (SLB's order format, ``slb-order.schema.json``) to the
 ``local`` order source's Unix socket and prints the JSON lines the daemon answers with:
 ``received``, then the orders processor's ``accepted`` or ``rejected`` (with the check and
-its numbers) and, with ``--follow``, ``executing`` and ``completed`` or ``failed``. Exit
-status: 0 when the order was accepted (with ``--follow``: completed), 1 when it was rejected
-or failed, 2 when the daemon could not be reached or did not answer within ``--timeout``.
+its numbers) and, with ``--follow``, ``executing`` and ``completed`` or ``failed``. An order
+whose airframe is not heard yet is answered ``waiting``: without ``--follow`` the command
+returns then (exit 3; the daemon keeps the order until its window ends), with ``--follow``
+it waits on, past ``--timeout``, for the answer the window's end brings at the latest. Exit
+status: 0 when the order was accepted (with ``--follow``: completed), 1 when it was rejected,
+failed or a conflict (its id was taken with other content), 2 when the daemon could not be
+reached or did not answer within ``--timeout``, 3 when it waits for its airframe.
 Reconnaissance tasking only: the tasks are observe, track, survey and return.
 """
 
@@ -21,8 +25,8 @@ from typing import Any, TextIO
 
 __all__ = ["add_order_parser", "order_command"]
 
-EXIT_OK, EXIT_REFUSED, EXIT_UNREACHABLE = 0, 1, 2
-_FINAL = {"rejected", "completed", "failed", "not_held"}
+EXIT_OK, EXIT_REFUSED, EXIT_UNREACHABLE, EXIT_WAITING = 0, 1, 2, 3
+_FINAL = {"rejected", "conflict", "completed", "failed", "not_held"}
 _MAX_LINE = 65536
 
 
@@ -140,6 +144,10 @@ def order_command(args: argparse.Namespace, out: TextIO, err: TextIO) -> int:
                     return EXIT_OK if status == "completed" else EXIT_REFUSED
                 if status == "accepted" and not args.follow:
                     return EXIT_OK
+                if status == "waiting":
+                    if not args.follow:
+                        return EXIT_WAITING
+                    sock.settimeout(None)  # the order's window ends it, not --timeout
     except TimeoutError:
         print(f"{args.socket}: no answer within {args.timeout} s", file=err)
         return EXIT_UNREACHABLE

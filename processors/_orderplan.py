@@ -1,8 +1,10 @@
 """What an order asks of an airframe, and whether the airframe can do it: pure, no I/O.
 
 ``plan`` turns a ``FiveLineOrder`` and the airframe's latest ``Telemetry`` into a ``Plan``:
-the mission steps to upload (none for return to base), the points the airframe will fly
-through (from where it is, over the task, back home) and the time it will spend on task.
+the mission steps to upload (none for return to base; a lawnmower over an area, sized by
+the sensor's footprint at the height above ground, ``processors._coverage``), the points the
+airframe will fly through (from where it is, over the task, back home) and the time it will
+spend on task. An area whose survey cannot be planned is refused (``area``).
 ``check`` runs the acceptance checks on a plan, in order, and returns the first that fails
 as a ``Refusal`` naming the check and its numbers:
 
@@ -40,6 +42,7 @@ from gateway.domain.mission import (
 from gateway.domain.paths import geodesic_points, linear_bow_m, rhumb_bow_m, rhumb_points
 from gateway.domain.terrain import SAFETY_SIGMAS, TerrainModel, agl_sigma, safe_floor_agl_m
 from gateway.events import FiveLineOrder, OrderTask, Telemetry
+from processors._coverage import lawnmower
 
 __all__ = ["Limits", "Plan", "Refusal", "check", "plan"]
 
@@ -76,6 +79,9 @@ class Limits:
     clearance_m: float
     baro_sigma_m: float
     fence: tuple[LatLon, ...] | None
+    camera_hfov_deg: float = 60.0
+    survey_overlap: float = 0.2
+    max_survey_lines: int = 100
 
 
 @dataclass(frozen=True, slots=True)
@@ -89,6 +95,8 @@ class Plan:
     on_task_s: float
     route_m: float
     """The route's geodesic length (m), worked out once."""
+    swath_m: float | None = None
+    """For a survey: the sensor's swath width on the ground (m) the lines are spaced by."""
 
     @property
     def is_return(self) -> bool:
@@ -101,9 +109,14 @@ def _fmt(point: LatLon) -> str:
 
 
 def plan(
-    order: FiveLineOrder, telemetry: Telemetry, home: LatLon | None, limits: Limits
+    order: FiveLineOrder,
+    telemetry: Telemetry,
+    home: LatLon | None,
+    limits: Limits,
+    terrain: TerrainModel | None = None,
 ) -> Plan | Refusal:
-    """The plan for ``order`` on the airframe of ``telemetry`` (which must have a position)."""
+    """The plan for ``order`` on the airframe of ``telemetry`` (which must have a position);
+    ``terrain`` gives a survey's height above ground (``processors._coverage``)."""
     here = telemetry.position
     if here is None:
         return Refusal("link", f"{telemetry.airframe} has reported no position")
@@ -139,17 +152,79 @@ def plan(
     problem = polygon_problem(corners)
     if problem is not None:
         return Refusal("area", f"the order's polygon {problem}")
-    loop = (*corners, corners[0])
-    area_items = tuple(Waypoint(lat, lon, alt) for lat, lon in loop)
-    perimeter_m = route_length_m(loop)
-    legs_m = route_length_m((start, loop[0])) + route_length_m((loop[-1], back))
+    return _survey(corners, alt, telemetry, back, terrain, limits)
+
+
+def _ground_m(
+    corners: tuple[LatLon, ...], telemetry: Telemetry, terrain: TerrainModel | None
+) -> float | None:
+    """The highest ground found on the area's edge and at its centre, from the DEM; else the
+    ground under the airframe (its MSL less its AGL altitude); else its home's (its MSL less
+    its altitude above home); None when none is known."""
+    if terrain is not None:
+        centre = (
+            sum(c[0] for c in corners) / len(corners),
+            sum(c[1] for c in corners) / len(corners),
+        )
+        found = [
+            terrain.lookup(lat, lon) for lat, lon in (*_samples((*corners, corners[0])), centre)
+        ]
+        heights = [f[0] for f in found if f is not None]
+        if heights:
+            return max(heights)
+    here = telemetry.position
+    if here is None or here.alt_msl_m is None:
+        return None
+    if telemetry.alt_agl_m is not None:
+        return here.alt_msl_m - telemetry.alt_agl_m
+    if here.alt_rel_home_m is not None:
+        return here.alt_msl_m - here.alt_rel_home_m
+    return None
+
+
+def _survey(
+    corners: tuple[LatLon, ...],
+    alt: float,
+    telemetry: Telemetry,
+    back: LatLon,
+    terrain: TerrainModel | None,
+    limits: Limits,
+) -> Plan | Refusal:
+    """A lawnmower over the area, sized by the sensor's footprint at the planned height."""
+    ground = _ground_m(corners, telemetry, terrain)
+    if ground is None:
+        return Refusal(
+            "area",
+            "no height above ground to size the sensor footprint: no DEM covers the area and"
+            f" {telemetry.airframe} reports no height above ground nor above home",
+        )
+    height = alt - ground
+    if height <= 0:
+        return Refusal(
+            "terrain", f"commanded {alt:.1f} m MSL is not above the area's ground {ground:.1f} m"
+        )
+    survey = lawnmower(
+        corners,
+        height_agl_m=height,
+        hfov_deg=limits.camera_hfov_deg,
+        overlap=limits.survey_overlap,
+        max_lines=limits.max_survey_lines,
+    )
+    if isinstance(survey, str):
+        return Refusal("area", survey)
+    start = (telemetry.position.lat_deg, telemetry.position.lon_deg) if telemetry.position else back
+    points = survey.points
+    items = tuple(Waypoint(lat, lon, alt) for lat, lon in points)
+    pattern_m = route_length_m(points) if len(points) > 1 else 0.0
+    legs_m = route_length_m((start, points[0])) + route_length_m((points[-1], back))
     return Plan(
-        area_items,
-        loop,
-        (start, *loop, back),
+        items,
+        points,
+        (start, *points, back),
         alt,
-        perimeter_m / limits.cruise_speed_mps,
-        perimeter_m + legs_m,
+        pattern_m / limits.cruise_speed_mps,
+        pattern_m + legs_m,
+        survey.swath_m,
     )
 
 

@@ -1,36 +1,44 @@
 """The orders processor: five-line orders checked, sent to the airframe, and answered.
 
-``OrdersProcessor`` consumes ``order`` and ``telemetry`` events and publishes an
-``OrderStatus`` for each state an order reaches: ``accepted`` or ``rejected`` (with the check
-that failed and its numbers), then ``executing``, then ``completed`` or ``failed``. The source
-that took the order in reports each to its issuer (``gateway.c2.source.OrderStatusListener``).
+``OrdersProcessor`` consumes ``order``, ``telemetry`` and ``track`` events and publishes an
+``OrderStatus`` for each state an order reaches: ``waiting`` (its airframe is not heard
+yet), ``accepted`` or ``rejected`` (with the check that failed and its numbers), then
+``executing``, then ``completed`` or ``failed``; ``conflict`` for an order event seen before
+with other content. The source that took the order in reports each to its issuer
+(``gateway.c2.source.OrderStatusListener``).
 
 Before anything is sent, the order must pass, in this order: the airframe is configured
 (``airframe``), linked and reporting a position (``link``), the time window is not over
-(``window``), and the checks of ``processors._orderplan`` (``geofence``, ``terrain``,
-``endurance``). A rejected order sends nothing to the airframe.
+(``window``), and the checks of ``processors._orderplan`` (``area``, ``geofence``,
+``terrain``, ``endurance``). A rejected order sends nothing to the airframe. An order
+refused only by ``link`` waits, within its window (``not_after``, else ``link_wait_s``),
+and is checked again as its airframe is heard; at the window's end it is rejected naming
+the check that still failed.
 
 An accepted order is carried out through the airframe commander the assembly attaches
 (``gateway.flow.tasking``): observe point and track target upload a waypoint and a timed
-loiter at the point; area reconnaissance uploads the area's perimeter as waypoints; then the
-mission is started. Return to base is one command. The processor asks for these as intents
-(``upload_mission``, ``start_mission``, ``return_to_base``) and passes its ``mode_commands``
-option on with them: the airframe side picks the MAVLink (PX4's AUTO.MISSION and AUTO.RTL
-modes with ``px4``, plain MAVLink commands with ``mavlink``). Progress comes from the
-airframe's mission reports: ``completed`` once the last item is reached. A return to base
-completes when the airframe reports itself disarmed.
+loiter at the point; area reconnaissance uploads a lawnmower sized by the sensor's
+footprint (``processors._coverage``); then the mission is started. Return to base is one
+command. The processor asks for these as intents (``upload_mission``, ``start_mission``,
+``return_to_base``) and passes its ``mode_commands`` option on with them. Completion is the
+airframe's MISSION_ITEM_REACHED of the last item *and* its position there, with time on
+task at a final loiter (``processors._orderdone``); MISSION_CURRENT does not count. A
+return to base completes when the airframe reports itself disarmed.
 One order per airframe at a time: a newer accepted order supersedes the running one, which
 is reported ``failed`` saying so. A ``track_target`` order naming the ``track_id`` of a live
-fused track flies to that track's newest position (at the order's altitude, if it gives one)
-instead of the order's location; it does not follow the track afterwards. Reconnaissance
-only: nothing here arms or releases.
+fused track flies to that track's newest position and follows it: the orbit is planned,
+checked and uploaded again as the track moves (at most once every ``track_replan_s``), and
+the order completes when the track is lost or its window ends. Reconnaissance only: nothing
+here arms or releases.
 """
 
 from __future__ import annotations
 
+import time
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from datetime import datetime
+from datetime import datetime, timedelta
 from typing import ClassVar, Literal
 
 import anyio
@@ -40,6 +48,7 @@ from anyio.streams.memory import MemoryObjectReceiveStream
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from gateway.clock import Clock, utc_now
+from gateway.domain.geodesy import distance_bearing
 from gateway.domain.mission import ModeCommands, polygon_problem
 from gateway.domain.terrain import TerrainModel
 from gateway.events import (
@@ -57,6 +66,7 @@ from gateway.events import (
 from gateway.flow.processor import ProcessorConfig, Publish
 from gateway.flow.tasking import AirframeCommander
 from gateway.ops.logsetup import RateLimit
+from processors._orderdone import Progress
 from processors._orderplan import Limits, Plan, Refusal, check, plan
 
 __all__ = ["OrdersConfig", "OrdersProcessor"]
@@ -65,6 +75,8 @@ log = structlog.get_logger(__name__)
 
 _REMEMBERED_ORDERS = 10_000
 _REMEMBERED_TRACKS = 10_000
+#: How often waiting orders' windows and running orders' time on task are looked at.
+_WAIT_TICK_S = 1.0
 
 
 class Corner(BaseModel):
@@ -119,6 +131,40 @@ class OrdersConfig(ProcessorConfig):
         default=64, ge=1, le=10_000, description="Orders being carried out at once, at most."
     )
 
+    link_wait_s: float = Field(
+        default=900.0,
+        gt=0,
+        le=7 * 86400,
+        description="How long an order without a not_after waits for its airframe's link.",
+    )
+    max_waiting: int = Field(
+        default=1000, ge=1, le=100_000, description="Orders waiting for a link at once, at most."
+    )
+    acceptance_radius_m: float = Field(
+        default=50.0,
+        gt=0,
+        le=5000,
+        description="How near the last item (beyond a loiter's radius) counts as there.",
+    )
+    camera_hfov_deg: float = Field(
+        default=60.0, gt=0, lt=170, description="The sensor's cross-track field of view (survey)."
+    )
+    survey_overlap: float = Field(
+        default=0.2, ge=0, le=0.9, description="Overlap of neighbouring survey swaths (0-0.9)."
+    )
+    max_survey_lines: int = Field(
+        default=100, ge=1, le=1000, description="Most lines a survey may fly."
+    )
+    track_replan_s: float = Field(
+        default=30.0,
+        gt=0,
+        le=3600,
+        description="A followed track's orbit moves at most this often.",
+    )
+    track_replan_m: float = Field(
+        default=100.0, ge=0, le=100_000, description="How far a track moves before the orbit does."
+    )
+
     max_start_delay_s: float = Field(
         default=3600.0,
         gt=0,
@@ -150,14 +196,33 @@ def _check_fence(fence: Fence, what: str) -> None:
 
 
 @dataclass(slots=True)
+class _Waiting:
+    """An order waiting for its airframe's link, until ``deadline``."""
+
+    order: FiveLineOrder
+    deadline: datetime
+    since_s: float
+    refusal: Refusal
+
+
+@dataclass(slots=True)
 class _Running:
     order: FiveLineOrder
-    items: int
+    plan: Plan
+    progress: Progress | None = None
     scope: anyio.CancelScope = field(default_factory=anyio.CancelScope)
-    reached: int = -1
-    current: int = -1
     changed: anyio.Event = field(default_factory=anyio.Event)
     superseded_by: str | None = None
+    #: For a track_target order following a fused track: the track's id, its newest
+    #: position not flown yet, whether it was lost, and when the orbit last moved.
+    track_id: str | None = None
+    track_to: Position | None = None
+    track_lost: bool = False
+    replanned_s: float = 0.0
+
+    @property
+    def items(self) -> int:
+        return len(self.plan.items)
 
 
 class OrdersProcessor:
@@ -166,20 +231,31 @@ class OrdersProcessor:
     config_model: ClassVar[type[OrdersConfig]] = OrdersConfig
     kinds: frozenset[EventKind] = frozenset({EventKind.ORDER, EventKind.TELEMETRY, EventKind.TRACK})
 
-    def __init__(self, name: str, config: OrdersConfig, *, clock: Clock = utc_now) -> None:
+    def __init__(
+        self,
+        name: str,
+        config: OrdersConfig,
+        *,
+        clock: Clock = utc_now,
+        monotonic: Callable[[], float] = time.monotonic,
+    ) -> None:
         self.name = name
         self.config = config
         self._clock = clock
+        self._monotonic = monotonic
         self._commander: AirframeCommander | None = None
         self._terrain: TerrainModel | None = None
         self._baro_sigma_m = 0.5
         self._telemetry: dict[str, Telemetry] = {}
-        self._seen: OrderedDict[str, None] = OrderedDict()
+        #: Order event id → the digest of its content (a changed order is a conflict).
+        self._seen: OrderedDict[str, str] = OrderedDict()
         #: The newest position of each live fused track, for track_target orders naming one.
         self._tracks: OrderedDict[str, Position] = OrderedDict()
         #: Merged track id → the track it was folded into (an order may name either).
         self._merged: OrderedDict[str, str] = OrderedDict()
         self._running: dict[str, _Running] = {}
+        self._waiting: OrderedDict[str, _Waiting] = OrderedDict()
+        self._tg: anyio.abc.TaskGroup | None = None
         self._publish: Publish = lambda _event: True
         self.counts: dict[str, int] = {}
         self._log_limit = RateLimit(interval_s=5.0)
@@ -196,10 +272,11 @@ class OrdersProcessor:
         commander.on_mission(self._on_mission)
 
     def status(self) -> dict[str, object]:
-        """Counts by status and the orders running, for /status."""
+        """Counts by status, the orders running and those waiting for a link, for /status."""
         return {
             "counts": dict(self.counts),
             "running": {a: r.order.order_id for a, r in self._running.items()},
+            "waiting": [w.order.order_id for w in self._waiting.values()],
         }
 
     async def run(
@@ -212,17 +289,16 @@ class OrdersProcessor:
         """Answer orders until the stream ends; each accepted order runs in its own task."""
         self._publish = publish
         async with anyio.create_task_group() as tg:
+            self._tg = tg
+            tg.start_soon(self._expire_waiting)
             task_status.started()
             async for event in events:
                 if isinstance(event, Telemetry):
                     self._on_telemetry(event)
                 elif isinstance(event, Track):
                     self._on_track(event)
-                elif isinstance(event, FiveLineOrder) and event.event_id not in self._seen:
-                    self._seen[event.event_id] = None
-                    while len(self._seen) > _REMEMBERED_ORDERS:
-                        self._seen.popitem(last=False)
-                    self._take(event, tg)
+                elif isinstance(event, FiveLineOrder):
+                    self._on_order(event, tg)
             tg.cancel_scope.cancel()
 
     # -- status -----------------------------------------------------------------------------
@@ -237,10 +313,11 @@ class OrdersProcessor:
         reason: str | None = None,
         items: int | None = None,
         current: int | None = None,
+        suffix: str = "",
     ) -> None:
         self.counts[status.value] = self.counts.get(status.value, 0) + 1
         event = OrderStatus(
-            event_id=f"{order.event_id}-{status.value}",
+            event_id=f"{order.event_id}-{status.value}{suffix}",
             order_event_id=order.event_id,
             order_id=order.order_id,
             source=order.source,
@@ -268,9 +345,31 @@ class OrdersProcessor:
 
     # -- intake -----------------------------------------------------------------------------
 
+    def _on_order(self, order: FiveLineOrder, tg: anyio.abc.TaskGroup) -> None:
+        digest = order.content_digest()
+        seen = self._seen.get(order.event_id)
+        if seen is None:
+            self._seen[order.event_id] = digest
+            while len(self._seen) > _REMEMBERED_ORDERS:
+                self._seen.popitem(last=False)
+            self._take(order, tg)
+        elif seen != digest:
+            # The same order id with other content: answered, never taken (the first stands).
+            self._report(
+                order,
+                OrderState.CONFLICT,
+                order.airframe,
+                check="order_id",
+                reason=f"order {order.order_id} was already taken with other content; the"
+                " first stands: give a changed order a new id",
+                suffix=f"-{digest[:12]}",
+            )
+
     def _take(self, order: FiveLineOrder, tg: anyio.abc.TaskGroup) -> None:
         airframe, chosen = self._decide(order)
         if isinstance(chosen, Refusal):
+            if self._may_wait(order, chosen):
+                return
             self._report(
                 order, OrderState.REJECTED, airframe, check=chosen.check, reason=chosen.reason
             )
@@ -290,10 +389,86 @@ class OrdersProcessor:
         if previous is not None:
             previous.superseded_by = order.order_id
             previous.scope.cancel()
-        running = _Running(order, len(chosen.items))
+        running = _Running(order, chosen)
+        if order.task is OrderTask.TRACK_TARGET and chosen.items:
+            running.track_id = self._live_track(order)
+            running.replanned_s = self._monotonic()
         self._running[airframe] = running
         self._report(order, OrderState.ACCEPTED, airframe, items=len(chosen.items))
-        tg.start_soon(self._carry_out, airframe, chosen, running)
+        tg.start_soon(self._carry_out, airframe, running)
+
+    def _may_wait(self, order: FiveLineOrder, refusal: Refusal) -> bool:
+        """Hold an order refused only for want of a link (see docs/orders.md); True if held."""
+        if refusal.check != "link" or order.event_id in self._waiting:
+            return order.event_id in self._waiting
+        if len(self._waiting) >= self.config.max_waiting:
+            self.counts["waiting_full"] = self.counts.get("waiting_full", 0) + 1
+            return False
+        now = self._clock()
+        deadline = order.not_after or now + timedelta(seconds=self.config.link_wait_s)
+        self._waiting[order.event_id] = _Waiting(order, deadline, self._monotonic(), refusal)
+        self._report(
+            order,
+            OrderState.WAITING,
+            order.airframe,
+            check=refusal.check,
+            reason=f"{refusal.reason}; waiting for it until {_iso(deadline)}",
+        )
+        return True
+
+    def _retry_waiting(self, airframe: str) -> None:
+        """Check again the orders waiting for ``airframe`` (or for any), which was just heard."""
+        tg = self._tg
+        if tg is None:
+            return
+        heard = self._telemetry[airframe]
+        # An airframe just heard may not have reported all the checks need yet: its first
+        # messages are not the last word on an order that waited for it.
+        unready = None
+        if heard.position is None:
+            unready = Refusal("link", f"{airframe} has reported no position")
+        elif heard.endurance_remaining_min is None:
+            unready = Refusal("endurance", f"{airframe} reports no battery state")
+        for event_id, waiting in list(self._waiting.items()):
+            if waiting.order.airframe not in (None, airframe):
+                continue
+            if unready is not None:
+                waiting.refusal = unready
+                continue
+            got_airframe, chosen = self._decide(waiting.order)
+            if isinstance(chosen, Refusal) and chosen.check == "link":
+                waiting.refusal = chosen
+                continue
+            del self._waiting[event_id]
+            if isinstance(chosen, Refusal):
+                self._report(
+                    waiting.order,
+                    OrderState.REJECTED,
+                    got_airframe,
+                    check=chosen.check,
+                    reason=chosen.reason,
+                )
+            else:
+                self._take(waiting.order, tg)
+
+    async def _expire_waiting(self) -> None:
+        """Reject each waiting order at its window's end, naming the check that still failed."""
+        while True:
+            await anyio.sleep(_WAIT_TICK_S)
+            now = self._clock()
+            for event_id, waiting in list(self._waiting.items()):
+                if waiting.deadline > now:
+                    continue
+                del self._waiting[event_id]
+                waited_s = self._monotonic() - waiting.since_s
+                self._report(
+                    waiting.order,
+                    OrderState.REJECTED,
+                    waiting.order.airframe,
+                    check=waiting.refusal.check,
+                    reason=f"{waiting.refusal.reason}; waited {waited_s:.0f} s, until the"
+                    f" window's end at {_iso(waiting.deadline)}",
+                )
 
     def _decide(self, order: FiveLineOrder) -> tuple[str | None, Plan | Refusal]:
         commander = self._commander
@@ -315,8 +490,10 @@ class OrdersProcessor:
                 )
         if order.airframe is not None:
             candidates = [order.airframe]
+        elif not self._telemetry:
+            return None, Refusal("link", "the order names no airframe and none is reporting")
         else:
-            candidates = sorted(self._telemetry) or [""]
+            candidates = sorted(self._telemetry)
         refusals: list[tuple[str | None, Refusal]] = []
         for airframe in candidates:
             got = self._try(order, airframe, commander)
@@ -325,20 +502,10 @@ class OrdersProcessor:
             refusals.append((airframe or None, got))
         return refusals[0]
 
-    def _try(
-        self, order: FiveLineOrder, airframe: str, commander: AirframeCommander
-    ) -> Plan | Refusal:
-        if not airframe:
-            return Refusal("airframe", "the order names no airframe and none is reporting")
-        if not commander.is_known(airframe):
-            return Refusal("airframe", f"{airframe} is not an airframe of this node")
-        telemetry = self._telemetry.get(airframe)
-        if not commander.is_linked(airframe) or telemetry is None:
-            return Refusal("link", f"{airframe} has no active link")
-        fences = self.config.airframe_geofences
-        fence = fences.get(airframe, self.config.geofence)
+    def _limits(self, airframe: str) -> Limits:
         cfg = self.config
-        limits = Limits(
+        fence = cfg.airframe_geofences.get(airframe, cfg.geofence)
+        return Limits(
             cruise_speed_mps=cfg.cruise_speed_mps,
             reserve_min=cfg.reserve_min,
             time_on_task_s=cfg.time_on_task_s,
@@ -346,8 +513,23 @@ class OrdersProcessor:
             clearance_m=cfg.clearance_m,
             baro_sigma_m=self._baro_sigma_m,
             fence=None if fence is None else tuple((c.lat_deg, c.lon_deg) for c in fence),
+            camera_hfov_deg=cfg.camera_hfov_deg,
+            survey_overlap=cfg.survey_overlap,
+            max_survey_lines=cfg.max_survey_lines,
         )
-        planned = plan(self._aimed(order), telemetry, commander.home(airframe), limits)
+
+    def _try(
+        self, order: FiveLineOrder, airframe: str, commander: AirframeCommander
+    ) -> Plan | Refusal:
+        if not commander.is_known(airframe):
+            return Refusal("airframe", f"{airframe} is not an airframe of this node")
+        telemetry = self._telemetry.get(airframe)
+        if not commander.is_linked(airframe) or telemetry is None:
+            return Refusal("link", f"{airframe} has no active link")
+        limits = self._limits(airframe)
+        planned = plan(
+            self._aimed(order), telemetry, commander.home(airframe), limits, self._terrain
+        )
         if isinstance(planned, Refusal):
             return planned
         refusal = check(planned, telemetry, self._terrain, limits)
@@ -355,11 +537,11 @@ class OrdersProcessor:
 
     # -- execution --------------------------------------------------------------------------
 
-    async def _carry_out(self, airframe: str, chosen: Plan, running: _Running) -> None:
+    async def _carry_out(self, airframe: str, running: _Running) -> None:
         order = running.order
         try:
             with running.scope:
-                await self._execute(airframe, chosen, running)
+                await self._execute(airframe, running)
             if running.superseded_by is not None:
                 self._report(
                     order,
@@ -372,16 +554,15 @@ class OrdersProcessor:
             if self._running.get(airframe) is running:
                 del self._running[airframe]
 
-    async def _execute(self, airframe: str, chosen: Plan, running: _Running) -> None:
+    async def _fly(self, airframe: str, running: _Running) -> str | None:
+        """Upload the plan's mission and start it (or send the airframe home); None, or the
+        failure already reported."""
         commander = self._commander
         if commander is None:  # _decide refuses every order without one
-            return
+            return "no commander"
         cfg = self.config
         order = running.order
-        if order.not_before is not None:
-            wait_s = (order.not_before - self._clock()).total_seconds()
-            if wait_s > 0:
-                await anyio.sleep(wait_s)
+        chosen = running.plan
         if chosen.is_return:
             answered = await commander.return_to_base(
                 airframe,
@@ -394,15 +575,10 @@ class OrdersProcessor:
                 airframe, chosen.items, timeout_s=cfg.mission_timeout_s, retries=cfg.mission_retries
             )
             if not uploaded.ok:
-                self._report(
-                    order,
-                    OrderState.FAILED,
-                    airframe,
-                    check="mission",
-                    reason=f"mission upload: {uploaded.detail}",
-                )
-                return
-            running.reached = running.current = -1
+                reason = f"mission upload: {uploaded.detail}"
+                self._report(order, OrderState.FAILED, airframe, check="mission", reason=reason)
+                return reason
+            running.progress = Progress(chosen.items, cfg.acceptance_radius_m)
             answered = await commander.start_mission(
                 airframe,
                 len(chosen.items),
@@ -414,25 +590,99 @@ class OrdersProcessor:
             self._report(
                 order, OrderState.FAILED, airframe, check="command", reason=answered.detail
             )
+            return answered.detail
+        return None
+
+    async def _execute(self, airframe: str, running: _Running) -> None:
+        order = running.order
+        if order.not_before is not None:
+            wait_s = (order.not_before - self._clock()).total_seconds()
+            if wait_s > 0:
+                await anyio.sleep(wait_s)
+        if await self._fly(airframe, running) is not None:
             return
         self._report(order, OrderState.EXECUTING, airframe, items=running.items or None)
-        last = running.items - 1
-        while not self._done(airframe, running, last):
+        while True:
+            ended = self._ended(airframe, running)
+            if ended is not None:
+                break
+            if running.track_to is not None and not await self._follow(airframe, running):
+                return
             running.changed = anyio.Event()
-            await running.changed.wait()
+            with anyio.move_on_after(_WAIT_TICK_S):
+                await running.changed.wait()
         self._report(
             order,
             OrderState.COMPLETED,
             airframe,
+            reason=ended or None,
             items=running.items or None,
-            current=None if running.items == 0 else last,
+            current=None if running.items == 0 else running.items - 1,
         )
 
-    def _done(self, airframe: str, running: _Running, last: int) -> bool:
+    def _ended(self, airframe: str, running: _Running) -> str | None:
+        """Why the order is done ("" when it needs no saying), or None while it is not."""
         if running.items == 0:
             telemetry = self._telemetry.get(airframe)
-            return telemetry is not None and telemetry.is_armed is False
-        return running.reached >= last or running.current > last
+            return "" if telemetry is not None and telemetry.is_armed is False else None
+        if running.track_id is not None:
+            if running.track_lost:
+                return f"track {running.track_id} was lost"
+            end = running.order.not_after
+            if end is not None and end <= self._clock():
+                return f"the window ended at {_iso(end)}"
+            return None
+        progress = running.progress
+        return "" if progress is not None and progress.done(self._monotonic()) else None
+
+    async def _follow(self, airframe: str, running: _Running) -> bool:
+        """Move a followed track's orbit to its newest position (at most once every
+        ``track_replan_s``); False when the order failed (reported)."""
+        to = running.track_to
+        now_s = self._monotonic()
+        if to is None or now_s - running.replanned_s < self.config.track_replan_s:
+            return True
+        running.track_to = None
+        centre = running.plan.items[-1]
+        moved_m, _ = distance_bearing(centre.lat_deg, centre.lon_deg, to.lat_deg, to.lon_deg)
+        if moved_m < self.config.track_replan_m:
+            return True
+        commander = self._commander
+        telemetry = self._telemetry.get(airframe)
+        if commander is None or telemetry is None:
+            return True
+        point = Position(lat_deg=to.lat_deg, lon_deg=to.lon_deg, alt_msl_m=centre.alt_msl_m)
+        moved = running.order.model_copy(update={"location": OrderArea(point=point)})
+        limits = self._limits(airframe)
+        planned = plan(moved, telemetry, commander.home(airframe), limits, self._terrain)
+        if isinstance(planned, Plan):
+            refusal = check(planned, telemetry, self._terrain, limits)
+            if refusal is None:
+                running.plan = planned
+                running.replanned_s = now_s
+                self.counts["track_replanned"] = self.counts.get("track_replanned", 0) + 1
+                return await self._fly(airframe, running) is None
+        else:
+            refusal = planned
+        self._report(
+            running.order,
+            OrderState.FAILED,
+            airframe,
+            check=refusal.check,
+            reason=f"the track moved to {to.lat_deg:.5f}, {to.lon_deg:.5f}: {refusal.reason}",
+        )
+        return False
+
+    def _live_track(self, order: FiveLineOrder) -> str | None:
+        """The live fused track a track_target order names (a merged one's survivor)."""
+        track_id = order.track_id
+        if track_id is None:
+            return None
+        for _ in range(8):  # a merged track's survivor, followed a few merges deep at most
+            if track_id not in self._merged:
+                break
+            track_id = self._merged[track_id]
+        return track_id if track_id in self._tracks else None
 
     def _on_track(self, track: Track) -> None:
         self._tracks.pop(track.track_id, None)
@@ -444,17 +694,23 @@ class OrdersProcessor:
             self._tracks[track.track_id] = track.position
             while len(self._tracks) > _REMEMBERED_TRACKS:
                 self._tracks.popitem(last=False)
+        for running in self._running.values():
+            if running.track_id != track.track_id:
+                continue
+            if track.status == "merged" and track.merged_into is not None:
+                running.track_id = track.merged_into  # follow the survivor
+            elif track.status == "lost":
+                running.track_lost = True
+            else:
+                running.track_to = track.position
+            running.changed.set()
 
     def _aimed(self, order: FiveLineOrder) -> FiveLineOrder:
         """A track_target order naming a live track flies to the track's newest position."""
-        if order.task is not OrderTask.TRACK_TARGET or order.track_id is None:
+        if order.task is not OrderTask.TRACK_TARGET:
             return order
-        track_id = order.track_id
-        for _ in range(8):  # a merged track's survivor, followed a few merges deep at most
-            if track_id not in self._merged:
-                break
-            track_id = self._merged[track_id]
-        where = self._tracks.get(track_id)
+        track_id = self._live_track(order)
+        where = None if track_id is None else self._tracks.get(track_id)
         if where is None:
             return order
         given = order.location.point.alt_msl_m if order.location.point is not None else None
@@ -464,22 +720,22 @@ class OrdersProcessor:
     def _on_telemetry(self, telemetry: Telemetry) -> None:
         self._telemetry[telemetry.airframe] = telemetry
         running = self._running.get(telemetry.airframe)
-        if running is not None and running.items == 0:
+        if running is not None:
+            where = telemetry.position
+            if running.progress is not None and where is not None:
+                running.progress.position(where.lat_deg, where.lon_deg, self._monotonic())
             running.changed.set()
+        if self._waiting:
+            self._retry_waiting(telemetry.airframe)
 
     def _on_mission(self, airframe: str, what: Literal["current", "reached"], seq: int) -> None:
         running = self._running.get(airframe)
-        if running is None:
-            return
-        # Only items this order uploaded count (a current item one past the last is how some
-        # autopilots say the mission is over); anything else is a lie or another mission's.
-        if not 0 <= seq < running.items + (what == "current"):
+        if running is None or running.progress is None or what != "reached":
+            return  # MISSION_CURRENT says what the airframe flies, not what it has done
+        # Only items this order uploaded count; anything else is a lie or another mission's.
+        if not running.progress.reach(seq):
             self.counts["progress_ignored"] = self.counts.get("progress_ignored", 0) + 1
             return
-        if what == "reached":
-            running.reached = max(running.reached, seq)
-        else:
-            running.current = seq
         running.changed.set()
 
 

@@ -13,7 +13,9 @@ writes it), at most ``max_line_bytes``, within ``timeout_s``. The answer is JSON
 order is held durably (``{"status": "rejected", "reason": ..}`` for a malformed one,
 ``{"status": "not_held"}`` if the spool refused it), then each ``OrderStatus`` of the order
 from the orders processor as it comes (``status``, ``check``, ``reason``, ``airframe``),
-until a final one (``rejected``, ``completed``, ``failed``) or the client hangs up. At most
+until a final one (``rejected``, ``completed``, ``failed``) or the client hangs up. An
+order id already taken is answered ``rejected`` (the same order again) or ``conflict`` (with
+other content: the first order stands). At most
 ``max_connections`` connections are served at once; more are closed at once, counted.
 """
 
@@ -48,7 +50,9 @@ __all__ = ["LocalOrderSource", "LocalOrderSourceConfig"]
 log = structlog.get_logger(__name__)
 
 EVENT_ID_PREFIX = "local-order-"
-_FINAL = frozenset({OrderState.REJECTED, OrderState.COMPLETED, OrderState.FAILED})
+_FINAL = frozenset(
+    {OrderState.REJECTED, OrderState.CONFLICT, OrderState.COMPLETED, OrderState.FAILED}
+)
 _WATCH_QUEUE = 32
 #: Order ids taken, remembered so a second order with one of them is refused, not lost.
 _REMEMBERED_IDS = 10_000
@@ -104,7 +108,8 @@ class LocalOrderSource:
         self._clock = clock
         self._uids = frozenset({os.getuid(), 0, *config.allowed_uids})
         self._watchers: dict[str, set[MemoryObjectSendStream[OrderStatus]]] = {}
-        self._taken: OrderedDict[str, None] = OrderedDict()
+        #: Order event ids taken, with the digest of each order's content.
+        self._taken: OrderedDict[str, str] = OrderedDict()
         self._active = 0
         self.counts: Counter[str] = Counter()
         self._log_limit = RateLimit(interval_s=10.0)
@@ -201,9 +206,20 @@ class LocalOrderSource:
             await _say(stream, {"order_id": order_id, "status": "rejected", "reason": str(exc)})
             return
         order = parsed.model_copy(update={"event_id": EVENT_ID_PREFIX + parsed.order_id})
-        if order.event_id in self._taken or order.event_id in self._watchers:
+        digest = order.content_digest()
+        taken = self._taken.get(order.event_id)
+        if taken is not None and taken != digest:
+            # The same order id with other content: a conflict, the first order stands.
+            self._count("conflict", order_id=order.order_id)
+            reason = (
+                f"order_id: {order.order_id} was already taken with other content; the first"
+                " stands: give a changed order a new id"
+            )
+            await _say(stream, {"order_id": order.order_id, "status": "conflict", "reason": reason})
+            return
+        if taken is not None or order.event_id in self._watchers:
             # The orders processor answers each order id once: a second order with it
-            # (changed or not) would wait for statuses that never come.
+            # would wait for statuses that never come.
             self._count("duplicate_order_id", order_id=order.order_id)
             reason = f"order_id: {order.order_id} was already taken; give a new order id"
             await _say(stream, {"order_id": order.order_id, "status": "rejected", "reason": reason})
@@ -217,7 +233,7 @@ class LocalOrderSource:
                 await _say(stream, {"order_id": order.order_id, "status": "not_held"})
                 return
             self.counts["received"] += 1
-            self._taken[order.event_id] = None
+            self._taken[order.event_id] = digest
             while len(self._taken) > _REMEMBERED_IDS:
                 self._taken.popitem(last=False)
             self.log.info("local_order_received", order_id=order.order_id, task=order.task.value)

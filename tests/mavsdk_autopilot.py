@@ -9,7 +9,10 @@ see and steer what crosses the link:
   second (what the gateway's acceptance checks need);
 - ``mission_raw_server`` takes mission uploads (recorded in ``missions``) and, once
   ``action_server`` has been put in MISSION mode (``flight_modes``), completes one item every
-  ``step_s`` so the gateway sees MISSION_CURRENT / MISSION_ITEM_REACHED to the end;
+  ``step_s`` so the gateway sees MISSION_CURRENT / MISSION_ITEM_REACHED to the end; the
+  published position jumps to each item as it is completed (``flown``: the positions in
+  order), so the gateway's completion check (last item reached *and* the airframe there)
+  sees it arrive;
 - the relay records the type of every message the gateway sent the airframe (``uplink``), the
   command of every command and mission item among them (``uplink_commands``), and
   drops the airframe's COMMAND_ACKs while ``drop_command_acks`` is set (``dropped_acks``).
@@ -57,8 +60,10 @@ class MavsdkAutopilot:
     uplink_commands: list[int] = field(default_factory=list)
     dropped_acks: int = 0
     items_completed: int = 0
+    flown: list[tuple[float, float]] = field(default_factory=list)
 
     def __post_init__(self) -> None:
+        self._home = (self.lat_deg, self.lon_deg)
         self._front = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self._front.bind(("127.0.0.1", 0))
         self.relay_port = int(self._front.getsockname()[1])
@@ -148,7 +153,7 @@ class MavsdkAutopilot:
             await tel.publish_position(
                 where, telemetry.VelocityNed(0.0, 0.0, 0.0), telemetry.Heading(90.0)
             )
-            await tel.publish_home(telemetry.Position(self.lat_deg, self.lon_deg, 400.0, 0.0))
+            await tel.publish_home(telemetry.Position(*self._home, 400.0, 0.0))
             await tel.publish_battery(telemetry.Battery(22.0, self.battery_pct))
             await asyncio.sleep(0.5)
 
@@ -162,8 +167,10 @@ class MavsdkAutopilot:
         async for _result, mode in action.subscribe_flight_mode_change():
             self.flight_modes.append(mode.name)
             if mode.name == "MISSION" and self.missions:
-                for _ in self.missions[-1]:
+                for _seq, _command, lat, lon, _alt in self.missions[-1]:
                     await asyncio.sleep(self.step_s)
+                    self.lat_deg, self.lon_deg = lat, lon  # arrived: published from now on
+                    self.flown.append((lat, lon))
                     await missions.set_current_item_complete()
                     self.items_completed += 1
 

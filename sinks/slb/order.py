@@ -234,7 +234,16 @@ def _five_lines(order: SlbOrder, area: OrderArea, source: str) -> FiveLineOrder:
 
 def receipt_payload(
     order_id: str,
-    status: Literal["received", "rejected", "accepted", "executing", "completed", "failed"],
+    status: Literal[
+        "received",
+        "waiting",
+        "rejected",
+        "conflict",
+        "accepted",
+        "executing",
+        "completed",
+        "failed",
+    ],
     *,
     time: datetime,
     reason: str | None = None,

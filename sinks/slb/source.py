@@ -21,7 +21,10 @@ the oldest are dropped and counted). A status SLB does not take (unreachable, 5x
 again after ``poll_interval_s``; a 4xx answer drops it, counted.
 
 Answers are remembered (the newest ``max_remembered``): an order offered again after it was
-answered (the receipt was lost, say) is answered again, not published again. An element of
+answered (the receipt was lost, say) is answered again, not published again. An order offered
+again under a taken ``order_id`` with other content (``FiveLineOrder.content_digest``) is
+answered ``conflict`` (``order_id: ... was already taken with other content ...``) and not
+published: the first stands, a changed order needs a new id. An element of
 the list without a usable ``order_id`` cannot be answered; it is counted as ``unanswerable``.
 Nothing SLB sends can stop the source: every failure is counted in ``counts`` and shown on
 /status. Whether an order is *accepted* is the orders processor's answer, not this one's.
@@ -126,8 +129,9 @@ class SlbSource:
         self._files = config.tls_files
         #: Orders and polls by outcome (see the module docstring).
         self.counts: Counter[str] = Counter()
-        #: Receipts by order id, in the order they were made (oldest first).
-        self._answered: OrderedDict[str, dict[str, Any]] = OrderedDict()
+        #: Receipts by order id, in the order they were made (oldest first), with the digest
+        #: of the order taken (None for one rejected as malformed).
+        self._answered: OrderedDict[str, tuple[dict[str, Any], str | None]] = OrderedDict()
         self._log_limit = RateLimit(interval_s=_LOG_INTERVAL_S)
         self._received_log = RateLimit(interval_s=1.0)
         self._headers = {
@@ -272,11 +276,11 @@ class SlbSource:
         if order_id is None:
             self._count("unanswerable", detail="no usable order_id")
             return
-        receipt = self._answered.get(order_id)
-        if receipt is not None:
-            self.counts["reoffered"] += 1
-            await self._acknowledge(client, order_id, receipt)
+        answered = self._answered.get(order_id)
+        if answered is not None:
+            await self._reoffered(client, order_id, element, *answered)
             return
+        digest: str | None = None
         try:
             order = read_order(element, source=self.name)
         except OrderRejected as exc:
@@ -299,9 +303,36 @@ class SlbSource:
             receipt = receipt_payload(
                 order_id, "received", time=self._clock(), event_id=order.event_id
             )
-        self._answered[order_id] = receipt
+            digest = order.content_digest()
+        self._answered[order_id] = (receipt, digest)
         while len(self._answered) > self.config.max_remembered:
             self._answered.popitem(last=False)
+        await self._acknowledge(client, order_id, receipt)
+
+    async def _reoffered(
+        self,
+        client: httpx.AsyncClient,
+        order_id: str,
+        element: object,
+        receipt: dict[str, Any],
+        digest: str | None,
+    ) -> None:
+        """Answer an order offered again: its receipt again, or ``conflict`` if it changed."""
+        if digest is not None:
+            try:
+                again = read_order(element, source=self.name).content_digest()
+            except OrderRejected:
+                again = None
+            if again != digest:
+                self._count("conflict", order_id=order_id)
+                reason = (
+                    f"order_id: {order_id} was already taken with other content; the first"
+                    " stands: give a changed order a new id"
+                )
+                conflict = receipt_payload(order_id, "conflict", time=self._clock(), reason=reason)
+                await self._acknowledge(client, order_id, conflict)
+                return
+        self.counts["reoffered"] += 1
         await self._acknowledge(client, order_id, receipt)
 
     async def _acknowledge(

@@ -6,7 +6,9 @@ reads the orders the server sends. Each valid ``Orders`` document is published a
 ``FiveLineOrder`` (``event_id`` ``sweccis-order-<OrderId>``, ``source`` this source's name)
 and acknowledged ``accepted`` only once ``publish`` returns True (the event is held
 durably); otherwise it is not acknowledged, so the server sends it again. An order already
-accepted on this run is acknowledged ``duplicate`` and not published again. An order that
+accepted on this run is acknowledged ``duplicate`` and not published again; one under a taken
+OrderId with other content (``FiveLineOrder.content_digest``) is acknowledged ``rejected`` and
+answered with an OrderStatus ``conflict``, the first order standing. An order that
 fails its checks is acknowledged ``rejected`` with the reason naming the element. Taking an
 order in does not execute it: that is the orders processor's, later.
 
@@ -43,7 +45,7 @@ from pydantic import Field
 from gateway.c2.source import SourceConfig
 from gateway.clock import utc_now
 from gateway.errors import FrameError, LinkError, LinkUnavailable
-from gateway.events import Event, OrderStatus
+from gateway.events import Event, FiveLineOrder, OrderState, OrderStatus
 from gateway.ops.logsetup import RateLimit
 from gateway.transports.tls import tls_context
 from sinks.sweccis.fas import (
@@ -123,7 +125,8 @@ class SweccisSource:
         self._publish = publish
         self._clock = clock
         self._context: ssl.SSLContext | None = None
-        self._acknowledged: OrderedDict[str, None] = OrderedDict()
+        #: Document ids (None) and ``order:<OrderId>`` keys (the order's content digest) taken.
+        self._acknowledged: OrderedDict[str, str | None] = OrderedDict()
         #: Orders by outcome: ``accepted``, ``duplicate``, ``rejected`` (failed a check),
         #: ``not_held`` (publish refused it: not acknowledged); frames that were no order:
         #: ``invalid`` (no readable id), ``oversize``, ``truncated``, ``unexpected``.
@@ -257,6 +260,11 @@ class SweccisSource:
             self._count("unexpected", document=type(document).__name__)
             return
         order_key = "order:" + document.order.order_id
+        digest = document.order.content_digest()
+        taken = self._acknowledged.get(order_key)
+        if taken is not None and taken != digest:
+            await self._conflict(link, document.doc_id, document.order, digest)
+            return
         if document.doc_id in self._acknowledged or order_key in self._acknowledged:
             # The same document again, or the same order under another document id.
             self.counts["duplicate"] += 1
@@ -268,7 +276,7 @@ class SweccisSource:
             return
         self.counts["accepted"] += 1
         self._acknowledged[document.doc_id] = None
-        self._acknowledged[order_key] = None
+        self._acknowledged[order_key] = digest
         while len(self._acknowledged) > REMEMBERED_ORDERS:
             self._acknowledged.popitem(last=False)
         if self._received_log.allow("received"):  # a flood of orders: one line a second
@@ -280,6 +288,30 @@ class SweccisSource:
                 priority=document.order.priority.value,
             )
         await self._ack(link, document.doc_id, "accepted")
+
+    async def _conflict(
+        self, link: SweccisLink, doc_id: str, order: FiveLineOrder, digest: str
+    ) -> None:
+        """A changed order under a taken OrderId: rejected, and an OrderStatus ``conflict``."""
+        self._count("conflict", order_id=order.order_id)
+        reason = (
+            f"order_id: {order.order_id} was already taken with other content; the first"
+            " stands: give a changed order a new id"
+        )
+        await self._ack(link, doc_id, "rejected", reason)
+        self.on_order_status(
+            OrderStatus(
+                event_id=f"{order.event_id}-conflict-{digest[:12]}",
+                order_event_id=order.event_id,
+                order_id=order.order_id,
+                source=self.name,
+                airframe=order.airframe,
+                time=self._clock(),
+                status=OrderState.CONFLICT,
+                check="order_id",
+                reason=reason,
+            )
+        )
 
     async def _ack(
         self, link: SweccisLink, doc_id: str, status: AckStatus, reason: str | None = None

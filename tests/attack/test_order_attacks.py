@@ -4,8 +4,9 @@
 loopback UDP link, the ``orders`` processor and the ``local`` order source. The airframe is a
 pymavlink peer in this process that answers the mission protocol as an attacker would: it asks
 for mission items that do not exist, then reports items far past the end of the mission as
-reached and current. An order must never be reported ``completed`` on such reports: only the
-items the gateway uploaded count.
+reached and current, and the mission's own last item reached and one past it current while it
+is a kilometre away. An order must never be reported ``completed`` on such reports: only the
+items the gateway uploaded count, and only with the airframe's position there.
 """
 
 from __future__ import annotations
@@ -81,6 +82,9 @@ class HostileAirframe:
                     self.send(mav.MAVLink_mission_item_reached_message(60000))
                     self.send(mav.MAVLink_mission_current_message(4000))
                     self.send(mav.MAVLink_command_ack_message(400, 0))  # never sent
+                # "Done": the last item reached, one past it current; it never left home.
+                self.send(mav.MAVLink_mission_item_reached_message(self._count() - 1))
+                self.send(mav.MAVLink_mission_current_message(self._count()))
 
     def _count(self) -> int:
         counts = [m.count for m in self.uplink if m.get_type() == "MISSION_COUNT"]
@@ -198,6 +202,10 @@ def test_replayed_order_id_with_other_content_is_answered(
     assert [line["status"] for line in lines] == ["received", "accepted"], lines
     code, lines = order_cli(sock, *first, "--point", "65.80", "21.30", timeout="6")
     assert code == 1, lines
+    assert lines[-1]["status"] == "conflict"
+    assert lines[-1]["reason"].startswith("order_id: REPLAY-1 was already taken with other")
+    code, lines = order_cli(sock, *first, "--point", "65.84", "21.01", timeout="6")
+    assert code == 1, lines  # the same order again: taken once
     assert lines[-1]["status"] == "rejected"
 
 

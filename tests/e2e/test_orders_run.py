@@ -17,19 +17,25 @@ the start command is retried and the order reported ``failed`` after the configu
 from __future__ import annotations
 
 import json
+import math
 import socket
 import stat
 import subprocess
 import sys
+import time
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
-from daemon_support import archive_events, free_udp_port, running, wait_until
+from daemon_support import Airframe, archive_events, free_udp_port, running, wait_until
+from footprints import covered_fraction
 from mavsdk_autopilot import MavsdkAutopilot
 from slb_peer import SlbPeer
 from sweccis_peer import NS, SweccisPeer, order_document
+
+from gateway.fleet.dialect import fischer_detection
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -83,8 +89,20 @@ def sweccis_source(peer: SweccisPeer) -> str:
      key_file: '{tls["key_file"]}'}}"""
 
 
-def write_config(tmp_path: Path, source: str, link: int, **orders: Any) -> tuple[Path, Path]:
+def write_config(
+    tmp_path: Path, source: str, link: int, *, sensor_link: int | None = None, **orders: Any
+) -> tuple[Path, Path]:
+    """The node's config; with ``sensor_link``, a second airframe (F2, sysid 2) that reports
+    detections there, and the ``fusion`` processor making tracks of them."""
     archive = tmp_path / "archive.jsonl"
+    sensor = fusion = ""
+    if sensor_link is not None:
+        sensor = f"""
+  - {{id: F2, sysid: 2, links: [{{uri: 'udp://127.0.0.1:{sensor_link}', security: unsecured,
+     name: sensor}}]}}"""
+        fusion = """
+  - {name: fusion, type: fusion, options: {lost_after_s: 2, update_interval_s: 0.2,
+     tick_s: 0.1}}"""
     dem = write_dem(tmp_path / "dem")
     fence = ", ".join(f"{{lat_deg: {lat}, lon_deg: {lon}}}" for lat, lon in FENCE)
     extra = "".join(f", {key}: {value}" for key, value in orders.items())
@@ -97,16 +115,16 @@ terrain:
   sources: [{{name: srtm, kind: hgt, directory: '{dem}', sigma_m: 5.0}}]
 airframes:
   - {{id: F26E-001, sysid: 1, links: [{{uri: 'udp://127.0.0.1:{link}', security: unsecured,
-     name: fleet}}]}}
+     name: fleet}}]}}{sensor}
 sources:{source}
-processors:
+processors:{fusion}
   - name: orders
     type: orders
     options: {{geofence: [{fence}], time_on_task_s: 5{extra}}}
 sinks:
   - {{name: archive, type: jsonl, options: {{path: '{archive}'}}}}
 routes:
-  - {{sinks: [archive], kinds: [order, order_status, telemetry]}}
+  - {{sinks: [archive], kinds: [order, order_status, telemetry, track]}}
 """
     )
     return config, archive
@@ -125,8 +143,9 @@ def ready(archive: Path) -> bool:
 
 
 def linked(daemon: Any) -> bool:
-    status = daemon.status()
-    (airframe,) = status["airframes"]
+    """F26E-001 (the MAVSDK airframe) has an active link."""
+    airframes = daemon.status()["airframes"]
+    (airframe,) = [a for a in airframes if a["airframe"] == "F26E-001"]
     return airframe.get("active_link") is not None
 
 
@@ -182,21 +201,188 @@ def test_area_order_round_trips_through_mavsdk(
 ) -> None:
     peer, airframe, _, events = tasked
     assert statuses(peer, "AREA") == ["received", "accepted", "executing", "completed"]
-    # MAVSDK's mission server took the perimeter: 4 corners and back to the first.
+    # MAVSDK's mission server took a lawnmower over the area: two turn points per line.
     (mission,) = airframe.missions
-    assert [item[1] for item in mission] == [16] * 5
-    corners = [(round(lat, 5), round(lon, 5)) for _, _, lat, lon, _ in mission]
-    assert corners == [*AREA, AREA[0]]
+    assert len(mission) >= 8
+    assert len(mission) % 2 == 0
+    assert [item[1] for item in mission] == [16] * len(mission)
     assert all(item[4] == pytest.approx(500.0) for item in mission)
+    # The camera (60° across, the default) 400 m above the DEM's 100 m ground sees a swath
+    # 2 · 400 · tan 30° wide: the union of its footprints along the uploaded legs covers the
+    # ordered area (computed on geographiclib's plane by tests/footprints.py).
+    swath = 2 * 400.0 * math.tan(math.radians(30.0))
+    points = [(lat, lon) for _, _, lat, lon, _ in mission]
+    assert covered_fraction(AREA, points, swath) >= 0.95
     assert airframe.flight_modes == ["MISSION"]
-    assert airframe.items_completed == 5
+    assert airframe.items_completed == len(mission)
+    assert airframe.flown == points  # it was there: completion needed it
     assert airframe.uplink.count("MISSION_COUNT") == 1
     archived = [e for e in events if e["kind"] == "order_status"]
     area = [e for e in archived if e["order_id"] == "AREA"]
     assert [e["status"] for e in area] == ["accepted", "executing", "completed"]
-    assert area[-1]["mission_items"] == 5
+    assert area[-1]["mission_items"] == len(mission)
     receipt = peer.receipts_for("AREA")[-1]
     assert receipt["event_id"] == "slb-order-AREA-completed"
+
+
+def window_ending_in(seconds: float) -> str:
+    return (datetime.now(UTC) + timedelta(seconds=seconds)).isoformat().replace("+00:00", "Z")
+
+
+@pytest.fixture(scope="module")
+def before_heard(
+    tmp_path_factory: pytest.TempPathFactory,
+) -> tuple[SlbPeer, MavsdkAutopilot, list[str]]:
+    """Orders offered while the airframe is not heard yet; then it comes up."""
+    tmp_path = tmp_path_factory.mktemp("orders-wait")
+    link = free_udp_port()
+    with SlbPeer(tmp_path / "pki").in_thread() as peer:
+        config, _ = write_config(tmp_path, slb_source(peer), link)
+        with running(config) as daemon:
+            # SHORT's window ends while the airframe is unheard; LATE's lasts (bounded by the
+            # test's own timeout, not asserted as a time).
+            peer.queue_order(
+                {**order("SHORT", point(65.85, 21.10)), "not_after": window_ending_in(5)}
+            )
+            late = {**order("LATE", point(65.85, 21.10)), "not_after": window_ending_in(600)}
+            peer.queue_order(late)
+            wait_until(lambda: "rejected" in statuses(peer, "SHORT"), 30.0, "SHORT rejected")
+            assert "waiting" in statuses(peer, "LATE")
+            assert not linked(daemon)
+            # LATE again with another point: a conflict, the first LATE stands.
+            peer.queue_order({**late, "location": point(65.86, 21.12)})
+            wait_until(lambda: "conflict" in statuses(peer, "LATE"), 30.0, "LATE conflict")
+            with MavsdkAutopilot(link).running() as airframe:
+                wait_until(lambda: "completed" in statuses(peer, "LATE"), 60.0, "LATE completed")
+            uplink = list(airframe.uplink)
+        return peer, airframe, uplink
+
+
+def test_an_order_offered_before_the_airframe_is_heard_is_flown_once_it_is(
+    before_heard: tuple[SlbPeer, MavsdkAutopilot, list[str]],
+) -> None:
+    peer, airframe, _ = before_heard
+    assert statuses(peer, "LATE") == [
+        "received",
+        "waiting",
+        "conflict",
+        "accepted",
+        "executing",
+        "completed",
+    ]
+    waiting = peer.receipts_for("LATE")[1]
+    assert waiting["reason"].startswith("link: F26E-001 has no active link; waiting for it until")
+    conflict = peer.receipts_for("LATE")[2]
+    assert conflict["reason"].startswith("order_id: LATE was already taken with other content")
+    # The first LATE was flown: MAVSDK's mission is the waypoint and loiter at its point.
+    (mission,) = airframe.missions
+    assert [(round(lat, 5), round(lon, 5)) for _, _, lat, lon, _ in mission] == [
+        (65.85, 21.10),
+        (65.85, 21.10),
+    ]
+
+
+def test_an_order_whose_window_ends_unheard_is_rejected_naming_the_check(
+    before_heard: tuple[SlbPeer, MavsdkAutopilot, list[str]],
+) -> None:
+    peer, _, _ = before_heard
+    assert statuses(peer, "SHORT") == ["received", "waiting", "rejected"]
+    reason = peer.receipts_for("SHORT")[-1]["reason"]
+    assert reason.startswith("link: F26E-001 has no active link; waited ")
+    assert ", until the window's end at " in reason
+
+
+TARGET = (65.85, 21.10)
+
+
+def detection_at(sensor: Airframe, north_m: float) -> bytes:
+    """F2's EO detection of a vehicle ``north_m`` north of TARGET."""
+    sensor.detections += 1
+    message = fischer_detection(
+        time_usec=round(time.time() * 1e6),
+        detection_id=sensor.detections,
+        lat_e7=round((TARGET[0] + north_m / 111_320.0) * 1e7),
+        lon_e7=round(TARGET[1] * 1e7),
+        alt_msl_m=100.0,
+        sigma_h_m=8.0,
+        class_id=1,
+        sensor=0,
+        confidence_pct=90,
+        subtype="T-72",
+    )
+    return bytes(message.pack(sensor.mav))
+
+
+def tracks(archive: Path) -> list[dict[str, Any]]:
+    return [e for e in archive_events(archive) if e["kind"] == "track"]
+
+
+@pytest.fixture(scope="module")
+def followed(
+    tmp_path_factory: pytest.TempPathFactory,
+) -> tuple[SlbPeer, MavsdkAutopilot, list[dict[str, Any]]]:
+    """A track_target order on a fused track that moves north, then is lost."""
+    tmp_path = tmp_path_factory.mktemp("orders-track")
+    link, sensor_link = free_udp_port(), free_udp_port()
+    sensor = Airframe(2)
+    with SlbPeer(tmp_path / "pki").in_thread() as peer:
+        config, archive = write_config(
+            tmp_path,
+            slb_source(peer),
+            link,
+            sensor_link=sensor_link,
+            track_replan_s=0.5,
+            track_replan_m=50,
+        )
+        with (
+            running(config) as daemon,
+            MavsdkAutopilot(link).running() as airframe,
+            socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as radio,
+        ):
+            wait_until(lambda: linked(daemon), 30.0, "the MAVSDK airframe linked")
+            wait_until(lambda: ready(archive), 20.0, "telemetry with endurance")
+            radio.sendto(sensor.heartbeat(), ("127.0.0.1", sensor_link))
+            for _ in range(3):  # confirmed after three detections
+                radio.sendto(detection_at(sensor, 0.0), ("127.0.0.1", sensor_link))
+                time.sleep(0.05)
+            wait_until(lambda: bool(tracks(archive)), 15.0, "the track created")
+            track_id = tracks(archive)[0]["track_id"]
+            peer.queue_order(
+                {**order("FOLLOW", point(*TARGET), task="track_target"), "track_id": track_id}
+            )
+            wait_until(lambda: "executing" in statuses(peer, "FOLLOW"), 30.0, "FOLLOW executing")
+            north = 0.0
+            while len(airframe.missions) < 2:  # the vehicle drives north, 5 m a step
+                north += 5.0
+                radio.sendto(detection_at(sensor, north), ("127.0.0.1", sensor_link))
+                time.sleep(0.1)
+                assert north < 5000, "the orbit never moved"
+            # The reports stop: the track is lost, and with it the order is done.
+            wait_until(lambda: "completed" in statuses(peer, "FOLLOW"), 30.0, "FOLLOW completed")
+        return peer, airframe, tracks(archive)
+
+
+def test_track_target_follows_the_fused_track_until_it_is_lost(
+    followed: tuple[SlbPeer, MavsdkAutopilot, list[dict[str, Any]]],
+) -> None:
+    peer, airframe, events = followed
+    assert statuses(peer, "FOLLOW") == ["received", "accepted", "executing", "completed"]
+    track_id = events[0]["track_id"]
+    assert peer.receipts_for("FOLLOW")[-1]["reason"] == f"track {track_id} was lost"
+    first, moved = airframe.missions[0], airframe.missions[1]
+    # Each orbit is a waypoint and a timed loiter at the track's position then.
+    assert [item[1] for item in first] == [16, 19]
+    assert [item[1] for item in moved] == [16, 19]
+    assert (first[1][2], first[1][3]) == pytest.approx(TARGET, abs=2e-4)
+    moved_to = (moved[1][2], moved[1][3])
+    seen = [
+        (e["position"]["lat_deg"], e["position"]["lon_deg"])
+        for e in events
+        if e["track_id"] == track_id
+    ]
+    assert moved_to in [pytest.approx(p, abs=1e-6) for p in seen]  # a position the track reported
+    assert moved_to[0] > TARGET[0] + 50 / 111_320.0 * 0.9  # moved north, past track_replan_m
+    assert any(e["status"] == "lost" for e in events)
 
 
 @pytest.fixture(scope="module")
@@ -341,10 +527,13 @@ def test_a_leg_along_the_fence_edge_is_checked_on_the_ellipsoid(
         assert code == 1
         assert [line["status"] for line in lines] == ["received", "rejected"]
         assert lines[-1]["check"] == "geofence"
+    # The survey's first line runs along the area's 65 N edge, half a line spacing inside
+    # it (65.00244 N, 65.00564 N): still outside the geodesic edge, and the second still
+    # outside only as the rhumb line it is flown as.
     assert runs["edge"][1][-1]["reason"] == (
-        "the route leaves the geofence at 65.00080, 20.20000 (lat, lon), 194 m outside"
+        "the route leaves the geofence at 65.00244, 20.20000 (lat, lon), 11 m outside"
     )
     assert runs["rhumb"][1][-1]["reason"] == (
-        "the route leaves the geofence at 65.00400, 22.00000 (lat, lon), 1047 m outside,"
-        " on the leg 65.00400, 20.10000 to 65.00400, 23.90000 flown as the rhumb line"
+        "the route leaves the geofence at 65.00564, 22.00000 (lat, lon), 863 m outside,"
+        " on the leg 65.00564, 20.10000 to 65.00564, 23.90000 flown as the rhumb line"
     )

@@ -7,6 +7,8 @@ run`` is tests/e2e/test_orders_run.py.
 
 from __future__ import annotations
 
+import math
+import time
 from collections.abc import Sequence
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
@@ -16,7 +18,14 @@ import anyio
 import numpy as np
 import pytest
 
-from gateway.domain.mission import Loiter, MissionStep, ModeCommands, Outcome, Waypoint
+from gateway.domain.mission import (
+    Loiter,
+    MissionStep,
+    ModeCommands,
+    Outcome,
+    Waypoint,
+    route_length_m,
+)
 from gateway.domain.terrain import DemSource, TerrainModel
 from gateway.events import (
     Event,
@@ -104,14 +113,19 @@ class Commander:
 
 
 def telemetry(
-    *, battery_pct: float | None = 80.0, alt: float = 500.0, armed: bool = True
+    *,
+    battery_pct: float | None = 80.0,
+    alt: float = 500.0,
+    armed: bool = True,
+    at: tuple[float, float] = HERE,
 ) -> Telemetry:
     endurance = None if battery_pct is None else 60 * 800 * battery_pct / 100 / 415
     return Telemetry(
         event_id="t",
         airframe="F26E-001",
         time=NOW,
-        position=Position(lat_deg=HERE[0], lon_deg=HERE[1], alt_msl_m=alt),
+        position=Position(lat_deg=at[0], lon_deg=at[1], alt_msl_m=alt),
+        alt_agl_m=alt - 100.0,
         battery_pct=battery_pct,
         endurance_remaining_min=endurance,
         is_armed=armed,
@@ -141,6 +155,24 @@ def order(
         task=task,
         location=area,
         **extra,
+    )
+
+
+def track(track_id: str, *, at: tuple[float, float], status: str = "updated") -> Track:
+    return Track.model_validate(
+        {
+            "event_id": f"{track_id}-{at}-{status}",
+            "track_id": track_id,
+            "time": NOW,
+            "status": status,
+            "object_class": "tank",
+            "confidence": 0.9,
+            "position": {"lat_deg": at[0], "lon_deg": at[1]},
+            "cep50_m": 10.0,
+            "cep90_m": 20.0,
+            "first_seen": NOW,
+            "last_seen": NOW,
+        }
     )
 
 
@@ -175,11 +207,32 @@ class TestPlan:
         assert {i.alt_msl_m for i in got.items} == {500.0}
         assert got.route == (HERE, (65.85, 21.10), HERE)
 
-    def test_an_area_is_flown_round_its_perimeter(self) -> None:
+    def test_an_area_is_flown_as_a_lawnmower_sized_by_the_footprint(self) -> None:
         corners = [(65.84, 21.02), (65.84, 21.06), (65.86, 21.06)]
         got = plan(order(task=OrderTask.RECON_AREA, polygon=corners), telemetry(), None, limits())
         assert isinstance(got, Plan)
-        assert [(i.lat_deg, i.lon_deg) for i in got.items] == [*corners, corners[0]]
+        # 400 m above the ground at 60° cross-track: a 462 m swath, lines ≤ 370 m apart.
+        assert got.swath_m == pytest.approx(2 * 400 * math.tan(math.radians(30)))
+        assert len(got.items) % 2 == 0
+        assert len(got.items) >= 2 * 3  # 1.3 km deep across the longest edge (the hypotenuse)
+        assert {i.alt_msl_m for i in got.items} == {500.0}
+        assert got.on_task_s * 25.0 == pytest.approx(route_length_m(got.task_points))
+
+    def test_a_survey_without_height_above_ground_is_refused(self) -> None:
+        corners = [(65.84, 21.02), (65.84, 21.06), (65.86, 21.06)]
+        blind = telemetry().model_copy(update={"alt_agl_m": None})
+        got = plan(order(task=OrderTask.RECON_AREA, polygon=corners), blind, None, limits())
+        assert isinstance(got, Refusal)
+        assert got.check == "area"
+        assert got.reason.startswith("no height above ground to size the sensor footprint")
+        # Its height above home stands in (the area's ground taken as home's): 300 m up.
+        assert blind.position is not None
+        homed = blind.model_copy(
+            update={"position": blind.position.model_copy(update={"alt_rel_home_m": 300.0})}
+        )
+        got = plan(order(task=OrderTask.RECON_AREA, polygon=corners), homed, None, limits())
+        assert isinstance(got, Plan)
+        assert got.swath_m == pytest.approx(2 * 300 * math.tan(math.radians(30)))
 
     def test_return_to_base_is_no_mission(self) -> None:
         got = plan(order(task=OrderTask.RETURN_TO_BASE), telemetry(), (65.9, 21.2), limits())
@@ -280,11 +333,16 @@ async def run_orders(
     *,
     options: dict[str, Any] | None = None,
     after: Any = None,
+    after_state: OrderState = OrderState.EXECUTING,
     until: Any = None,
+    settle: bool = False,
 ) -> list[OrderStatus]:
     """Feed ``events``; call ``after(commander)``; wait for ``until(statuses)``; statuses."""
     config = OrdersConfig.model_validate({"geofence": FENCE, **(options or {})})
-    processor = OrdersProcessor("orders", config, clock=lambda: NOW)
+    started = time.monotonic()
+    processor = OrdersProcessor(
+        "orders", config, clock=lambda: NOW + timedelta(seconds=time.monotonic() - started)
+    )
     assert isinstance(processor, TaskingProcessor)
     assert isinstance(commander, AirframeCommander)
     processor.attach(commander, None, 0.5)
@@ -306,11 +364,16 @@ async def run_orders(
             for event in events:
                 await send.send(event)
             if after is not None:
-                while not any(s.status is OrderState.EXECUTING for s in published):
+                while not any(s.status is after_state for s in published):
                     await changed.wait()
-                after(commander)
+                for event in after(commander) or ():
+                    await send.send(event)
+                if settle:  # every task has taken what it was given and is waiting again
+                    await anyio.wait_all_tasks_blocked()
+                    until = lambda _s: True  # noqa: E731 - stop here
             while not (until or (lambda s: len(s) >= 1))(published):
-                await changed.wait()
+                with anyio.move_on_after(0.05):  # ``until`` may look at the commander too
+                    await changed.wait()
             await send.aclose()
     receive.close()
     return published
@@ -325,15 +388,17 @@ class TestProcessor:
     async def test_an_accepted_point_order_runs_to_completed(self) -> None:
         commander = Commander()
 
-        def fly(c: Commander) -> None:
+        def fly(c: Commander) -> list[Event]:
             c.progress("current", 0)
             c.progress("reached", 0)
             c.progress("current", 1)
             c.progress("reached", 1)
+            return [telemetry(at=(65.851, 21.101))]
 
         published = await run_orders(
             commander,
             [telemetry(), order()],
+            options={"time_on_task_s": 0.2},
             after=fly,
             until=lambda s: any(x.status is OrderState.COMPLETED for x in s),
         )
@@ -371,14 +436,63 @@ class TestProcessor:
             "F26E-404 is not an airframe of this node",
         )
 
-    async def test_an_airframe_without_a_link_is_rejected(self) -> None:
-        published = await run_orders(Commander(linked=False), [telemetry(), order()])
-        assert (published[0].check, published[0].reason) == ("link", "F26E-001 has no active link")
+    async def test_an_airframe_without_a_link_waits_then_is_rejected_at_the_windows_end(
+        self,
+    ) -> None:
+        soon = order(not_after=NOW + timedelta(seconds=1))
+        published = await run_orders(
+            Commander(linked=False), [telemetry(), soon], until=lambda s: len(s) >= 2
+        )
+        assert states(published) == ["waiting", "rejected"]
+        assert published[0].check == "link"
+        assert published[0].reason is not None
+        assert published[0].reason.startswith("F26E-001 has no active link; waiting for it until")
+        assert published[1].check == "link"
+        assert published[1].reason is not None
+        assert published[1].reason.startswith("F26E-001 has no active link; waited ")
+        assert "until the window's end at 2026-11-22T12:00:01+00:00" in published[1].reason
+
+    async def test_an_order_before_the_airframe_is_heard_is_flown_once_it_is(self) -> None:
+        commander = Commander(linked=False)
+
+        def heard(c: Commander) -> list[Event]:
+            c.linked = True
+            return [telemetry()]
+
+        published = await run_orders(
+            commander,
+            [order()],
+            after=heard,
+            after_state=OrderState.WAITING,
+            until=lambda s: any(x.status is OrderState.EXECUTING for x in s),
+        )
+        assert states(published) == ["waiting", "accepted", "executing"]
+        assert published[0].reason is not None
+        assert published[0].reason.startswith("F26E-001 has no active link; waiting for it")
+        assert len(commander.uploads) == 1
 
     async def test_an_order_whose_window_ended_is_rejected(self) -> None:
         late = order(not_after=NOW - timedelta(minutes=1))
         published = await run_orders(Commander(), [telemetry(), late])
         assert published[0].check == "window"
+
+    async def test_an_order_for_any_airframe_waits_for_one_to_report(self) -> None:
+        def heard(c: Commander) -> list[Event]:
+            return [telemetry(battery_pct=None), telemetry()]  # no battery state yet, then one
+
+        published = await run_orders(
+            Commander(),
+            [order(airframe=None)],
+            after=heard,
+            after_state=OrderState.WAITING,
+            until=lambda s: any(x.status is OrderState.EXECUTING for x in s),
+        )
+        assert states(published) == ["waiting", "accepted", "executing"]
+        assert published[0].reason is not None
+        assert published[0].reason.startswith(
+            "the order names no airframe and none is reporting; waiting for it until"
+        )
+        assert published[1].airframe == "F26E-001"
 
     async def test_an_order_for_any_airframe_takes_one_that_reports(self) -> None:
         commander = Commander()
@@ -444,6 +558,108 @@ class TestProcessor:
             until=lambda s: len(s) >= 2,
         )
         assert [s.order_id for s in published] == ["O-1", "O-3"]
+
+    async def test_the_same_order_id_with_changed_content_is_a_conflict(self) -> None:
+        changed = order(at=(65.86, 21.12))
+        published = await run_orders(
+            Commander(),
+            [telemetry(), order(), order(), changed],
+            until=lambda s: any(x.status is OrderState.CONFLICT for x in s),
+        )
+        conflict = published[-1]
+        assert [s.status.value for s in published[:1]] == ["accepted"]
+        assert (conflict.order_id, conflict.check) == ("O-1", "order_id")
+        assert conflict.reason is not None
+        assert "already taken with other content" in conflict.reason
+        assert conflict.event_id.startswith("slb-order-O-1-conflict-")
+        assert sum(s.status is OrderState.CONFLICT for s in published) == 1
+
+    async def test_a_mission_current_past_the_end_is_not_completion(self) -> None:
+        """A hostile airframe says it is done; its positions say otherwise."""
+        commander = Commander()
+        area = order(
+            task=OrderTask.RECON_AREA, polygon=[(65.84, 21.02), (65.84, 21.06), (65.86, 21.06)]
+        )
+
+        def lie(c: Commander) -> list[Event]:
+            ((_, steps),) = c.uploads
+            c.progress("current", len(steps))  # one past the last: no longer counts
+            c.progress("reached", len(steps) - 1)  # the last, but the airframe is elsewhere
+            c.progress("reached", len(steps) + 5)  # an item it was never given
+            return [telemetry(), telemetry()]  # still at home
+
+        published = await run_orders(commander, [telemetry(), area], after=lie, settle=True)
+        assert states(published) == ["accepted", "executing"]
+
+    async def test_a_survey_completes_at_the_last_item_reached_and_flown_to(self) -> None:
+        commander = Commander()
+        area = order(
+            task=OrderTask.RECON_AREA, polygon=[(65.84, 21.02), (65.84, 21.06), (65.86, 21.06)]
+        )
+
+        def fly(c: Commander) -> list[Event]:
+            ((_, steps),) = c.uploads
+            last = steps[-1]
+            c.progress("reached", len(steps) - 1)
+            return [telemetry(at=(last.lat_deg, last.lon_deg))]
+
+        published = await run_orders(
+            commander,
+            [telemetry(), area],
+            after=fly,
+            until=lambda s: any(x.status is OrderState.COMPLETED for x in s),
+        )
+        assert states(published) == ["accepted", "executing", "completed"]
+
+    async def test_track_target_follows_the_track_and_completes_when_it_is_lost(self) -> None:
+        commander = Commander()
+        first = track("T-7", at=(65.85, 21.10))
+        moved = track("T-7", at=(65.86, 21.14))
+        lost = track("T-7", at=(65.86, 21.14), status="lost")
+        follow = order(task=OrderTask.TRACK_TARGET, track_id="T-7")
+
+        def move(c: Commander) -> list[Event]:
+            return [moved, telemetry()]
+
+        published = await run_orders(
+            commander,
+            [telemetry(), first, follow],
+            options={"track_replan_s": 0.05},
+            after=move,
+            until=lambda s: len(commander.uploads) >= 2,
+        )
+        assert states(published) == ["accepted", "executing"]
+        second = commander.uploads[1][1][-1]
+        assert (second.lat_deg, second.lon_deg) == (65.86, 21.14)
+        published = await run_orders(
+            Commander(),
+            [telemetry(), first, follow, lost],
+            until=lambda s: any(x.status is OrderState.COMPLETED for x in s),
+        )
+        assert states(published) == ["accepted", "executing", "completed"]
+        assert published[-1].reason == "track T-7 was lost"
+
+
+@pytest.mark.anyio
+async def test_a_followed_track_that_leaves_the_fence_fails_the_order() -> None:
+    commander = Commander()
+    follow = order(task=OrderTask.TRACK_TARGET, track_id="T-8")
+
+    def flee(c: Commander) -> list[Event]:
+        return [track("T-8", at=(64.5, 21.0)), telemetry()]
+
+    published = await run_orders(
+        commander,
+        [telemetry(), track("T-8", at=(65.85, 21.10)), follow],
+        options={"track_replan_s": 0.05},
+        after=flee,
+        until=lambda s: any(x.status is OrderState.FAILED for x in s),
+    )
+    assert states(published) == ["accepted", "executing", "failed"]
+    assert published[-1].check == "geofence"
+    assert published[-1].reason is not None
+    assert published[-1].reason.startswith("the track moved to 64.50000, 21.00000: the route")
+    assert len(commander.uploads) == 1  # nothing went up for the refused orbit
 
 
 def test_order_status_round_trips_as_json() -> None:

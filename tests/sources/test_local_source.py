@@ -89,6 +89,50 @@ async def test_an_order_is_published_and_its_statuses_streamed_until_final(
 
 
 @pytest.mark.anyio
+async def test_a_taken_order_id_is_rejected_again_or_a_conflict_if_changed(tmp_path: Path) -> None:
+    published: list[Event] = []
+
+    def publish(event: Event) -> bool:
+        published.append(event)
+        assert isinstance(event, FiveLineOrder)
+        source.on_order_status(  # answered at once: the first order's final status
+            OrderStatus(
+                event_id=f"{event.event_id}-completed",
+                order_event_id=event.event_id,
+                order_id=event.order_id,
+                source="operator",
+                time=event.time,
+                status=OrderState.COMPLETED,
+            )
+        )
+        return True
+
+    config = LocalOrderSourceConfig(socket=tmp_path / "o.sock")
+    source = LocalOrderSource("operator", config, publish)
+    later = {**ORDER, "issued": "2026-11-22T12:05:00Z"}  # issued again, the same order
+    changed = {**ORDER, "location": {"point": {"lat_deg": 65.9, "lon_deg": 21.2}}}
+    with anyio.fail_after(10):
+        async with anyio.create_task_group() as tg:
+            await tg.start(source.run)
+            answers = [
+                await exchange(config.socket, json.dumps(o).encode() + b"\n")
+                for o in (ORDER, later, changed)
+            ]
+            tg.cancel_scope.cancel()
+    assert [[a["status"] for a in lines] for lines in answers] == [
+        ["received", "completed"],
+        ["rejected"],
+        ["conflict"],
+    ]
+    assert answers[2][0]["reason"] == (
+        "order_id: OP-9 was already taken with other content; the first stands: give a"
+        " changed order a new id"
+    )
+    assert len(published) == 1
+    assert source.counts["conflict"] == 1
+
+
+@pytest.mark.anyio
 async def test_bad_lines_are_answered_rejected_and_nothing_is_published(tmp_path: Path) -> None:
     published: list[Event] = []
     config = LocalOrderSourceConfig(socket=tmp_path / "o.sock", max_line_bytes=1024, timeout_s=0.5)

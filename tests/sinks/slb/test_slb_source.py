@@ -160,6 +160,29 @@ class TestOrders:
         assert source.counts["receipt_failed"] == 1
 
     @pytest.mark.anyio
+    async def test_a_changed_order_under_a_taken_id_is_a_conflict(self, tmp_path: Path) -> None:
+        """SLB offers O-4 again with another area: answered conflict, not the old receipt."""
+        published = Published()
+        async with SlbPeer(tmp_path) as peer:
+            peer.queue_order(order("O-4"))
+            source = source_for(peer, published)
+            async with client_for(source) as client:
+                with anyio.fail_after(10):
+                    await source.poll(client)
+                    peer.queue_order(order("O-4"))  # the same again: its receipt again
+                    await source.poll(client)
+                    peer.queue_order(order("O-4", priority="flash"))  # changed
+                    await source.poll(client)
+        assert len(published.orders) == 1
+        assert [r["status"] for r in peer.receipts] == ["received", "received", "conflict"]
+        assert peer.receipts[-1]["reason"] == (
+            "order_id: O-4 was already taken with other content; the first stands: give a"
+            " changed order a new id"
+        )
+        assert source.counts["conflict"] == 1
+        assert source.counts["reoffered"] == 1
+
+    @pytest.mark.anyio
     async def test_the_limit_is_asked_for_and_the_rest_wait(self, tmp_path: Path) -> None:
         published = Published()
         async with SlbPeer(tmp_path) as peer:

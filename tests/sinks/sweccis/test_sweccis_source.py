@@ -133,6 +133,27 @@ class TestOrders:
         assert [e.event_id for e in intake.events] == ["sweccis-order-ORD-1"]
         assert [status for _, status, _ in peer.order_acks] == ["accepted"] + ["duplicate"] * 4
 
+    @pytest.mark.anyio
+    async def test_a_changed_order_under_a_taken_id_is_a_conflict(self, tmp_path: Path) -> None:
+        """ORD-1 again with another point: rejected, an OrderStatus conflict; the first stands."""
+        intake = Intake()
+        async with SweccisPeer(tmp_path) as peer:
+            sweccis = source(peer, intake)
+            with anyio.fail_after(10):
+                async with running(sweccis, peer):
+                    await peer.push_order(order_document("doc-1", "ORD-1", point=(65.85, 21.1)))
+                    await eventually(acked(peer, 1))
+                    await peer.push_order(order_document("doc-2", "ORD-1", point=(65.9, 21.2)))
+                    await eventually(lambda: peer.order_statuses("ORD-1") == ["conflict"])
+        assert len(intake.events) == 1
+        assert [status for _, status, _ in peer.order_acks] == ["accepted", "rejected"]
+        assert peer.order_acks[1][2] == (
+            "order_id: ORD-1 was already taken with other content; the first stands: give a"
+            " changed order a new id"
+        )
+        assert peer.invalid == []  # the conflict status passed the shipped XSD
+        assert sweccis.counts["conflict"] == 1
+
 
 class TestHostileInput:
     """Bad orders are rejected by name, garbage is counted; the source carries on."""
