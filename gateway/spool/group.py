@@ -7,6 +7,9 @@ someone needs it committed (a sink runner about to send what was appended, an ex
 ``Spool.batch()`` scope ending). Whoever must act only once the writes are durable (the
 detection acknowledgements) asks ``when_done`` and hears whether they committed.
 
+A group also holds the rows it has yet to write: the events appended in the pass and their
+owed rows are inserted together (one ``executemany`` each) before the next other statement or
+the commit, and the events whose last sink confirmed them are deleted once, at the commit.
 The record kept here is what undoing a group that did not commit takes: the ``seq`` of each
 event appended in it (never to be sent) and the change it made to each sink's owed count.
 """
@@ -26,11 +29,27 @@ log = structlog.get_logger(__name__)
 class Commit:
     """The open group of writes of one spool, until it commits or rolls back."""
 
-    __slots__ = ("_callbacks", "appended", "committed", "owed", "scheduled")
+    __slots__ = (
+        "_callbacks",
+        "appended",
+        "committed",
+        "confirmed",
+        "events",
+        "owed",
+        "pending",
+        "scheduled",
+    )
 
     def __init__(self) -> None:
         #: ``seq`` and sinks of each event appended in this group.
         self.appended: list[tuple[int, tuple[str, ...]]] = []
+        #: ``events`` rows appended and not written yet.
+        self.events: list[tuple[int, str, str, bytes, float]] = []
+        #: ``pending`` rows (sink, seq) appended and not written yet.
+        self.pending: list[tuple[str, int]] = []
+        #: ``seq`` of events confirmed by a sink in this group: deleted at the commit if no
+        #: other sink is owed them.
+        self.confirmed: set[int] = set()
         #: What this group changed in each sink's owed count.
         self.owed: Counter[str] = Counter()
         #: None while open; True once committed, False once rolled back.

@@ -326,6 +326,29 @@ class Spool:
             return True
         return self._end(group, commit=True) is None
 
+    def _write_rows(self, group: Commit) -> None:
+        """Write the rows ``group`` holds back (its appends); raises ``sqlite3.Error``."""
+        if group.events:
+            events, group.events = group.events, []
+            pending, group.pending = group.pending, []
+            self._db.executemany(
+                "INSERT INTO events (seq, event_id, kind, body, spooled_at) VALUES (?, ?, ?, ?, ?)",
+                events,
+            )
+            self._db.executemany("INSERT INTO pending VALUES (?, ?)", pending)
+
+    def _drain(self) -> None:
+        """Before a read: the open group's appends written (a failure rolls the group back)."""
+        group = self._group
+        if group is None or not group.events:
+            return
+        try:
+            self._write_rows(group)
+        except sqlite3.Error as exc:
+            if not self._scopes:
+                self._end(group, commit=False, cause=exc)
+            raise SpoolError(f"spool {self._where}: {exc}") from exc
+
     def _end(
         self, group: Commit, *, commit: bool, cause: BaseException | None = None
     ) -> sqlite3.Error | None:
@@ -334,6 +357,13 @@ class Spool:
         error: sqlite3.Error | None = None
         if commit:
             try:
+                self._write_rows(group)
+                if group.confirmed:
+                    self._db.executemany(
+                        "DELETE FROM events WHERE seq=? AND NOT EXISTS "
+                        "(SELECT 1 FROM pending WHERE pending.seq=events.seq)",
+                        [(seq,) for seq in group.confirmed],
+                    )
                 self._db.execute("COMMIT")
             except sqlite3.Error as exc:
                 error = exc
@@ -404,7 +434,7 @@ class Spool:
                 raise SpoolError(f"spool {self._where}: {error}") from error
 
     @contextlib.contextmanager
-    def _write(self) -> Iterator[sqlite3.Connection]:
+    def _write(self, *, drain: bool = True) -> Iterator[sqlite3.Connection]:
         """A write joining the open group (opened now with a loop running), else committed at once.
 
         A write that fails inside a group rolls the group back (outside ``batch()``; inside,
@@ -415,6 +445,8 @@ class Spool:
             group = self._begin()
         if group is not None:
             try:
+                if drain:  # not needed by a write of the ``seen`` table alone
+                    self._write_rows(group)
                 yield self._db
             except BaseException as exc:
                 if not self._scopes and self._group is group:
@@ -472,13 +504,20 @@ class Spool:
                 return None
         body = event.model_dump_json().encode()
         try:
-            seq = self._insert(event.event_id, event.kind.value, body, time.time(), sinks)
+            group = self._group
+            if group is None and self._owner and _loop_running():
+                group = self._begin()
+            if group is None:
+                seq = self._insert(event.event_id, event.kind.value, body, time.time(), sinks)
+            else:  # written with the rest of the group's appends (``_drain``)
+                seq = self._seq = self._seq + 1
+                group.events.append((seq, event.event_id, event.kind.value, body, time.time()))
+                group.pending += [(sink, seq) for sink in sinks]
+                group.appended.append((seq, tuple(sinks)))
         except sqlite3.Error as exc:
-            raise SpoolError(f"spool {self.path or ':memory:'}: {exc}") from exc
+            raise SpoolError(f"spool {self._where}: {exc}") from exc
         for sink in sinks:
             self._owe(sink, 1)
-        if self._group is not None:
-            self._group.appended.append((seq, tuple(sinks)))
         self._appends += 1
         self._bytes += len(body) + 64 * (1 + len(sinks))
         if self._appends % _SIZE_CHECK_EVERY == 0:
@@ -526,7 +565,7 @@ class Spool:
 
     def remember(self, event_id: str) -> None:
         """Record a detection id as taken in (in the open batch, with its event)."""
-        with self._write() as db:
+        with self._write(drain=False) as db:
             db.execute("INSERT OR REPLACE INTO seen VALUES (?, ?)", (event_id, time.time()))
         self._seen_rows += 1
         if self._seen_rows % _SEEN_PRUNE_EVERY == 0 or self._seen_rows > self.seen_max:
@@ -539,7 +578,7 @@ class Spool:
         loop long; ``force`` drops the oldest chunk even inside the window (a full spool).
         """
         cutoff = time.time() - self.dedup_window_s
-        with self._write() as db:
+        with self._write(drain=False) as db:
             cursor = db.execute(
                 "DELETE FROM seen WHERE event_id IN "
                 "(SELECT event_id FROM seen WHERE at < ? LIMIT ?)",
@@ -568,11 +607,14 @@ class Spool:
                     "DELETE FROM pending WHERE sink=? AND seq=?", [(sink, s) for s in seqs]
                 )
                 self._owe(sink, -max(cursor.rowcount, 0))
-                db.executemany(
-                    "DELETE FROM events WHERE seq=? AND NOT EXISTS "
-                    "(SELECT 1 FROM pending WHERE pending.seq=events.seq)",
-                    [(s,) for s in seqs],
-                )
+                if self._group is not None:
+                    self._group.confirmed.update(seqs)  # deleted once, at the commit
+                else:
+                    db.executemany(
+                        "DELETE FROM events WHERE seq=? AND NOT EXISTS "
+                        "(SELECT 1 FROM pending WHERE pending.seq=events.seq)",
+                        [(s,) for s in seqs],
+                    )
             # Measured, not estimated, as it shrinks while near the cap: a drained spool must
             # stop being "full" (and stop its alerts) without waiting for new appends.
             self._settles += 1
@@ -611,6 +653,7 @@ class Spool:
         A row whose body no longer parses (written by another version) is dead-lettered with
         the reason instead of stopping the sink.
         """
+        self._drain()
         rows = self._db.execute(
             "SELECT e.seq, e.body, e.spooled_at FROM pending p JOIN events e ON e.seq = p.seq"
             " WHERE p.sink=? AND p.seq>? ORDER BY p.seq LIMIT ?",
@@ -632,6 +675,7 @@ class Spool:
 
     def recount(self, sink: str) -> int:
         """Count what ``sink`` is owed from the database (after another process changed it)."""
+        self._drain()
         row = self._db.execute("SELECT count(*) FROM pending WHERE sink=?", (sink,)).fetchone()
         self._pending[sink] = int(row[0])
         return self._pending[sink]
