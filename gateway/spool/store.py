@@ -509,15 +509,15 @@ class Spool:
                 group = self._begin()
             if group is None:
                 seq = self._insert(event.event_id, event.kind.value, body, time.time(), sinks)
-            else:  # written with the rest of the group's appends (``_drain``)
+            else:  # written with the rest of the group's appends (``_write_rows``)
                 seq = self._seq = self._seq + 1
                 group.events.append((seq, event.event_id, event.kind.value, body, time.time()))
                 group.pending += [(sink, seq) for sink in sinks]
                 group.appended.append((seq, tuple(sinks)))
+                group.owed.update(sinks)
         except sqlite3.Error as exc:
             raise SpoolError(f"spool {self._where}: {exc}") from exc
-        for sink in sinks:
-            self._owe(sink, 1)
+        self._pending.update(sinks)
         self._appends += 1
         self._bytes += len(body) + 64 * (1 + len(sinks))
         if self._appends % _SIZE_CHECK_EVERY == 0:
