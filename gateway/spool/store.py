@@ -399,7 +399,9 @@ class Spool:
             self.commits.failed(cause)
         with contextlib.suppress(sqlite3.Error):
             self._db.execute("ROLLBACK")
-        return cause if isinstance(cause, sqlite3.Error) else sqlite3.OperationalError("rolled back")
+        return (
+            cause if isinstance(cause, sqlite3.Error) else sqlite3.OperationalError("rolled back")
+        )
 
     def _owe(self, sink: str, count: int) -> None:
         """Change what the spool owes ``sink`` by ``count``, undone with an uncommitted group."""
