@@ -192,7 +192,8 @@ class SinkRunner:
     def offer_spooled(self, event: Event, ingest_mono: float, seq: int) -> None:
         """Queue a durable event the bus has already spooled for this sink as ``seq``."""
         self.outbox.add(event, ingest_mono, seq)
-        self._wake_sender()
+        if self._waiting:
+            self._wake_sender()
 
     def refused(self, event: Event) -> None:
         """Count a durable event the spool had no room for (the spool logs it too)."""

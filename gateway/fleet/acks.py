@@ -36,7 +36,6 @@ from gateway.events import Detection, Event
 from gateway.fleet.session import AirframeSession
 from gateway.ops.instruments import Instruments
 from gateway.ops.logsetup import RateLimit
-from gateway.spool.group import Commit
 
 __all__ = ["ACK_DUPLICATE", "ACK_HELD", "DetectionAcks", "DetectionLedger"]
 
@@ -50,6 +49,19 @@ _RESULT_NAMES = {ACK_HELD: "held", ACK_DUPLICATE: "duplicate"}
 ACK_QUEUE_MAX = 10_000
 #: Acknowledgements of one airframe are sent together up to about this many bytes.
 ACK_SEND_BYTES = 1024
+
+
+class Commit(Protocol):
+    """The spool's open group of writes (``gateway.spool.group.Commit``), as the intake sees it."""
+
+    @property
+    def scheduled(self) -> bool:
+        """True if the end of the loop pass commits it."""
+        ...
+
+    def when_done(self, callback: Callable[[bool], None]) -> None:
+        """Call ``callback(committed)`` when the group ends."""
+        ...
 
 
 class DetectionLedger(Protocol):

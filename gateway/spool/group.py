@@ -5,7 +5,10 @@ bus, a detection id remembered by the intake, a sink's confirmation or dead lett
 later write of the pass joins it; it commits once, at the end of the pass, or earlier when
 someone needs it committed (a sink runner about to send what was appended, an explicit
 ``Spool.batch()`` scope ending). Whoever must act only once the writes are durable (the
-detection acknowledgements) asks ``when_done`` and hears whether they committed.
+detection acknowledgements) asks ``when_done`` and hears whether they committed. A group of
+confirmations and dead letters alone, that no one waits on, lingers a little longer
+(``Spool``'s ``SETTLE_LINGER_S``) so the runners of one publish whose sinks answer in
+different passes share its commit; an append or a listener joining it ends the linger.
 
 A group also holds the rows it has yet to write: the events appended in the pass and their
 owed rows are inserted together (one ``executemany`` each) before the next other statement or
@@ -35,6 +38,9 @@ class Commit:
         "committed",
         "confirmed",
         "events",
+        "lingered",
+        "lingering",
+        "on_hurry",
         "owed",
         "pending",
         "scheduled",
@@ -56,6 +62,12 @@ class Commit:
         self.committed: bool | None = None
         #: True if the end of the loop pass commits it (else its owner or the next flush).
         self.scheduled = False
+        #: True while it waits past the end of its pass for more confirmations.
+        self.lingering = False
+        #: True once it has lingered (it lingers once at most).
+        self.lingered = False
+        #: Called by ``hurry`` while lingering (set by the spool).
+        self.on_hurry: Callable[[Commit], None] | None = None
         self._callbacks: list[Callable[[bool], None]] = []
 
     @property
@@ -63,10 +75,23 @@ class Commit:
         """True if events were appended in this group (not to be sent before it commits)."""
         return bool(self.appended)
 
+    @property
+    def waited_on(self) -> bool:
+        """True if someone waits to hear how it ends."""
+        return bool(self._callbacks)
+
+    def hurry(self) -> None:
+        """It must commit at the end of this pass after all: end its linger."""
+        if self.lingering:
+            self.lingering = False
+            if self.on_hurry is not None:
+                self.on_hurry(self)
+
     def when_done(self, callback: Callable[[bool], None]) -> None:
         """Call ``callback(committed)`` when the group ends (at once if it has ended)."""
         if self.committed is None:
             self._callbacks.append(callback)
+            self.hurry()
         else:
             callback(self.committed)
 

@@ -50,7 +50,7 @@ from gateway.spool.commits import Commits
 from gateway.spool.group import Commit
 from gateway.spool.startcheck import StartCheck, create_private, open_checked
 
-__all__ = ["DeadLetter", "Spool", "Spooled"]
+__all__ = ["SETTLE_LINGER_S", "DeadLetter", "Spool", "Spooled"]
 
 log = structlog.get_logger(__name__)
 
@@ -91,6 +91,9 @@ _SIZE_CHECK_EVERY = 256
 _SEEN_PRUNE_EVERY = 1024
 _SEEN_PRUNE_CHUNK = 10_000
 _ROLLED_BACK_KEEP = 100_000
+#: How long a group of confirmations and dead letters alone, that no one waits on, may wait
+#: past its pass for more of them (a kill -9 meanwhile costs a re-delivery, never a loss).
+SETTLE_LINGER_S = 0.02
 _FULL_LOG_INTERVAL_S = 10.0
 _WARN_LOG_INTERVAL_S = 60.0
 
@@ -312,8 +315,19 @@ class Spool:
         return group
 
     def _end_of_pass(self, group: Commit) -> None:
-        if self._group is group and not self._scopes:
-            self._end(group, commit=True)
+        if self._group is not group or self._scopes:
+            return
+        if not (group.has_appends or group.waited_on or group.lingered):
+            # Confirmations alone, no one waiting: the other runners of the same publish may
+            # confirm in the next passes (a sink that hops to a thread); one commit for all.
+            group.lingered = group.lingering = True
+            group.on_hurry = self._hurry
+            asyncio.get_running_loop().call_later(SETTLE_LINGER_S, self._end_of_pass, group)
+            return
+        self._end(group, commit=True)
+
+    def _hurry(self, group: Commit) -> None:
+        asyncio.get_running_loop().call_soon(self._end_of_pass, group)
 
     def flush(self) -> bool:
         """Commit the open group now (unless a ``batch()`` scope holds it); False if it failed.
@@ -516,10 +530,16 @@ class Spool:
                 group.events.append((seq, event.event_id, event.kind.value, body, time.time()))
                 group.pending += [(sink, seq) for sink in sinks]
                 group.appended.append((seq, tuple(sinks)))
-                group.owed.update(sinks)
+                if group.lingering:
+                    group.hurry()  # an event: committed at the end of this pass
+                owed = group.owed
+                for sink in sinks:  # not Counter.update: its Mapping check costs more here
+                    owed[sink] += 1
         except sqlite3.Error as exc:
             raise SpoolError(f"spool {self._where}: {exc}") from exc
-        self._pending.update(sinks)
+        pending = self._pending
+        for sink in sinks:
+            pending[sink] += 1
         self._appends += 1
         self._bytes += len(body) + 64 * (1 + len(sinks))
         if self._appends % _SIZE_CHECK_EVERY == 0:

@@ -119,8 +119,8 @@ async def test_confirmations_of_the_runners_of_one_pass_share_a_commit(tmp_path:
     assert commits <= 2 * events + 2
     for sink in sinks.values():
         assert [e.event_id for e in sink.events] == [f"det-{n}" for n in range(events)]
+    spool.close()  # commits what still lingers
     assert on_disk(tmp_path / "spool.db") == (0, 0)
-    spool.close()
 
 
 class TestAcknowledgements:
@@ -226,3 +226,49 @@ def test_a_spool_that_cannot_begin_says_so(tmp_path: Path) -> None:
         spool.group()
     assert spool.commits.total == 1
     spool.close()  # the lock file
+
+
+@pytest.mark.anyio
+async def test_confirmations_alone_linger_for_the_other_runners_then_commit(
+    tmp_path: Path,
+) -> None:
+    spool = Spool(tmp_path / "spool.db")
+    for n in range(3):
+        spool.append(detection(n), ("a", "b"))
+    assert spool.flush()
+    spool.confirm("a", [1])
+    group = spool.open_group
+    assert group is not None
+    await asyncio.sleep(0)
+    assert group.lingering  # nothing waits on it: it stays open past its pass ...
+    spool.confirm("b", [1])  # ... so a later pass's confirmation joins it
+    assert spool.open_group is group
+    with anyio.fail_after(10):
+        await eventually(lambda: group.committed is not None)
+    assert group.committed
+    assert spool.open_group is None
+    assert on_disk(tmp_path / "spool.db") == (2, 4)
+    spool.close()
+
+
+@pytest.mark.anyio
+@pytest.mark.parametrize("joins", ["event", "listener"])
+async def test_an_event_or_a_listener_ends_the_linger(tmp_path: Path, joins: str) -> None:
+    spool = Spool(tmp_path / "spool.db")
+    spool.append(detection(0), ("a",))
+    assert spool.flush()
+    spool.confirm("a", [1])
+    group = spool.open_group
+    assert group is not None
+    await asyncio.sleep(0)
+    assert group.lingering
+    heard: list[bool] = []
+    if joins == "event":
+        spool.append(detection(1), ("a",))
+    else:
+        group.when_done(heard.append)
+    assert not group.lingering
+    await asyncio.sleep(0)
+    assert group.committed  # at the end of this pass, not after the linger
+    assert heard == ([True] if joins == "listener" else [])
+    spool.close()
