@@ -218,10 +218,20 @@ async def _run(spool_dir: Path, latency_events: int, events: int, burst: int) ->
     return out
 
 
-def measure(latency_events: int, events: int, burst: int) -> dict[str, float]:
-    """One run in this process: latency and throughput figures."""
-    with tempfile.TemporaryDirectory(dir=os.environ.get("BENCH_DIR")) as tmp:
-        return asyncio.run(_run(Path(tmp), latency_events, events, burst))
+def measure(
+    latency_events: int, events: int, burst: int, *, uvloop: bool = False
+) -> dict[str, float]:
+    """One run in this process: latency and throughput figures (on uvloop if asked)."""
+    factory = None
+    if uvloop:
+        import uvloop as uv
+
+        factory = uv.new_event_loop
+    with (
+        tempfile.TemporaryDirectory(dir=os.environ.get("BENCH_DIR")) as tmp,
+        asyncio.Runner(loop_factory=factory) as runner,
+    ):
+        return runner.run(_run(Path(tmp), latency_events, events, burst))
 
 
 def _in_tree(tree: Path, args: argparse.Namespace) -> dict[str, float]:
@@ -232,7 +242,8 @@ def _in_tree(tree: Path, args: argparse.Namespace) -> dict[str, float]:
         "import json, delivery\n"
         "from gateway.ops.logsetup import configure_logging\n"
         "configure_logging('warning', sys.stderr)\n"
-        f"print(json.dumps(delivery.measure({args.latency_events}, {args.events}, {args.burst})))\n"
+        f"print(json.dumps(delivery.measure({args.latency_events}, {args.events}, "
+        f"{args.burst}, uvloop={args.uvloop})))\n"
     )
     env = {**os.environ, "PYTHONPATH": str(tree)}
     done = subprocess.run(
@@ -248,6 +259,7 @@ def main() -> None:
     parser.add_argument("--burst", type=int, default=100, help="events published per loop pass")
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--before", help="a commit to compare with, interleaved in this run")
+    parser.add_argument("--uvloop", action="store_true", help="on uvloop, as the daemon runs")
     args = parser.parse_args()
     trees: dict[str, Path] = {"this tree": ROOT}
     tmp = None
@@ -272,7 +284,8 @@ def main() -> None:
             shutil.rmtree(tmp, ignore_errors=True)
     print(
         f"{platform.machine()} {os.cpu_count()} cores, Python {platform.python_version()}, "
-        f"SQLite {sqlite3.sqlite_version}, {SINKS} sinks, file spool (NORMAL), "
+        f"SQLite {sqlite3.sqlite_version}, {'uvloop' if args.uvloop else 'asyncio'}, "
+        f"{SINKS} sinks, file spool (NORMAL), "
         f"{args.rounds} rounds (median [min-max])\n"
     )
     print(
