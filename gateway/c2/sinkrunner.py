@@ -9,8 +9,11 @@ Every sink gets the same delivery behaviour from here, and holds none of its own
   restart or kill -9 of the gateway, a permanent rejection is dead-lettered in the spool, a
   stale event is delivered marked late or expired by its kind's rule; only a full spool
   refuses events (counted and logged loudly);
-- every ``send`` runs under the sink's deadline, so a hung sink costs that sink a timeout and
-  a retry, never another sink or the ingest path (``offer`` is synchronous and O(1));
+- the runner waits once (a plain future and one timer), takes everything ready up to
+  ``batch_max``, sends it as one batch under one deadline (``asyncio.timeout``: no cancel
+  scope per event) and confirms it in the spool's group commit of the loop pass
+  (``gateway.spool.group``); a hung sink costs that sink a timeout and a retry, never another
+  sink or the ingest path (``offer`` is synchronous and O(1));
 - a sink bug (an exception that is neither a ``SinkError`` nor the network's) is retried
   ``ERROR_ATTEMPTS`` times, then the batch is tried event by event and only the events that
   still fail are given up on, so one poisoned event cannot block the queue;

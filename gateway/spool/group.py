@@ -7,7 +7,7 @@ someone needs it committed (a sink runner about to send what was appended, an ex
 ``Spool.batch()`` scope ending). Whoever must act only once the writes are durable (the
 detection acknowledgements) asks ``when_done`` and hears whether they committed. A group of
 confirmations and dead letters alone, that no one waits on, lingers a little longer
-(``Spool``'s ``SETTLE_LINGER_S``) so the runners of one publish whose sinks answer in
+(``gateway.spool.store.SETTLE_LINGER_S``) so the runners of one publish whose sinks answer in
 different passes share its commit; an append or a listener joining it ends the linger.
 
 A group also holds the rows it has yet to write: the events appended in the pass and their

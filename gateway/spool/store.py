@@ -19,8 +19,9 @@ committed at the end of the pass, or earlier by ``flush`` (a sink runner about t
 of the open group commits it first: nothing is sent before it is held) or by the end of a
 ``batch()`` scope; those who must act only once it is durable ask ``Commit.when_done`` (the
 detection acknowledgements). Without a loop (the ``spool`` command) each write commits at once.
-A confirmation is durable at the end of its pass: a kill -9 before then costs a re-delivery
-(receivers drop it by event id), never a loss. ``sync="normal"`` (WAL with
+A group of confirmations alone may wait up to ``SETTLE_LINGER_S`` past its pass for the other
+sinks' confirmations: a kill -9 before it commits costs a re-delivery (receivers drop it by
+event id), never a loss. ``sync="normal"`` (WAL with
 ``synchronous=NORMAL``) survives kill -9 and any crash of the process, since a commit is in the
 operating system's cache when it returns; a power cut can lose the newest commits. ``"full"``
 adds an fsync per commit. All calls are synchronous and short, made on the event loop.
