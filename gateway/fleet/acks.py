@@ -23,12 +23,12 @@ A lost acknowledgement costs a re-send, never a detection; an unsent one is coun
 
 from __future__ import annotations
 
+import asyncio
 import functools
 from collections import deque
 from collections.abc import Callable
 from typing import Protocol
 
-import anyio
 import structlog
 
 from gateway.errors import FrameError, LinkError
@@ -96,7 +96,8 @@ class DetectionAcks:
         self._group: Commit | None = None
         self._due: list[tuple[AirframeSession, int, int, int]] = []
         self._queue: deque[tuple[AirframeSession, bytes]] = deque(maxlen=ACK_QUEUE_MAX)
-        self._ready = anyio.Event()
+        # asyncio's own event, set and cleared: no anyio back-end look-up per datagram.
+        self._ready = asyncio.Event()
         self._log = RateLimit(interval_s=10.0)
 
     @property
@@ -151,7 +152,7 @@ class DetectionAcks:
         """Send queued acknowledgements, those of one airframe together, until cancelled."""
         while True:
             await self._ready.wait()
-            self._ready = anyio.Event()
+            self._ready.clear()
             pending: dict[str, tuple[AirframeSession, bytearray]] = {}
             while self._queue:
                 airframe, frame = self._queue.popleft()
