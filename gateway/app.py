@@ -239,6 +239,7 @@ class Gateway:
         )
         inst.spool_dead_letters.set_function(lambda: [((), float(spool.dead_letter_count()))])
         commits, check = spool.commits, spool.start_check
+        inst.spool_commits.set_function(lambda: [((), float(commits.committed))])
         # Every reason from the start, at 0: increase() then sees the first failure too.
         inst.spool_commit_failures.set_function(
             lambda: [((r,), float(commits.failures[r])) for r in COMMIT_FAILURE_REASONS]

@@ -101,6 +101,9 @@ class Outbox:
         An event older than its kind's stale rule is either marked ``late_by_s`` and sent, or
         returned as expired (with the reason) for the caller to dead-letter.
         """
+        group = self.spool.open_group
+        if group is not None and group.has_appends:
+            self.spool.flush()  # nothing is sent before it is held; a failed group is skipped
         self.refill()
         taken: list[Queued] = []
         expired: list[tuple[Queued, str]] = []

@@ -9,8 +9,11 @@ Every sink gets the same delivery behaviour from here, and holds none of its own
   restart or kill -9 of the gateway, a permanent rejection is dead-lettered in the spool, a
   stale event is delivered marked late or expired by its kind's rule; only a full spool
   refuses events (counted and logged loudly);
-- every ``send`` runs under the sink's deadline, so a hung sink costs that sink a timeout and
-  a retry, never another sink or the ingest path (``offer`` is synchronous and O(1));
+- the runner waits once (a plain future and one timer), takes everything ready up to
+  ``batch_max``, sends it as one batch under one deadline (``asyncio.timeout``: no cancel
+  scope per event) and confirms it in the spool's group commit of the loop pass
+  (``gateway.spool.group``); a hung sink costs that sink a timeout and a retry, never another
+  sink or the ingest path (``offer`` is synchronous and O(1));
 - a sink bug (an exception that is neither a ``SinkError`` nor the network's) is retried
   ``ERROR_ATTEMPTS`` times, then the batch is tried event by event and only the events that
   still fail are given up on, so one poisoned event cannot block the queue;
@@ -24,6 +27,7 @@ sink takes events again.
 
 from __future__ import annotations
 
+import asyncio
 import time
 from collections import deque
 from collections.abc import Mapping
@@ -67,6 +71,11 @@ def _is_transient(exc: BaseException) -> bool:
     return isinstance(exc, TransientSinkError | TimeoutError | OSError)
 
 
+def _release(waiter: asyncio.Future[None]) -> None:
+    if not waiter.done():
+        waiter.set_result(None)
+
+
 class _StartedFlag:
     """Forwards ``started()`` to the runner's task status and remembers that it was called."""
 
@@ -99,7 +108,7 @@ class SinkRunner:
         #: Without a spool of the gateway's, the runner keeps its own in memory (tests, tools).
         self.spool = spool if spool is not None else Spool()
         self.outbox = Outbox(self.name, self.spool, window=entry.queue_max, stale=stale)
-        self._wake = anyio.Event()
+        self._waiter: asyncio.Future[None] | None = None
         self._waiting = False
         self._stopping = False
         self._done = anyio.Event()
@@ -186,7 +195,8 @@ class SinkRunner:
     def offer_spooled(self, event: Event, ingest_mono: float, seq: int) -> None:
         """Queue a durable event the bus has already spooled for this sink as ``seq``."""
         self.outbox.add(event, ingest_mono, seq)
-        self._wake_sender()
+        if self._waiting:
+            self._wake_sender()
 
     def refused(self, event: Event) -> None:
         """Count a durable event the spool had no room for (the spool logs it too)."""
@@ -202,7 +212,9 @@ class SinkRunner:
     def _wake_sender(self) -> None:
         if self._waiting:
             self._waiting = False
-            self._wake.set()
+            waiter = self._waiter
+            if waiter is not None and not waiter.done():
+                waiter.set_result(None)
 
     @property
     def depth(self) -> tuple[int, int]:
@@ -330,15 +342,25 @@ class SinkRunner:
             if not items:
                 if self._stopping:
                     return None
-                self._wake = anyio.Event()
-                self._waiting = True
-                with anyio.move_on_after(IDLE_POLL_S):
-                    await self._wake.wait()
-                self._waiting = False
+                await self._idle()
                 if not self._latest and not len(self.outbox):
                     self.outbox.poll()  # dead letters re-queued from the command line
                 continue
             await self._deliver(items)
+
+    async def _idle(self) -> None:
+        """Wait for an offer, a stop or ``IDLE_POLL_S``: a plain future and one timer, the
+        cheapest wait the loop has (no cancel scope per wait)."""
+        loop = asyncio.get_running_loop()
+        waiter = self._waiter = loop.create_future()
+        timer = loop.call_later(IDLE_POLL_S, _release, waiter)
+        self._waiting = True
+        try:
+            await waiter
+        finally:
+            timer.cancel()
+            self._waiting = False
+            self._waiter = None
 
     def _take(self) -> list[Queued]:
         limit = 1 if self.circuit.probing() else self.entry.batch_max
@@ -384,11 +406,13 @@ class SinkRunner:
     async def _send(self, items: list[Queued]) -> BaseException | None:
         """One ``send`` under the deadline: None if delivered, else what it raised.
 
-        Cancelled mid-send (shutdown), the events are put back: the batch is still ours.
+        Cancelled mid-send (shutdown), the events are put back: the batch is still ours. The
+        deadline is the loop's own (``asyncio.timeout``: one timer, no cancel scope), one per
+        batch.
         """
         settled = False
         try:
-            with anyio.fail_after(self.entry.send_timeout_s):
+            async with asyncio.timeout(self.entry.send_timeout_s):
                 await self.sink.send([item.event for item in items])
             settled = True
         except Exception as exc:  # noqa: BLE001 - isolation boundary around one sink call

@@ -3,29 +3,35 @@
 An airframe keeps each detection until the gateway acknowledges it (docs/detection-ack.md).
 The gateway acknowledges a detection only once it is committed to the spool:
 
-1. the first detection of a datagram opens one spool transaction (``DetectionLedger.batch``);
+1. the first detection of a datagram joins the spool's open group commit (one transaction for
+   the loop pass, shared with the bus's appends and the sinks' confirmations; opened now if
+   there is none: ``DetectionLedger.group``);
 2. a detection id already in the ledger is a re-send whose acknowledgement was lost: it is
    acknowledged again as DUPLICATE and not published;
 3. otherwise it is published; if the bus held it (spooled for every sink it goes to), its id
    is remembered in the same transaction and a HELD acknowledgement is due; if not (spool
    full) nothing is due, and the airframe sends it again later;
-4. when the datagram is done the transaction commits, and only then are the due
-   acknowledgements queued for sending (``run`` sends them, batched per airframe).
+4. when the datagram is done its due acknowledgements wait for the group to end: once it has
+   committed (at the end of the loop pass, or at once where no loop commits it) they are
+   queued for sending (``run`` sends them, batched per airframe); if it rolled back, none is.
+
+Who opened the group, and in which order the bus, the sinks and the intake write into it,
+does not matter: the spool owns it.
 
 A lost acknowledgement costs a re-send, never a detection; an unsent one is counted.
 """
 
 from __future__ import annotations
 
-import contextlib
+import asyncio
+import functools
 from collections import deque
 from collections.abc import Callable
 from typing import Protocol
 
-import anyio
 import structlog
 
-from gateway.errors import FrameError, GatewayError, LinkError
+from gateway.errors import FrameError, LinkError
 from gateway.events import Detection, Event
 from gateway.fleet.session import AirframeSession
 from gateway.ops.instruments import Instruments
@@ -45,11 +51,28 @@ ACK_QUEUE_MAX = 10_000
 ACK_SEND_BYTES = 1024
 
 
-class DetectionLedger(Protocol):
-    """What the intake needs of the spool: a transaction and the detection ids taken in."""
+class Commit(Protocol):
+    """The spool's open group of writes (``gateway.spool.group.Commit``), as the intake sees it."""
 
-    def batch(self) -> contextlib.AbstractContextManager[None]:
-        """One transaction for what is written inside."""
+    @property
+    def scheduled(self) -> bool:
+        """True if the end of the loop pass commits it."""
+        ...
+
+    def when_done(self, callback: Callable[[bool], None]) -> None:
+        """Call ``callback(committed)`` when the group ends."""
+        ...
+
+
+class DetectionLedger(Protocol):
+    """What the intake needs of the spool: its group commit and the detection ids taken in."""
+
+    def group(self) -> Commit:
+        """The open group commit (opened now if none is); raises if the spool cannot begin."""
+        ...
+
+    def flush(self) -> bool:
+        """Commit the open group now; False if it did not commit."""
         ...
 
     def seen(self, event_id: str) -> bool:
@@ -70,16 +93,17 @@ class DetectionAcks:
         self._publish = publish
         self._ledger = ledger
         self._inst = instruments
-        self._batch: contextlib.AbstractContextManager[None] | None = None
+        self._group: Commit | None = None
         self._due: list[tuple[AirframeSession, int, int, int]] = []
         self._queue: deque[tuple[AirframeSession, bytes]] = deque(maxlen=ACK_QUEUE_MAX)
-        self._ready = anyio.Event()
+        # asyncio's own event, set and cleared: no anyio back-end look-up per datagram.
+        self._ready = asyncio.Event()
         self._log = RateLimit(interval_s=10.0)
 
     @property
     def is_open(self) -> bool:
-        """True while a datagram's transaction is open."""
-        return self._batch is not None
+        """True while a datagram's detections are taken and their acknowledgements not settled."""
+        return self._group is not None
 
     def take(
         self,
@@ -90,10 +114,9 @@ class DetectionAcks:
         time_usec: int,
     ) -> None:
         """Take one detection of the datagram being read (see the module docstring)."""
-        if self._batch is None:
-            batch = self._ledger.batch()
-            batch.__enter__()  # raises if the spool cannot begin: nothing taken, nothing acked
-            self._batch = batch
+        if self._group is None:
+            # Raises if the spool cannot begin: nothing taken, nothing acked.
+            self._group = self._ledger.group()
         if self._ledger.seen(detection.event_id):
             self._inst.link_ignored.labels(label, "duplicate_detection").inc()
             self._due.append((airframe, detection_id, time_usec, ACK_DUPLICATE))
@@ -103,16 +126,20 @@ class DetectionAcks:
             self._due.append((airframe, detection_id, time_usec, ACK_HELD))
 
     def commit(self) -> None:
-        """Commit the datagram's detections, then queue their acknowledgements."""
-        batch, self._batch = self._batch, None
+        """The datagram is done: its acknowledgements are queued once its group has committed."""
+        group, self._group = self._group, None
         due, self._due = self._due, []
-        try:
-            if batch is not None:
-                batch.__exit__(None, None, None)
-        except GatewayError:
+        if group is None:
+            return
+        group.when_done(functools.partial(self._settled, due))
+        if not group.scheduled:
+            self._ledger.flush()  # no loop pass to end it: now
+
+    def _settled(self, due: list[tuple[AirframeSession, int, int, int]], committed: bool) -> None:
+        if not committed:
             # Not committed: nothing is acknowledged, the airframes send these again.
-            if self._log.allow("commit"):
-                log.exception("detections_not_committed", count=len(due))
+            if due and self._log.allow("commit"):
+                log.error("detections_not_committed", count=len(due))
             return
         for airframe, detection_id, time_usec, result in due:
             frame = airframe.encode_detection_ack(detection_id, time_usec, result)
@@ -125,7 +152,7 @@ class DetectionAcks:
         """Send queued acknowledgements, those of one airframe together, until cancelled."""
         while True:
             await self._ready.wait()
-            self._ready = anyio.Event()
+            self._ready.clear()
             pending: dict[str, tuple[AirframeSession, bytearray]] = {}
             while self._queue:
                 airframe, frame = self._queue.popleft()

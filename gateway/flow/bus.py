@@ -64,6 +64,16 @@ class _Target:
     last_sent: dict[str, float]
 
 
+class _Targets(list[_Target]):
+    """The targets of one route decision, and their sink names (what the spool holds it for)."""
+
+    __slots__ = ("names",)
+
+    def __init__(self, targets: list[_Target]) -> None:
+        super().__init__(targets)
+        self.names = tuple(target.runner.name for target in targets)
+
+
 def _airframes_of(event: Event) -> tuple[str, ...] | None:
     if isinstance(event, Track):
         return event.airframes
@@ -113,7 +123,7 @@ class Bus:
             kind: tuple(p for p in self._processors if kind in p.kinds) for kind in EventKind
         }
         self._inst = instruments
-        self._cache: dict[tuple[EventKind, tuple[str, ...] | None, str | None], list[_Target]] = {}
+        self._cache: dict[tuple[EventKind, tuple[str, ...] | None, str | None], _Targets] = {}
         self._targets: dict[tuple[int, str, EventKind], _Target] = {}
         self._event_counters = {kind: instruments.events.labels(kind.value) for kind in EventKind}
         self._publishers = frozenset(p.name for p in self._processors)
@@ -151,7 +161,7 @@ class Bus:
 
     def _resolve(
         self, kind: EventKind, airframes: tuple[str, ...] | None, cls: str | None
-    ) -> list[_Target]:
+    ) -> _Targets:
         targets: list[_Target] = []
         seen: set[str] = set()
         for i, route in enumerate(self._routes):
@@ -180,7 +190,7 @@ class Bus:
                     target = _Target(runner, None if rate is None else 1.0 / rate, {})
                     self._targets[(i, name, kind)] = target
                 targets.append(target)
-        return targets
+        return _Targets(targets)
 
     def publish(self, event: Event) -> bool:
         """Hand ``event`` to every runner its routes select; never blocks, never raises.
@@ -242,10 +252,9 @@ class Bus:
             )
         return False
 
-    def _publish_durable(self, event: Event, targets: list[_Target], now: float) -> bool:
-        names = [target.runner.name for target in targets]
+    def _publish_durable(self, event: Event, targets: _Targets, now: float) -> bool:
         try:
-            seq = self._spool.append(event, names)
+            seq = self._spool.append(event, targets.names)
         except SpoolError:
             seq = None
             if self._spool_log.allow("error"):

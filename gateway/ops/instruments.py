@@ -115,6 +115,10 @@ class Instruments:
             "fg_spool_refused_total", "Durable events refused because the spool was full."
         )
         self.spool_dead_letters = r.gauge("fg_spool_dead_letters", "Dead letters held.")
+        self.spool_commits = r.counter(
+            "fg_spool_commits_total",
+            "Spool transactions committed (one per loop pass that wrote: a group commit).",
+        )
         self.spool_commit_failures = r.counter(
             "fg_spool_commit_failures_total",
             "Spool writes that failed to commit (nothing of them acknowledged), by reason "

@@ -60,6 +60,8 @@ class Commits:
     def __init__(self, where: str) -> None:
         self.where = where
         self.failures: Counter[str] = Counter()
+        #: Writes that committed, since start (a group commit counts once).
+        self.committed = 0
         #: True while the latest write failed (cleared by the next one that commits).
         self.failing = False
         self._in_a_row = 0
@@ -95,6 +97,7 @@ class Commits:
 
     def succeeded(self) -> None:
         """A write committed: the spool takes events in again."""
+        self.committed += 1
         if self.failing:
             self.failing = False
             log.warning(

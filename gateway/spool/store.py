@@ -12,8 +12,16 @@ One database (WAL journal) holds:
 - ``seen``: detection ids already taken in, so an airframe's re-send is acknowledged again but
   not delivered twice; kept for ``dedup_window_s``.
 
-Durability: an event is committed before ``append`` returns (or, inside ``batch()``, when the
-batch ends: one commit for all the events of one datagram). ``sync="normal"`` (WAL with
+Durability: writes are group-committed (``gateway.spool.group``). With the event loop running,
+every write of one loop pass (the events the bus appends for all their sinks, the detection
+ids the intake remembers, the sinks' confirmations and dead letters) joins one transaction,
+committed at the end of the pass, or earlier by ``flush`` (a sink runner about to send an event
+of the open group commits it first: nothing is sent before it is held) or by the end of a
+``batch()`` scope; those who must act only once it is durable ask ``Commit.when_done`` (the
+detection acknowledgements). Without a loop (the ``spool`` command) each write commits at once.
+A group of confirmations alone may wait up to ``SETTLE_LINGER_S`` past its pass for the other
+sinks' confirmations: a kill -9 before it commits costs a re-delivery (receivers drop it by
+event id), never a loss. ``sync="normal"`` (WAL with
 ``synchronous=NORMAL``) survives kill -9 and any crash of the process, since a commit is in the
 operating system's cache when it returns; a power cut can lose the newest commits. ``"full"``
 adds an fsync per commit. All calls are synchronous and short, made on the event loop.
@@ -21,6 +29,7 @@ adds an fsync per commit. All calls are synchronous and short, made on the event
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import fcntl
 import functools
@@ -39,9 +48,10 @@ from gateway.errors import SpoolError
 from gateway.events import Event, event_adapter
 from gateway.ops.logsetup import RateLimit
 from gateway.spool.commits import Commits
+from gateway.spool.group import Commit
 from gateway.spool.startcheck import StartCheck, create_private, open_checked
 
-__all__ = ["DeadLetter", "Spool", "Spooled"]
+__all__ = ["SETTLE_LINGER_S", "DeadLetter", "Spool", "Spooled"]
 
 log = structlog.get_logger(__name__)
 
@@ -82,8 +92,19 @@ _SIZE_CHECK_EVERY = 256
 _SEEN_PRUNE_EVERY = 1024
 _SEEN_PRUNE_CHUNK = 10_000
 _ROLLED_BACK_KEEP = 100_000
+#: How long a group of confirmations and dead letters alone, that no one waits on, may wait
+#: past its pass for more of them (a kill -9 meanwhile costs a re-delivery, never a loss).
+SETTLE_LINGER_S = 0.02
 _FULL_LOG_INTERVAL_S = 10.0
 _WARN_LOG_INTERVAL_S = 60.0
+
+
+def _loop_running() -> bool:
+    try:
+        asyncio.get_running_loop()
+    except RuntimeError:
+        return False
+    return True
 
 
 @dataclass(frozen=True, slots=True)
@@ -174,8 +195,10 @@ class Spool:
         except OSError as exc:  # a damaged spool that cannot be moved aside
             raise SpoolError(f"{target}: cannot move the damaged spool aside: {exc}") from exc
         db = self._db
-        self._depth = 0  # open batch() contexts
-        self._in_batch: list[tuple[int, tuple[str, ...]]] = []
+        self._where = target
+        self._scopes = 0  # open batch() scopes
+        self._group: Commit | None = None  # the writes not committed yet
+        self._settles = 0
         #: Sequence numbers appended in a batch that then failed to commit: never delivered.
         self.rolled_back: set[int] = set()
         self._appends = 0
@@ -249,80 +272,205 @@ class Spool:
     def close(self) -> None:
         """Commit what is open and close the database."""
         with contextlib.suppress(sqlite3.Error):
-            if self._db.in_transaction:
+            if self._group is not None:
+                self._end(self._group, commit=True)
+            elif self._db.in_transaction:
                 self._db.execute("COMMIT")
         self._db.close()
         if self._lock is not None:
             self._lock.close()  # releases the flock
 
-    # -- writing ---------------------------------------------------------------------------
+    # -- writing: one group commit per loop pass (``gateway.spool.group``) ---------------
 
-    @contextlib.contextmanager
-    def batch(self) -> Iterator[None]:
-        """One transaction for everything appended inside (no ``await`` in between).
+    @property
+    def open_group(self) -> Commit | None:
+        """The group of writes not committed yet, None if every write is committed."""
+        return self._group
 
-        Used per datagram by ingest: its detections are committed together, and acknowledged
-        only after this block ends without error. Nested batches join the outer one.
+    def group(self) -> Commit:
+        """The open group commit, opened now if there is none.
+
+        Opened outside ``batch()`` with an event loop running, it commits at the end of the
+        current loop pass (``Commit.scheduled``); otherwise its owner ends it (``flush``, or
+        the end of the ``batch()`` scope). ``SpoolError`` if the spool cannot begin one.
         """
-        if self._depth == 0:
-            try:
-                self._db.execute("BEGIN IMMEDIATE")
-            except sqlite3.Error as exc:
-                self.commits.failed(exc)
-                raise SpoolError(f"spool {self.path or ':memory:'}: {exc}") from exc
-        self._depth += 1
         try:
-            yield
-        except BaseException as exc:
-            self._depth -= 1
-            if self._depth == 0:
-                self._rollback(exc)
-                self._undo_batch()
-            raise
-        self._depth -= 1
-        if self._depth == 0:
-            try:
-                self._commit()
-            except sqlite3.Error as exc:
-                self._undo_batch()
-                raise SpoolError(f"spool {self.path or ':memory:'}: {exc}") from exc
-            self._in_batch.clear()
+            return self._group or self._begin()
+        except sqlite3.Error as exc:
+            raise SpoolError(f"spool {self._where}: {exc}") from exc
 
-    def _commit(self) -> None:
-        """COMMIT the open transaction; on failure it is rolled back, counted and re-raised."""
+    def _begin(self) -> Commit:
         try:
-            self._db.execute("COMMIT")
+            self._db.execute("BEGIN IMMEDIATE")
         except sqlite3.Error as exc:
             self.commits.failed(exc)
-            with contextlib.suppress(sqlite3.Error):
-                self._db.execute("ROLLBACK")
             raise
-        self.commits.succeeded()
+        group = self._group = Commit()
+        if not self._scopes and self._owner:
+            try:
+                loop = asyncio.get_running_loop()
+            except RuntimeError:
+                return group  # no loop (a command, a plain test): its owner ends it
+            loop.call_soon(self._end_of_pass, group)
+            group.scheduled = True
+        return group
 
-    def _undo_batch(self) -> None:
-        """The batch did not commit: what it appended is not held, and must not be sent."""
-        for seq, sinks in self._in_batch:
+    def _end_of_pass(self, group: Commit) -> None:
+        if self._group is not group or self._scopes:
+            return
+        if not (group.has_appends or group.waited_on or group.lingered):
+            # Confirmations alone, no one waiting: the other runners of the same publish may
+            # confirm in the next passes (a sink that hops to a thread); one commit for all.
+            group.lingered = group.lingering = True
+            group.on_hurry = self._hurry
+            asyncio.get_running_loop().call_later(SETTLE_LINGER_S, self._end_of_pass, group)
+            return
+        self._end(group, commit=True)
+
+    def _hurry(self, group: Commit) -> None:
+        asyncio.get_running_loop().call_soon(self._end_of_pass, group)
+
+    def flush(self) -> bool:
+        """Commit the open group now (unless a ``batch()`` scope holds it); False if it failed.
+
+        A group that fails to commit is rolled back: its events are never sent
+        (``rolled_back``), and those who asked hear it (``Commit.when_done``).
+        """
+        group = self._group
+        if group is None or self._scopes:
+            return True
+        return self._end(group, commit=True) is None
+
+    def _write_rows(self, group: Commit) -> None:
+        """Write the rows ``group`` holds back (its appends); raises ``sqlite3.Error``."""
+        if group.events:
+            events, group.events = group.events, []
+            pending, group.pending = group.pending, []
+            self._db.executemany(
+                "INSERT INTO events (seq, event_id, kind, body, spooled_at) VALUES (?, ?, ?, ?, ?)",
+                events,
+            )
+            self._db.executemany("INSERT INTO pending VALUES (?, ?)", pending)
+
+    def _drain(self) -> None:
+        """Before a read: the open group's appends written (a failure rolls the group back)."""
+        group = self._group
+        if group is None or not group.events:
+            return
+        try:
+            self._write_rows(group)
+        except sqlite3.Error as exc:
+            if not self._scopes:
+                self._end(group, commit=False, cause=exc)
+            raise SpoolError(f"spool {self._where}: {exc}") from exc
+
+    def _end(
+        self, group: Commit, *, commit: bool, cause: BaseException | None = None
+    ) -> sqlite3.Error | None:
+        """Commit or roll back ``group``; the SQLite error if it did not commit (None if it did)."""
+        self._group = None
+        error: sqlite3.Error | None = None
+        if commit:
+            try:
+                self._write_rows(group)
+                if group.confirmed:
+                    self._db.executemany(
+                        "DELETE FROM events WHERE seq=? AND NOT EXISTS "
+                        "(SELECT 1 FROM pending WHERE pending.seq=events.seq)",
+                        [(seq,) for seq in group.confirmed],
+                    )
+                self._db.execute("COMMIT")
+            except sqlite3.Error as exc:
+                error = exc
+                self.commits.failed(exc)
+                with contextlib.suppress(sqlite3.Error):
+                    self._db.execute("ROLLBACK")
+        else:
+            error = self._rollback(cause)
+        if error is None and commit:
+            self.commits.succeeded()
+            group.end(True)
+            return None
+        self._undo(group)
+        group.end(False)
+        return error or sqlite3.OperationalError("rolled back")
+
+    def _undo(self, group: Commit) -> None:
+        """``group`` did not commit: what it appended is not held, and must not be sent."""
+        for seq, _ in group.appended:
             self.rolled_back.add(seq)
-            for sink in sinks:
-                self._pending[sink] -= 1
-        self._in_batch.clear()
+        self._pending.subtract(group.owed)
         if len(self.rolled_back) > _ROLLED_BACK_KEEP:
             self.rolled_back = set(sorted(self.rolled_back)[-_ROLLED_BACK_KEEP // 2 :])
         with contextlib.suppress(sqlite3.Error):
             self._bytes = self._measure()
+            self._dead = int(self._db.execute("SELECT count(*) FROM dead_letters").fetchone()[0])
+            self._seen_rows = int(self._db.execute("SELECT count(*) FROM seen").fetchone()[0])
 
-    def _rollback(self, exc: BaseException) -> None:
+    def _rollback(self, exc: BaseException | None) -> sqlite3.Error:
         """Roll the open transaction back; count it if SQLite failed (directly or under ours)."""
-        cause = exc if isinstance(exc, sqlite3.Error) else exc.__cause__
+        cause = exc if isinstance(exc, sqlite3.Error) else getattr(exc, "__cause__", None)
         if isinstance(cause, sqlite3.Error):
             self.commits.failed(cause)
         with contextlib.suppress(sqlite3.Error):
             self._db.execute("ROLLBACK")
+        return (
+            cause if isinstance(cause, sqlite3.Error) else sqlite3.OperationalError("rolled back")
+        )
+
+    def _owe(self, sink: str, count: int) -> None:
+        """Change what the spool owes ``sink`` by ``count``, undone with an uncommitted group."""
+        self._pending[sink] += count
+        if self._group is not None:
+            self._group.owed[sink] += count
 
     @contextlib.contextmanager
-    def _write(self) -> Iterator[sqlite3.Connection]:
-        """A write that commits at once, or joins the open transaction (which counts failures)."""
-        if self._depth or self._db.in_transaction:
+    def batch(self) -> Iterator[None]:
+        """One transaction for everything written inside (no ``await`` in between).
+
+        It joins the loop pass's group if one is open, and commits it when the outermost
+        scope ends (``SpoolError`` if that fails); an exception inside rolls it all back.
+        """
+        self._scopes += 1
+        try:
+            group = self.group()
+        except BaseException:
+            self._scopes -= 1
+            raise
+        try:
+            yield
+        except BaseException as exc:
+            self._scopes -= 1
+            if not self._scopes and self._group is group:
+                self._end(group, commit=False, cause=exc)
+            raise
+        self._scopes -= 1
+        if not self._scopes and self._group is group:
+            error = self._end(group, commit=True)
+            if error is not None:
+                raise SpoolError(f"spool {self._where}: {error}") from error
+
+    @contextlib.contextmanager
+    def _write(self, *, drain: bool = True) -> Iterator[sqlite3.Connection]:
+        """A write joining the open group (opened now with a loop running), else committed at once.
+
+        A write that fails inside a group rolls the group back (outside ``batch()``; inside,
+        the scope does), so the group commits all of its writes or none.
+        """
+        group = self._group
+        if group is None and self._owner and _loop_running():
+            group = self._begin()
+        if group is not None:
+            try:
+                if drain:  # not needed by a write of the ``seen`` table alone
+                    self._write_rows(group)
+                yield self._db
+            except BaseException as exc:
+                if not self._scopes and self._group is group:
+                    self._end(group, commit=False, cause=exc)
+                raise
+            return
+        if self._db.in_transaction:
             yield self._db
             return
         try:
@@ -335,7 +483,14 @@ class Spool:
         except BaseException as exc:
             self._rollback(exc)
             raise
-        self._commit()
+        try:
+            self._db.execute("COMMIT")
+        except sqlite3.Error as exc:
+            self.commits.failed(exc)
+            with contextlib.suppress(sqlite3.Error):
+                self._db.execute("ROLLBACK")
+            raise
+        self.commits.succeeded()
 
     def probe(self) -> bool:
         """One small write, to learn whether writes commit again after failing; True if so."""
@@ -344,9 +499,9 @@ class Spool:
                 db.execute(
                     "INSERT OR REPLACE INTO meta VALUES ('probed_at', ?)", (str(time.time()),)
                 )
-        except sqlite3.Error:
+        except (sqlite3.Error, SpoolError):
             return False
-        return True
+        return self.flush()
 
     def append(self, event: Event, sinks: Sequence[str]) -> int | None:
         """Hold ``event`` for ``sinks``; its ``seq``, or None if the spool is full.
@@ -366,13 +521,26 @@ class Spool:
                 return None
         body = event.model_dump_json().encode()
         try:
-            seq = self._insert(event.event_id, event.kind.value, body, time.time(), sinks)
+            group = self._group
+            if group is None and self._owner and _loop_running():
+                group = self._begin()
+            if group is None:
+                seq = self._insert(event.event_id, event.kind.value, body, time.time(), sinks)
+            else:  # written with the rest of the group's appends (``_write_rows``)
+                seq = self._seq = self._seq + 1
+                group.events.append((seq, event.event_id, event.kind.value, body, time.time()))
+                group.pending += [(sink, seq) for sink in sinks]
+                group.appended.append((seq, tuple(sinks)))
+                if group.lingering:
+                    group.hurry()  # an event: committed at the end of this pass
+                owed = group.owed
+                for sink in sinks:  # not Counter.update: its Mapping check costs more here
+                    owed[sink] += 1
         except sqlite3.Error as exc:
-            raise SpoolError(f"spool {self.path or ':memory:'}: {exc}") from exc
+            raise SpoolError(f"spool {self._where}: {exc}") from exc
+        pending = self._pending
         for sink in sinks:
-            self._pending[sink] += 1
-        if self._depth:
-            self._in_batch.append((seq, tuple(sinks)))
+            pending[sink] += 1
         self._appends += 1
         self._bytes += len(body) + 64 * (1 + len(sinks))
         if self._appends % _SIZE_CHECK_EVERY == 0:
@@ -420,7 +588,7 @@ class Spool:
 
     def remember(self, event_id: str) -> None:
         """Record a detection id as taken in (in the open batch, with its event)."""
-        with self._write() as db:
+        with self._write(drain=False) as db:
             db.execute("INSERT OR REPLACE INTO seen VALUES (?, ?)", (event_id, time.time()))
         self._seen_rows += 1
         if self._seen_rows % _SEEN_PRUNE_EVERY == 0 or self._seen_rows > self.seen_max:
@@ -433,7 +601,7 @@ class Spool:
         loop long; ``force`` drops the oldest chunk even inside the window (a full spool).
         """
         cutoff = time.time() - self.dedup_window_s
-        with self._write() as db:
+        with self._write(drain=False) as db:
             cursor = db.execute(
                 "DELETE FROM seen WHERE event_id IN "
                 "(SELECT event_id FROM seen WHERE at < ? LIMIT ?)",
@@ -461,15 +629,20 @@ class Spool:
                 cursor = db.executemany(
                     "DELETE FROM pending WHERE sink=? AND seq=?", [(sink, s) for s in seqs]
                 )
-                self._pending[sink] -= max(cursor.rowcount, 0)
-                db.executemany(
-                    "DELETE FROM events WHERE seq=? AND NOT EXISTS "
-                    "(SELECT 1 FROM pending WHERE pending.seq=events.seq)",
-                    [(s,) for s in seqs],
-                )
-            # Measured, not estimated, as it shrinks: a drained spool must stop being "full"
-            # (and stop its alerts) without waiting for new appends.
-            self._bytes = self._measure()
+                self._owe(sink, -max(cursor.rowcount, 0))
+                if self._group is not None:
+                    self._group.confirmed.update(seqs)  # deleted once, at the commit
+                else:
+                    db.executemany(
+                        "DELETE FROM events WHERE seq=? AND NOT EXISTS "
+                        "(SELECT 1 FROM pending WHERE pending.seq=events.seq)",
+                        [(s,) for s in seqs],
+                    )
+            # Measured, not estimated, as it shrinks while near the cap: a drained spool must
+            # stop being "full" (and stop its alerts) without waiting for new appends.
+            self._settles += 1
+            if self._bytes >= self.warn_bytes or self._settles % _SIZE_CHECK_EVERY == 0:
+                self._bytes = self._measure()
         except sqlite3.Error as exc:
             raise SpoolError(f"spool {self.path or ':memory:'}: {exc}") from exc
 
@@ -503,6 +676,7 @@ class Spool:
         A row whose body no longer parses (written by another version) is dead-lettered with
         the reason instead of stopping the sink.
         """
+        self._drain()
         rows = self._db.execute(
             "SELECT e.seq, e.body, e.spooled_at FROM pending p JOIN events e ON e.seq = p.seq"
             " WHERE p.sink=? AND p.seq>? ORDER BY p.seq LIMIT ?",
@@ -524,6 +698,7 @@ class Spool:
 
     def recount(self, sink: str) -> int:
         """Count what ``sink`` is owed from the database (after another process changed it)."""
+        self._drain()
         row = self._db.execute("SELECT count(*) FROM pending WHERE sink=?", (sink,)).fetchone()
         self._pending[sink] = int(row[0])
         return self._pending[sink]
@@ -610,7 +785,7 @@ class Spool:
             for letter_id, letter_sink, event_id, kind, body in rows:
                 self._insert(event_id, kind, body, now, (letter_sink,))
                 db.execute("DELETE FROM dead_letters WHERE id=?", (letter_id,))
-                self._pending[letter_sink] += 1
+                self._owe(letter_sink, 1)
         self._dead = int(self._db.execute("SELECT count(*) FROM dead_letters").fetchone()[0])
         log.info("spool_requeued", count=len(rows))
         return len(rows)

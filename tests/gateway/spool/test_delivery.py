@@ -40,6 +40,7 @@ def detection(n: int) -> Detection:
 
 def age(spool: Spool, seconds: float) -> None:
     """Make every spooled event look ``seconds`` older (an outage that long)."""
+    assert spool.flush()  # with a loop running, appends wait for the end of the pass
     spool._db.execute("UPDATE events SET spooled_at = spooled_at - ?", (seconds,))
 
 
