@@ -1,0 +1,272 @@
+"""The picture as it was: the JSONL archive read back up to an instant (docs/map.md §6).
+
+The map's time slider asks for the picture at a past instant ``at``. It is rebuilt from the
+files of a ``jsonl`` sink (the live file and its rotated files, named as that sink names them:
+``<stem>-YYYYmmddTHHMMSSZ[-N]<suffix>``, the stamp being when the file was opened) by folding
+the archived events stamped at or before ``at`` into a fresh ``Picture`` with the live map's
+limits, then removing what had not been updated for ``expire_after_s`` by then.
+
+Only the files that can hold events of the window ``[at - expire_after_s, at]`` are opened
+(a rotated file ends where the next one starts). The archive is in arrival order, so a file is
+left once a line is stamped more than ``LATE_S`` after ``at``. The archive is input like any
+other: a line that is too long, not JSON or not an event is skipped and counted. Each request
+is bounded: at most ``max_bytes`` read and ``max_seconds`` spent (then the answer says
+``truncated``), and memory by the picture's own caps: only the events that can still show at
+``at`` are kept (the last of each airframe, unit and order, the last ``history_points`` of each
+track, the last ``cue_revisions`` of each cue, the last ``max_detections`` detections), each
+kind's keys capped like the picture's layers. No path comes from the client.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import time
+from collections import OrderedDict, deque
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from pydantic import ValidationError
+
+from gateway.events import event_adapter
+from sinks.map.picture import Limits, Picture
+
+__all__ = ["LATE_S", "ArchiveBudget", "Replay", "archive_files", "archive_start", "replay"]
+
+#: An event is found when stamped at most this long before the line written after it.
+LATE_S = 120.0
+_STAMP = "%Y%m%dT%H%M%SZ"
+_MAX_LINE = 1024 * 1024
+
+
+@dataclass(frozen=True, slots=True)
+class ArchiveBudget:
+    """What one replay may cost."""
+
+    max_bytes: int = 64 * 1024 * 1024
+    max_seconds: float = 10.0
+    max_line_bytes: int = _MAX_LINE
+
+
+@dataclass(slots=True)
+class Replay:
+    """A replay's picture and what reading the archive took."""
+
+    at: datetime
+    picture: Picture
+    files: int = 0
+    bytes_read: int = 0
+    lines: int = 0
+    events: int = 0
+    skipped: int = 0
+    truncated: str | None = None
+    notes: list[str] = field(default_factory=list)
+
+    def summary(self) -> dict[str, Any]:
+        """The JSON-ready account of the replay (the answer's ``replay`` member)."""
+        return {
+            "files": self.files,
+            "bytes_read": self.bytes_read,
+            "lines": self.lines,
+            "events": self.events,
+            "skipped": self.skipped,
+            "truncated": self.truncated,
+        }
+
+
+def archive_files(live: Path) -> list[tuple[datetime | None, Path]]:
+    """The archive's files, oldest first, each with when it was opened (None: the live file)."""
+    stem, suffix = re.escape(live.stem), re.escape(live.suffix)
+    pattern = re.compile(rf"{stem}-(\d{{8}}T\d{{6}}Z)(?:-(\d+))?{suffix}")
+    rotated: list[tuple[str, int, Path]] = []
+    try:
+        entries = list(live.parent.iterdir())
+    except OSError:
+        entries = []
+    for entry in entries:
+        match = pattern.fullmatch(entry.name)
+        if match and entry.is_file():
+            rotated.append((match[1], int(match[2] or 0), entry))
+    rotated.sort()
+    files: list[tuple[datetime | None, Path]] = [
+        (datetime.strptime(stamp, _STAMP).replace(tzinfo=UTC), path) for stamp, _, path in rotated
+    ]
+    if live.is_file():
+        files.append((None, live))
+    return files
+
+
+def _lines(path: Path, budget: ArchiveBudget, state: Replay) -> Iterator[bytes]:
+    """The lines of ``path``; one longer than the budget allows is skipped whole."""
+    with path.open("rb") as handle:
+        while True:
+            line = handle.readline(budget.max_line_bytes + 1)
+            if not line:
+                return
+            state.bytes_read += len(line)
+            if len(line) > budget.max_line_bytes:
+                state.skipped += 1
+                while line and not line.endswith(b"\n"):  # the rest of the long line
+                    line = handle.readline(budget.max_line_bytes + 1)
+                    state.bytes_read += len(line)
+                continue
+            yield line
+
+
+def _time(raw: Any) -> datetime | None:
+    if not isinstance(raw, str) or len(raw) > 64:
+        return None
+    try:
+        stamp = datetime.fromisoformat(raw)
+    except ValueError:
+        return None
+    return stamp if stamp.tzinfo is not None else None
+
+
+class _Kept:
+    """The archived events that can still show at ``at``, bounded like the picture."""
+
+    def __init__(self, limits: Limits) -> None:
+        self.limits = limits
+        self.buckets: dict[str, OrderedDict[str, deque[tuple[int, dict[str, Any]]]]] = {}
+        self.n = 0
+
+    def _slot(self, obj: dict[str, Any]) -> tuple[str, str, int, int] | None:
+        """(bucket, key, events kept per key, keys kept) for a map kind; None for others."""
+        lim = self.limits
+        match obj.get("kind"):
+            case "telemetry":
+                return "telemetry", str(obj.get("airframe")), 1, lim.airframes
+            case "link_state":
+                key = f"{obj.get('airframe')}\x00{obj.get('link')}"
+                return "link_state", key, 1, lim.airframes * 8
+            case "track":
+                return "track", str(obj.get("track_id")), lim.history_points, lim.tracks
+            case "blue_force":
+                return "blue_force", str(obj.get("uid")), 1, lim.blue
+            case "handoff":
+                return "handoff", str(obj.get("handoff_id")), lim.cue_revisions, lim.cues
+            case "order":
+                return "order", str(obj.get("event_id")), 1, lim.orders
+            case "order_status":
+                return "order_status", str(obj.get("order_event_id")), 1, lim.orders
+            case "detection":
+                return "detection", "", lim.detections, 1
+        return None
+
+    def add(self, obj: dict[str, Any]) -> bool:
+        """Keep ``obj`` if it is of a kind the map draws; False if it is not."""
+        slot = self._slot(obj)
+        if slot is None:
+            return False
+        name, key, depth, keys = slot
+        if depth == 0:
+            return True  # the layer is switched off (max_detections: 0)
+        bucket = self.buckets.setdefault(name, OrderedDict())
+        held = bucket.get(key)
+        if held is None:
+            while len(bucket) >= keys:
+                bucket.popitem(last=False)
+            held = bucket[key] = deque(maxlen=depth)
+        else:
+            bucket.move_to_end(key)
+        self.n += 1
+        held.append((self.n, obj))
+        return True
+
+    def in_order(self) -> list[dict[str, Any]]:
+        """Every kept event, in archive order."""
+        kept = [
+            item for bucket in self.buckets.values() for held in bucket.values() for item in held
+        ]
+        kept.sort(key=lambda item: item[0])
+        return [obj for _, obj in kept]
+
+
+def replay(
+    live: Path,
+    at: datetime,
+    limits: Limits,
+    budget: ArchiveBudget,
+    *,
+    clock: Callable[[], float] = time.monotonic,
+) -> Replay:
+    """The picture at ``at`` from the archive whose live file is ``live``; blocking I/O."""
+    started = clock()
+    window = at.timestamp() - limits.expire_after_s
+    files = archive_files(live)
+    starts = [opened for opened, _ in files]
+    moment = [0.0]
+    picture = Picture(limits, clock=lambda: moment[0])
+    state = Replay(at=at, picture=picture)
+    kept = _Kept(limits)
+    for index, (opened, path) in enumerate(files):
+        following = starts[index + 1] if index + 1 < len(starts) else None
+        if opened is not None and opened.timestamp() > at.timestamp() + LATE_S:
+            break  # this file and the rest were opened after ``at``
+        if following is not None and following.timestamp() < window - LATE_S:
+            continue  # closed before the window opened
+        state.files += 1
+        try:
+            for line in _lines(path, budget, state):
+                state.lines += 1
+                if state.bytes_read > budget.max_bytes:
+                    state.truncated = f"read {budget.max_bytes} bytes"
+                    break
+                if state.lines % 4096 == 0 and clock() - started > budget.max_seconds:
+                    state.truncated = f"took {budget.max_seconds:g} s"
+                    break
+                try:
+                    obj = json.loads(line)
+                except ValueError:
+                    state.skipped += 1
+                    continue
+                stamp = _time(obj.get("time")) if isinstance(obj, dict) else None
+                if stamp is None:
+                    state.skipped += 1
+                    continue
+                if stamp > at:
+                    if stamp.timestamp() > at.timestamp() + LATE_S:
+                        break  # arrival order: the rest of this file came later still
+                    continue
+                if stamp.timestamp() >= window:
+                    kept.add(obj)
+        except OSError as exc:  # rotated away or pruned while being read
+            state.notes.append(f"{path.name}: {exc.strerror or type(exc).__name__}")
+        if state.truncated is not None:
+            break
+    for obj in kept.in_order():
+        try:
+            event = event_adapter.validate_python(obj)
+        except ValidationError:
+            state.skipped += 1
+            continue
+        moment[0] = event.time.timestamp()
+        picture.apply(event)
+        state.events += 1
+    moment[0] = at.timestamp()
+    picture.expire()
+    return state
+
+
+def archive_start(live: Path, budget: ArchiveBudget) -> datetime | None:
+    """When the oldest archived event was stamped (its file's first event); None if none."""
+    for _, path in archive_files(live):
+        probe = Replay(at=datetime.now(UTC), picture=Picture(Limits()))
+        try:
+            for count, line in enumerate(_lines(path, budget, probe)):
+                if count >= 64:
+                    break
+                try:
+                    obj = json.loads(line)
+                except ValueError:
+                    continue
+                stamp = _time(obj.get("time")) if isinstance(obj, dict) else None
+                if stamp is not None:
+                    return stamp
+        except OSError:
+            continue
+    return None
