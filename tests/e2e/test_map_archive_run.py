@@ -31,7 +31,7 @@ from tools import need, required
 pytestmark = pytest.mark.timeout(120)
 
 TILE_COLOUR = (214, 64, 170)
-THEN = {"airframe": (59.30, 18.10), "blue": (59.32, 18.02)}
+THEN = {"airframe": (59.39, 18.27), "blue": (59.345, 18.21)}
 NOW = {"airframe": (59.42, 18.32), "blue": (59.36, 18.26)}
 CHROMIUM_FLAGS = [
     "--headless",
@@ -223,6 +223,8 @@ def test_the_slider_shows_the_picture_as_it_was_over_the_nodes_own_tiles(
             for layer, (lat, lon) in NOW.items():
                 assert (live[layer]["lat"], live[layer]["lon"]) == (lat, lon)
 
+            size = page.evaluate("fgMap.map.getSize()")
+            size = {"width": size["x"], "height": size["y"]}
             # The operator drags the slider back to an instant between the two reports.
             page.wait_for_selector("#time", state="visible")
             value = page.evaluate("iso => fgMap.sliderValueFor(iso)", at.isoformat())
@@ -241,6 +243,8 @@ def test_the_slider_shows_the_picture_as_it_was_over_the_nodes_own_tiles(
                     past[layer]["y"] - live[layer]["y"]
                 )
                 assert moved >= 10, (layer, past[layer], live[layer])
+                assert 0 <= past[layer]["x"] <= size["width"], past[layer]  # in sight
+                assert 0 <= past[layer]["y"] <= size["height"], past[layer]
             assert page.inner_text("#link") == "archive"
             replay_at = datetime.fromisoformat(page.evaluate("fgMap.state.replayAt"))
             assert abs((replay_at - at).total_seconds()) <= 1.0
