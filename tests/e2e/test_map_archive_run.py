@@ -276,12 +276,16 @@ def test_hostile_times_and_tile_addresses_get_a_clear_refusal(node: Node) -> Non
     ):
         status, body = get(api + quote(bad))
         assert status == 400, bad
-        assert isinstance(body, dict) and body["error"].startswith("at: ") and why in body["error"]
+        assert isinstance(body, dict)
+        assert body["error"].startswith("at: ")
+        assert why in body["error"]
     status, body = get(
         node.url + "api/picture?layers=track&at=" + quote("2026-11-27T06:00:00+01:00")
     )
-    assert status == 200 and isinstance(body, dict)
-    assert set(body["layers"]) == {"track"} and body["replay"]["truncated"] is None
+    assert status == 200
+    assert isinstance(body, dict)
+    assert set(body["layers"]) == {"track"}
+    assert body["replay"]["truncated"] is None
     for path in (
         "tiles/25/0/0",
         "tiles/3/8/0",
@@ -293,4 +297,6 @@ def test_hostile_times_and_tile_addresses_get_a_clear_refusal(node: Node) -> Non
         status, _ = get(node.url + path)
         assert status == 404, path
     status, tile = get(node.url + "tiles/3/4/2")
-    assert status == 200 and isinstance(tile, bytes) and tile.startswith(b"\x89PNG")
+    assert status == 200
+    assert isinstance(tile, bytes)
+    assert tile.startswith(b"\x89PNG")

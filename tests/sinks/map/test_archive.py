@@ -66,7 +66,7 @@ def test_the_picture_at_an_instant_is_where_each_entity_was_then(tmp_path: Path)
     # Opened at 05:59:50 and rotated; the live file holds what came after.
     write(
         tmp_path / "archive-20261127T055950Z.jsonl",
-        [track("T1", s, 65.0 + s / 1000) for s in range(0, 30)] + [unit("PLT-1", 5, 64.0)],
+        [track("T1", s, 65.0 + s / 1000) for s in range(30)] + [unit("PLT-1", 5, 64.0)],
     )
     write(
         live,
@@ -79,9 +79,11 @@ def test_the_picture_at_an_instant_is_where_each_entity_was_then(tmp_path: Path)
         snap = done.picture.snapshot()
         (t1,) = [e for e in snap["track"] if e["id"] == "T1"]
         assert t1["lat"] == lat
-        assert t1["history"][-1] == [lat, 21.6] and len(t1["history"]) == 3
+        assert t1["history"][-1] == [lat, 21.6]
+        assert len(t1["history"]) == 3
         assert [e["lat"] for e in snap["blue"]] == [blue]
-        assert done.truncated is None and done.skipped == 0
+        assert done.truncated is None
+        assert done.skipped == 0
     # T2 lived from 40 s until lost at 45 s.
     ids = {
         s: {
@@ -146,7 +148,8 @@ def test_a_replay_is_bounded_in_bytes_and_in_what_it_keeps(tmp_path: Path) -> No
         f"T{i}" for i in range(19_950, 20_000)
     }
     small = replay(live, at(300), Limits(), ArchiveBudget(max_bytes=100_000))
-    assert small.truncated is not None and small.bytes_read <= 100_000 + 2048
+    assert small.truncated is not None
+    assert small.bytes_read <= 100_000 + 2048
     slow = replay(
         live,
         at(300),
@@ -154,7 +157,8 @@ def test_a_replay_is_bounded_in_bytes_and_in_what_it_keeps(tmp_path: Path) -> No
         ArchiveBudget(max_seconds=0.001),
         clock=iter(range(0, 10**9, 5)).__next__,
     )
-    assert slow.truncated is not None and "s" in slow.truncated
+    assert slow.truncated is not None
+    assert "s" in slow.truncated
 
 
 def test_the_endpoint_answers_a_past_instant_and_refuses_without_an_archive(tmp_path: Path) -> None:
@@ -170,17 +174,20 @@ def test_the_endpoint_answers_a_past_instant_and_refuses_without_an_archive(tmp_
             body = answer.json()
             assert body["at"] == "2026-11-27T06:00:04.500000Z"
             assert [e["lat"] for e in body["layers"]["track"]] == [65.04]
-            assert body["replay"]["files"] == 1 and body["seq"] is None
+            assert body["replay"]["files"] == 1
+            assert body["seq"] is None
             info = (await client.get("/api/info")).json()
             assert info == {"title": "Fischer gateway", "archive": True, "tiles": None}
             span = (await client.get("/api/archive")).json()
             assert span["start"] == "2026-11-27T06:00:00Z"
             sink._state.replaying = True  # another replay is running
             busy = await client.get("/api/picture", params={"at": "2026-11-27T06:00:04Z"})
-            assert busy.status_code == 503 and "one archive replay" in busy.json()["error"]
+            assert busy.status_code == 503
+            assert "one archive replay" in busy.json()["error"]
         async with serving() as sink, httpx.AsyncClient(base_url=sink.url or "") as client:
             none = await client.get("/api/picture", params={"at": "2026-11-27T06:00:04Z"})
-            assert none.status_code == 404 and "archive option" in none.json()["error"]
+            assert none.status_code == 404
+            assert "archive option" in none.json()["error"]
             assert (await client.get("/api/archive")).status_code == 404
 
     anyio.run(main)
