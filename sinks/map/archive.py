@@ -7,19 +7,22 @@ the archived events stamped at or before ``at`` into a fresh ``Picture`` with th
 limits, then removing what had not been updated for ``expire_after_s`` by then.
 
 Only the files that can hold events of the window ``[at - expire_after_s, at]`` are opened
-(a rotated file ends where the next one starts). The archive is in arrival order, so a file is
-left once a line is stamped more than ``LATE_S`` after ``at``. The archive is input like any
-other: a line that is too long, not JSON or not an event is skipped and counted. Each request
-is bounded: at most ``max_bytes`` read and ``max_seconds`` spent (then the answer says
-``truncated``), and memory by the picture's own caps: only the events that can still show at
-``at`` are kept (the last of each airframe, unit and order, the last ``history_points`` of each
-track, the last ``cue_revisions`` of each cue, the last ``max_detections`` detections), each
-kind's keys capped like the picture's layers. No path comes from the client.
+(a rotated file ends where the next one starts), and in each only the bytes of the window are
+read: the archive is in arrival order, so nearly in time order, and bisection finds where the
+window starts and ends (events stamped up to ``LATE_S`` before they were written are still
+found). The archive is input like any other: a line that is too long, not JSON or not an event
+is skipped and counted. Each request is bounded: at most ``max_bytes`` read (when the window
+holds more, its newest ``max_bytes``, those nearest ``at``, and the answer says ``truncated``)
+and ``max_seconds`` spent, and memory by the picture's own caps: only the events that can still
+show at ``at`` are kept (the last of each airframe, unit and order, the last ``history_points``
+of each track, the last ``cue_revisions`` of each cue, the last ``max_detections``
+detections), each kind's keys capped like the picture's layers. No path comes from the client.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import re
 import time
 from collections import OrderedDict, deque
@@ -27,7 +30,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 from pydantic import ValidationError
 
@@ -40,6 +43,8 @@ __all__ = ["LATE_S", "ArchiveBudget", "Replay", "archive_files", "archive_start"
 LATE_S = 120.0
 _STAMP = "%Y%m%dT%H%M%SZ"
 _MAX_LINE = 1024 * 1024
+#: Bisection into a file stops when the range is this small (then lines are read).
+_SEEK_GRAIN = 64 * 1024
 
 
 @dataclass(frozen=True, slots=True)
@@ -99,9 +104,15 @@ def archive_files(live: Path) -> list[tuple[datetime | None, Path]]:
     return files
 
 
-def _lines(path: Path, budget: ArchiveBudget, state: Replay) -> Iterator[bytes]:
-    """The lines of ``path``; one longer than the budget allows is skipped whole."""
+def _lines(
+    path: Path, budget: ArchiveBudget, state: Replay, start: int = 0, *, mid_line: bool = False
+) -> Iterator[bytes]:
+    """The lines of ``path`` from ``start`` (``mid_line``: skip to the next line first); one
+    longer than the budget allows is skipped whole."""
     with path.open("rb") as handle:
+        handle.seek(start)
+        if mid_line and start > 0:
+            state.bytes_read += _skip_line(handle, budget.max_line_bytes)
         while True:
             line = handle.readline(budget.max_line_bytes + 1)
             if not line:
@@ -109,11 +120,52 @@ def _lines(path: Path, budget: ArchiveBudget, state: Replay) -> Iterator[bytes]:
             state.bytes_read += len(line)
             if len(line) > budget.max_line_bytes:
                 state.skipped += 1
-                while line and not line.endswith(b"\n"):  # the rest of the long line
-                    line = handle.readline(budget.max_line_bytes + 1)
-                    state.bytes_read += len(line)
+                if not line.endswith(b"\n"):
+                    state.bytes_read += _skip_line(handle, budget.max_line_bytes)
                 continue
             yield line
+
+
+def _skip_line(handle: BinaryIO, max_line: int) -> int:
+    """Read to the end of the current line; how many bytes that was."""
+    total = 0
+    while True:
+        chunk = handle.readline(max_line + 1)
+        total += len(chunk)
+        if not chunk or chunk.endswith(b"\n"):
+            return total
+
+
+def _stamp_of(line: bytes) -> datetime | None:
+    try:
+        obj = json.loads(line)
+    except ValueError:
+        return None
+    return _time(obj.get("time")) if isinstance(obj, dict) else None
+
+
+def _offset_before(handle: BinaryIO, size: int, threshold: float, max_line: int) -> int:
+    """A line start before the first line stamped after ``threshold``, found by bisection to
+    within ``_SEEK_GRAIN`` bytes (the archive is in arrival order, so nearly in time order)."""
+    low, high = 0, size
+    while high - low > _SEEK_GRAIN:
+        middle = (low + high) // 2
+        handle.seek(middle)
+        _skip_line(handle, max_line)
+        start = handle.tell()
+        stamp = None
+        for _ in range(8):  # the first line with a time, among the next few
+            line = handle.readline(max_line + 1)
+            if not line:
+                break
+            stamp = _stamp_of(line)
+            if stamp is not None:
+                break
+        if stamp is None or stamp.timestamp() > threshold or start >= high:
+            high = middle
+        else:
+            low = start
+    return low
 
 
 def _time(raw: Any) -> datetime | None:
@@ -198,22 +250,21 @@ def replay(
     started = clock()
     window = at.timestamp() - limits.expire_after_s
     files = archive_files(live)
-    starts = [opened for opened, _ in files]
     moment = [0.0]
     picture = Picture(limits, clock=lambda: moment[0])
     state = Replay(at=at, picture=picture)
     kept = _Kept(limits)
-    for index, (opened, path) in enumerate(files):
-        following = starts[index + 1] if index + 1 < len(starts) else None
-        if opened is not None and opened.timestamp() > at.timestamp() + LATE_S:
-            break  # this file and the rest were opened after ``at``
-        if following is not None and following.timestamp() < window - LATE_S:
-            continue  # closed before the window opened
+    spans = _window_spans(files, at.timestamp(), window, budget)
+    if sum(end - begin for _, begin, end in spans) > budget.max_bytes:
+        spans = _newest(spans, budget.max_bytes)
+        state.truncated = f"the window holds more than {budget.max_bytes} bytes: read its newest"
+    limit = budget.max_bytes + 2 * _SEEK_GRAIN + budget.max_line_bytes
+    for path, begin, _ in spans:
         state.files += 1
         try:
-            for line in _lines(path, budget, state):
+            for line in _lines(path, budget, state, begin, mid_line=True):
                 state.lines += 1
-                if state.bytes_read > budget.max_bytes:
+                if state.bytes_read > limit:
                     state.truncated = f"read {budget.max_bytes} bytes"
                     break
                 if state.lines % 4096 == 0 and clock() - started > budget.max_seconds:
@@ -236,7 +287,7 @@ def replay(
                     kept.add(obj)
         except OSError as exc:  # rotated away or pruned while being read
             state.notes.append(f"{path.name}: {exc.strerror or type(exc).__name__}")
-        if state.truncated is not None:
+        if state.truncated is not None and not state.truncated.startswith("the window"):
             break
     for obj in kept.in_order():
         try:
@@ -250,6 +301,41 @@ def replay(
     moment[0] = at.timestamp()
     picture.expire()
     return state
+
+
+def _window_spans(
+    files: list[tuple[datetime | None, Path]], at: float, window: float, budget: ArchiveBudget
+) -> list[tuple[Path, int, int]]:
+    """The byte ranges of the files that can hold the window ``[window, at]``, oldest first."""
+    spans: list[tuple[Path, int, int]] = []
+    for index, (opened, path) in enumerate(files):
+        following = files[index + 1][0] if index + 1 < len(files) else None
+        if opened is not None and opened.timestamp() > at + LATE_S:
+            break  # this file and the rest were opened after ``at``
+        if following is not None and following.timestamp() < window - LATE_S:
+            continue  # closed before the window opened
+        try:
+            with path.open("rb") as handle:
+                size = os.fstat(handle.fileno()).st_size
+                limit = budget.max_line_bytes
+                begin = _offset_before(handle, size, window - LATE_S, limit)
+                end = min(size, _offset_before(handle, size, at + LATE_S, limit) + _SEEK_GRAIN)
+        except OSError:
+            continue  # pruned meanwhile
+        spans.append((path, begin, max(begin, end)))
+    return spans
+
+
+def _newest(spans: list[tuple[Path, int, int]], budget: int) -> list[tuple[Path, int, int]]:
+    """The newest ``budget`` bytes of ``spans``: the part of the window nearest ``at``."""
+    kept: list[tuple[Path, int, int]] = []
+    for path, begin, end in reversed(spans):
+        if budget <= 0:
+            break
+        start = max(begin, end - budget)
+        kept.append((path, start, end))
+        budget -= end - start
+    return kept[::-1]
 
 
 def archive_start(live: Path, budget: ArchiveBudget) -> datetime | None:

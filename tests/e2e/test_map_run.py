@@ -10,13 +10,16 @@ airframes over UDP, the platoons over CoT.
 - Debian's Chromium, headless and held to the node by its launch flags and a route that
   aborts any other request, loads the page: the base map and the libraries come from the
   node; the symbols drawn equal the picture's entities; a track's symbol moves when the track
-  does; a cue appears. The screenshot is kept in the test's temporary folder.
+  does; a cue appears. The screenshot is kept in the test's temporary folder, and also where
+  ``FG_MAP_SCREENSHOT`` says: ``FG_MAP_SCREENSHOT=docs/map.png pytest tests/e2e/test_map_run.py``
+  makes the README's picture (docs/map.md §8).
 """
 
 from __future__ import annotations
 
 import http.client
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -76,9 +79,13 @@ processors:
           lon_deg: {battery.lon_deg}
           effectors: {list(battery.effectors)}
 sinks:
-  - {{name: map, type: map, options: {{port: 0, title: Brigade}}}}
+  - {{name: archive, type: jsonl, options: {{path: '{tmp_path / "archive.jsonl"}'}}}}
+  - name: map
+    type: map
+    options: {{port: 0, title: Brigade, archive: '{tmp_path / "archive.jsonl"}'}}
 routes:
-  - {{sinks: [map], kinds: [telemetry, link_state, detection, track, blue_force, handoff]}}
+  - sinks: [map, archive]
+    kinds: [telemetry, link_state, detection, track, blue_force, handoff]
 """
     )
     return config
@@ -188,6 +195,7 @@ def test_the_page_draws_the_picture_moves_a_track_and_shows_a_cue(
             page.goto(node.url)
             page.wait_for_function("() => window.fgMap && window.fgMap.state.snapshots >= 1")
             page.wait_for_function("() => window.fgMap.state.baseMap === true")
+            assert page.evaluate("fgMap.state.baseKind") == "world-atlas"
 
             # A track's symbol moves when the track does.
             page.wait_for_function("() => window.fgMap.ids('track').length > 0", timeout=60_000)
@@ -235,6 +243,9 @@ def test_the_page_draws_the_picture_moves_a_track_and_shows_a_cue(
                 "() => document.getElementById('mgrs').textContent.startsWith('MGRS 3')"
             )
             page.screenshot(path=str(tmp_path / "map.png"))
+            keep = os.environ.get("FG_MAP_SCREENSHOT")
+            if keep:
+                shutil.copyfile(tmp_path / "map.png", keep)
             assert errors == []
             assert foreign == []
         finally:

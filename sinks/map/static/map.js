@@ -382,7 +382,7 @@
   const slider = document.getElementById("time");
   const whenEl = document.getElementById("when");
   const liveButton = document.getElementById("live");
-  const span = { start: null, end: null };
+  const span = { start: null, offset: 0 };
   let asked = 0;
   let pending = null;
 
@@ -393,20 +393,24 @@
     return date.toISOString().replace(/\.\d{3}Z$/, "Z");
   }
 
+  // The archive's span: its first event (asked of the node), to now (the node's clock).
   function refreshSpan() {
     return fetch("/api/archive")
       .then((r) => (r.ok ? r.json() : null))
       .then((body) => {
         if (body === null || body.start === null) return;
-        const atEnd = state.mode === "live";
         span.start = Date.parse(body.start);
-        span.end = Date.parse(body.now);
-        slider.max = String(Math.max(0, Math.floor((span.end - span.start) / 1000)));
-        if (atEnd) slider.value = slider.max;
+        span.offset = Date.parse(body.now) - Date.now();
         history.hidden = false;
         state.archiveStart = body.start;
+        tick();
       })
       .catch(() => {});
+  }
+  function tick() {
+    if (span.start === null) return;
+    slider.max = String(Math.max(0, Math.floor((Date.now() + span.offset - span.start) / 1000)));
+    if (state.mode === "live") slider.value = slider.max;
   }
 
   function showAt(date) {
@@ -467,7 +471,8 @@
       else worldAtlas();
       if (info.archive) {
         refreshSpan();
-        setInterval(() => { if (state.mode === "live") refreshSpan(); }, 30000);
+        // Until the archive holds an event, ask again; then the slider's end follows the clock.
+        setInterval(() => { if (span.start === null) refreshSpan(); else tick(); }, 1000);
       }
     })
     .catch(() => worldAtlas());

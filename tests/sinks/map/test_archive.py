@@ -118,6 +118,16 @@ def test_what_had_expired_by_then_is_gone_and_old_files_are_not_opened(tmp_path:
     assert archive_start(tmp_path / "none.jsonl", ArchiveBudget()) is None
 
 
+def test_only_the_window_of_a_long_archive_is_read(tmp_path: Path) -> None:
+    # One unit reporting every second for six hours, in one file.
+    live = write(tmp_path / "archive.jsonl", [unit("U", s, 60 + s / 1e5) for s in range(21_600)])
+    size = live.stat().st_size
+    done = replay(live, at(10_000.5), Limits(expire_after_s=60), ArchiveBudget())
+    assert [e["lat"] for e in done.picture.snapshot()["blue"]] == [60.1]
+    assert done.truncated is None
+    assert done.bytes_read < size / 10  # bisection found the window: not the whole file
+
+
 def test_hostile_lines_are_skipped_and_counted(tmp_path: Path) -> None:
     live = write(
         tmp_path / "archive.jsonl",
@@ -147,9 +157,14 @@ def test_a_replay_is_bounded_in_bytes_and_in_what_it_keeps(tmp_path: Path) -> No
     assert {e["id"] for e in done.picture.snapshot()["track"]} == {
         f"T{i}" for i in range(19_950, 20_000)
     }
+    # A window holding more than the budget: its newest part, nearest the instant, is read.
     small = replay(live, at(300), Limits(), ArchiveBudget(max_bytes=100_000))
     assert small.truncated is not None
+    assert small.truncated.startswith("the window holds more than 100000 bytes")
     assert small.bytes_read <= 100_000 + 2048
+    ids = {e["id"] for e in small.picture.snapshot()["track"]}
+    assert "T19999" in ids
+    assert "T0" not in ids
     slow = replay(
         live,
         at(300),
