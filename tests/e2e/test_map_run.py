@@ -12,7 +12,7 @@ airframes over UDP, the platoons over CoT.
   node; the symbols drawn equal the picture's entities; a track's symbol moves when the track
   does; a cue appears. The screenshot is kept in the test's temporary folder, and also where
   ``FG_MAP_SCREENSHOT`` says: ``FG_MAP_SCREENSHOT=docs/map.png pytest tests/e2e/test_map_run.py``
-  makes the README's picture (docs/map.md §8).
+  makes the README's picture (docs/map.md §9).
 """
 
 from __future__ import annotations

@@ -340,8 +340,29 @@
   function applyChange(change) {
     if (change.op === "remove") remove(change.layer, change.id);
     else upsert(change.layer, change.data);
-    state.seq = change.seq;
+  }
+
+  // Changes are drawn once a frame: of several changes to one entity in between, only the
+  // last (an upsert carries the whole state, a remove ends it) is drawn.
+  const waiting = new Map();
+  let lastSeq = 0;
+  let flushPending = false;
+  function queueChange(change) {
+    const key = change.layer + "\u0000" + change.id;
+    waiting.delete(key);
+    waiting.set(key, change);
+    lastSeq = change.seq;
     state.changes += 1;
+    if (!flushPending) { flushPending = true; requestAnimationFrame(flushChanges); }
+  }
+  function flushChanges() {
+    flushPending = false;
+    if (state.mode !== "live") { waiting.clear(); return; }
+    for (const change of waiting.values()) applyChange(change);
+    waiting.clear();
+    state.seq = lastSeq;
+    if (!state.fitted) state.fitted = fit();
+    showCounts();
   }
 
   let source = null;
@@ -355,6 +376,8 @@
       if (state.mode !== "live") return;
       const snap = JSON.parse(msg.data);
       document.getElementById("title").textContent = snap.title;
+      waiting.clear(); // older than the snapshot
+      lastSeq = snap.seq;
       drawAll(snap.layers);
       state.seq = snap.seq;
       state.snapshots += 1;
@@ -362,9 +385,7 @@
     });
     source.addEventListener("change", (msg) => {
       if (state.mode !== "live") return;
-      applyChange(JSON.parse(msg.data));
-      if (!state.fitted) state.fitted = fit();
-      showCounts();
+      queueChange(JSON.parse(msg.data));
     });
     source.addEventListener("overflow", () => { linkEl.textContent = "catching up"; });
   }
