@@ -340,29 +340,8 @@
   function applyChange(change) {
     if (change.op === "remove") remove(change.layer, change.id);
     else upsert(change.layer, change.data);
-  }
-
-  // Changes are drawn once a frame: of several changes to one entity in between, only the
-  // last (an upsert carries the whole state, a remove ends it) is drawn.
-  const waiting = new Map();
-  let lastSeq = 0;
-  let flushPending = false;
-  function queueChange(change) {
-    const key = change.layer + "\u0000" + change.id;
-    waiting.delete(key);
-    waiting.set(key, change);
-    lastSeq = change.seq;
+    state.seq = change.seq;
     state.changes += 1;
-    if (!flushPending) { flushPending = true; requestAnimationFrame(flushChanges); }
-  }
-  function flushChanges() {
-    flushPending = false;
-    if (state.mode !== "live") { waiting.clear(); return; }
-    for (const change of waiting.values()) applyChange(change);
-    waiting.clear();
-    state.seq = lastSeq;
-    if (!state.fitted) state.fitted = fit();
-    showCounts();
   }
 
   let source = null;
@@ -376,8 +355,6 @@
       if (state.mode !== "live") return;
       const snap = JSON.parse(msg.data);
       document.getElementById("title").textContent = snap.title;
-      waiting.clear(); // older than the snapshot
-      lastSeq = snap.seq;
       drawAll(snap.layers);
       state.seq = snap.seq;
       state.snapshots += 1;
@@ -385,7 +362,9 @@
     });
     source.addEventListener("change", (msg) => {
       if (state.mode !== "live") return;
-      queueChange(JSON.parse(msg.data));
+      applyChange(JSON.parse(msg.data));
+      if (!state.fitted) state.fitted = fit();
+      showCounts();
     });
     source.addEventListener("overflow", () => { linkEl.textContent = "catching up"; });
   }
