@@ -9,14 +9,14 @@ limits, then removing what had not been updated for ``expire_after_s`` by then.
 Only the files that can hold events of the window ``[at - expire_after_s, at]`` are opened
 (a rotated file ends where the next one starts), and in each only the bytes of the window are
 read: the archive is in arrival order, so nearly in time order, and bisection finds where the
-window starts and ends (events stamped up to ``LATE_S`` before they were written are still
-found). The archive is input like any other: a line that is too long, not JSON or not an event
-is skipped and counted. Each request is bounded: at most ``max_bytes`` read (when the window
-holds more, its newest ``max_bytes``, those nearest ``at``, and the answer says ``truncated``)
-and ``max_seconds`` spent, and memory by the picture's own caps: only the events that can still
-show at ``at`` are kept (the last of each airframe, unit and order, the last ``history_points``
-of each track, the last ``cue_revisions`` of each cue, the last ``max_detections``
-detections), each kind's keys capped like the picture's layers. No path comes from the client.
+window starts and ends, give or take ``TAIL_S``. The archive is input like any other: a line
+that is too long, not JSON or not an event is skipped and counted. Each request is bounded: at
+most ``max_bytes`` read (when the window holds more, its newest ``max_bytes``, those nearest
+``at``, and the answer says ``truncated``) and ``max_seconds`` spent, and memory by the
+picture's own caps: only the events that can still show at ``at`` are kept (the last of each
+airframe, unit and order, the last ``history_points`` of each track, the last
+``cue_revisions`` of each cue, the last ``max_detections`` detections), each kind's keys
+capped like the picture's layers. No path comes from the client.
 """
 
 from __future__ import annotations
@@ -37,10 +37,21 @@ from pydantic import ValidationError
 from gateway.events import event_adapter
 from sinks.map.picture import Limits, Picture
 
-__all__ = ["LATE_S", "ArchiveBudget", "Replay", "archive_files", "archive_start", "replay"]
+__all__ = [
+    "LATE_S",
+    "TAIL_S",
+    "ArchiveBudget",
+    "Replay",
+    "archive_files",
+    "archive_start",
+    "replay",
+]
 
-#: An event is found when stamped at most this long before the line written after it.
+#: A rotated file is read when it may hold the window give or take this long (clocks differ).
 LATE_S = 120.0
+#: Within a file, the lines read are those of the window give or take this long: an event
+#: written more than this long after its time, in the last seconds before ``at``, is missed.
+TAIL_S = 10.0
 _STAMP = "%Y%m%dT%H%M%SZ"
 _MAX_LINE = 1024 * 1024
 #: Bisection into a file stops when the range is this small (then lines are read).
@@ -105,15 +116,21 @@ def archive_files(live: Path) -> list[tuple[datetime | None, Path]]:
 
 
 def _lines(
-    path: Path, budget: ArchiveBudget, state: Replay, start: int = 0, *, mid_line: bool = False
+    path: Path,
+    budget: ArchiveBudget,
+    state: Replay,
+    start: int = 0,
+    end: int | None = None,
+    *,
+    mid_line: bool = False,
 ) -> Iterator[bytes]:
-    """The lines of ``path`` from ``start`` (``mid_line``: skip to the next line first); one
-    longer than the budget allows is skipped whole."""
+    """The lines of ``path`` starting in ``[start, end)`` (``mid_line``: from the first whole
+    line); one longer than the budget allows is skipped whole."""
     with path.open("rb") as handle:
         handle.seek(start)
         if mid_line and start > 0:
             state.bytes_read += _skip_line(handle, budget.max_line_bytes)
-        while True:
+        while end is None or handle.tell() < end:
             line = handle.readline(budget.max_line_bytes + 1)
             if not line:
                 return
@@ -259,10 +276,10 @@ def replay(
         spans = _newest(spans, budget.max_bytes)
         state.truncated = f"the window holds more than {budget.max_bytes} bytes: read its newest"
     limit = budget.max_bytes + 2 * _SEEK_GRAIN + budget.max_line_bytes
-    for path, begin, _ in spans:
+    for path, begin, end in spans:
         state.files += 1
         try:
-            for line in _lines(path, budget, state, begin, mid_line=True):
+            for line in _lines(path, budget, state, begin, end, mid_line=True):
                 state.lines += 1
                 if state.bytes_read > limit:
                     state.truncated = f"read {budget.max_bytes} bytes"
@@ -318,8 +335,8 @@ def _window_spans(
             with path.open("rb") as handle:
                 size = os.fstat(handle.fileno()).st_size
                 limit = budget.max_line_bytes
-                begin = _offset_before(handle, size, window - LATE_S, limit)
-                end = min(size, _offset_before(handle, size, at + LATE_S, limit) + _SEEK_GRAIN)
+                begin = _offset_before(handle, size, window - TAIL_S, limit)
+                end = min(size, _offset_before(handle, size, at + TAIL_S, limit) + _SEEK_GRAIN)
         except OSError:
             continue  # pruned meanwhile
         spans.append((path, begin, max(begin, end)))
