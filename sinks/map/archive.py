@@ -56,6 +56,8 @@ _STAMP = "%Y%m%dT%H%M%SZ"
 _MAX_LINE = 1024 * 1024
 #: Bisection into a file stops when the range is this small (then lines are read).
 _SEEK_GRAIN = 64 * 1024
+#: A byte range of one archive file: path, start, end, and whether start may be mid-line.
+_Span = tuple[Path, int, int, bool]
 
 
 @dataclass(frozen=True, slots=True)
@@ -162,8 +164,9 @@ def _stamp_of(line: bytes) -> datetime | None:
 
 
 def _offset_before(handle: BinaryIO, size: int, threshold: float, max_line: int) -> int:
-    """A line start before the first line stamped after ``threshold``, found by bisection to
-    within ``_SEEK_GRAIN`` bytes (the archive is in arrival order, so nearly in time order)."""
+    """Where the first line stamped after ``threshold`` starts (or the end): bisection down to
+    ``_SEEK_GRAIN`` bytes, then line by line (the archive is in arrival order, so nearly in
+    time order)."""
     low, high = 0, size
     while high - low > _SEEK_GRAIN:
         middle = (low + high) // 2
@@ -182,7 +185,17 @@ def _offset_before(handle: BinaryIO, size: int, threshold: float, max_line: int)
             high = middle
         else:
             low = start
-    return low
+    handle.seek(low)  # then line by line, to the first line stamped after ``threshold``
+    position = low
+    while position < high:
+        line = handle.readline(max_line + 1)
+        if not line:
+            break
+        stamp = _stamp_of(line)
+        if stamp is not None and stamp.timestamp() > threshold:
+            break
+        position += len(line)
+    return position
 
 
 def _time(raw: Any) -> datetime | None:
@@ -272,14 +285,14 @@ def replay(
     state = Replay(at=at, picture=picture)
     kept = _Kept(limits)
     spans = _window_spans(files, at.timestamp(), window, budget)
-    if sum(end - begin for _, begin, end in spans) > budget.max_bytes:
+    if sum(end - begin for _, begin, end, _ in spans) > budget.max_bytes:
         spans = _newest(spans, budget.max_bytes)
         state.truncated = f"the window holds more than {budget.max_bytes} bytes: read its newest"
     limit = budget.max_bytes + 2 * _SEEK_GRAIN + budget.max_line_bytes
-    for path, begin, end in spans:
+    for path, begin, end, mid_line in spans:
         state.files += 1
         try:
-            for line in _lines(path, budget, state, begin, end, mid_line=True):
+            for line in _lines(path, budget, state, begin, end, mid_line=mid_line):
                 state.lines += 1
                 if state.bytes_read > limit:
                     state.truncated = f"read {budget.max_bytes} bytes"
@@ -322,9 +335,9 @@ def replay(
 
 def _window_spans(
     files: list[tuple[datetime | None, Path]], at: float, window: float, budget: ArchiveBudget
-) -> list[tuple[Path, int, int]]:
+) -> list[_Span]:
     """The byte ranges of the files that can hold the window ``[window, at]``, oldest first."""
-    spans: list[tuple[Path, int, int]] = []
+    spans: list[_Span] = []
     for index, (opened, path) in enumerate(files):
         following = files[index + 1][0] if index + 1 < len(files) else None
         if opened is not None and opened.timestamp() > at + LATE_S:
@@ -336,21 +349,21 @@ def _window_spans(
                 size = os.fstat(handle.fileno()).st_size
                 limit = budget.max_line_bytes
                 begin = _offset_before(handle, size, window - TAIL_S, limit)
-                end = min(size, _offset_before(handle, size, at + TAIL_S, limit) + _SEEK_GRAIN)
+                end = _offset_before(handle, size, at + TAIL_S, limit)
         except OSError:
             continue  # pruned meanwhile
-        spans.append((path, begin, max(begin, end)))
+        spans.append((path, begin, max(begin, end), False))
     return spans
 
 
-def _newest(spans: list[tuple[Path, int, int]], budget: int) -> list[tuple[Path, int, int]]:
+def _newest(spans: list[_Span], budget: int) -> list[_Span]:
     """The newest ``budget`` bytes of ``spans``: the part of the window nearest ``at``."""
-    kept: list[tuple[Path, int, int]] = []
-    for path, begin, end in reversed(spans):
+    kept: list[_Span] = []
+    for path, begin, end, _ in reversed(spans):
         if budget <= 0:
             break
         start = max(begin, end - budget)
-        kept.append((path, start, end))
+        kept.append((path, start, end, start > begin))  # cut mid-line: start at the next
         budget -= end - start
     return kept[::-1]
 

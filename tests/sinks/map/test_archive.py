@@ -52,6 +52,8 @@ def unit(uid: str, second: float, lat: float) -> BlueForce:
 
 def write(path: Path, events: list[Event], *extra: bytes) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
+    # In arrival order, which is time order here, as a node writes them.
+    events = sorted(events, key=lambda e: e.time)
     lines = b"".join(e.model_dump_json().encode() + b"\n" for e in events)
     path.write_bytes(lines + b"".join(extra))
     return path
@@ -126,6 +128,10 @@ def test_only_the_window_of_a_long_archive_is_read(tmp_path: Path) -> None:
     assert [e["lat"] for e in done.picture.snapshot()["blue"]] == [60.1]
     assert done.truncated is None
     assert done.bytes_read < size / 10  # bisection found the window: not the whole file
+    # A budget smaller than the window: its part nearest the instant is read.
+    cut = replay(live, at(10_000.5), Limits(expire_after_s=600), ArchiveBudget(max_bytes=20_000))
+    assert cut.truncated is not None
+    assert [e["lat"] for e in cut.picture.snapshot()["blue"]] == [60.1]
 
 
 def test_hostile_lines_are_skipped_and_counted(tmp_path: Path) -> None:
