@@ -374,7 +374,7 @@ def archive_start(live: Path, budget: ArchiveBudget) -> datetime | None:
         probe = Replay(at=datetime.now(UTC), picture=Picture(Limits()))
         try:
             for count, line in enumerate(_lines(path, budget, probe)):
-                if count >= 64:
+                if count >= 8:
                     break
                 try:
                     obj = json.loads(line)
