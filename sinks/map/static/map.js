@@ -378,13 +378,14 @@
   // -- the time slider: the picture as it was, from the node's archive ---------------------
   // Dragging back leaves the live stream and asks the node for the picture at that instant
   // (GET /api/picture?at=...); "Live" (or the slider's right end) returns to the stream.
-  const history = document.getElementById("history");
+  const historyBar = document.getElementById("history");
   const slider = document.getElementById("time");
   const whenEl = document.getElementById("when");
   const liveButton = document.getElementById("live");
   const span = { start: null, offset: 0 };
   let asked = 0;
   let pending = null;
+  let scrubbing = false; // the operator is moving the slider: the clock leaves it alone
 
   function instant() {
     return new Date(span.start + Number(slider.value) * 1000);
@@ -401,7 +402,7 @@
         if (body === null || body.start === null) return;
         span.start = Date.parse(body.start);
         span.offset = Date.parse(body.now) - Date.now();
-        history.hidden = false;
+        historyBar.hidden = false;
         state.archiveStart = body.start;
         tick();
       })
@@ -410,7 +411,7 @@
   function tick() {
     if (span.start === null) return;
     slider.max = String(Math.max(0, Math.floor((Date.now() + span.offset - span.start) / 1000)));
-    if (state.mode === "live") slider.value = slider.max;
+    if (state.mode === "live" && !scrubbing) slider.value = slider.max;
   }
 
   function showAt(date) {
@@ -449,14 +450,17 @@
     if (source === null) connect();
   }
 
-  slider.addEventListener("pointerdown", () => { refreshSpan(); });
+  slider.addEventListener("pointerdown", () => { scrubbing = true; refreshSpan(); });
+  slider.addEventListener("pointerup", () => { setTimeout(() => { scrubbing = false; }, 0); });
   slider.addEventListener("input", () => {
+    scrubbing = true;
     whenEl.textContent = stamp(instant()).replace("T", " ");
     clearTimeout(pending);
     pending = setTimeout(() => { slider.dispatchEvent(new Event("change")); }, 300);
   });
   slider.addEventListener("change", () => {
     clearTimeout(pending);
+    scrubbing = false;
     if (span.start === null) return;
     if (Number(slider.value) >= Number(slider.max)) goLive();
     else showAt(instant());
