@@ -14,9 +14,10 @@ import anyio
 import httpx
 from test_map import serving
 
-from gateway.events import BlueForce, Event, Position, Track
+from gateway.contract import sample_events
+from gateway.events import BlueForce, Event, EventKind, Position, Track
 from sinks.map.archive import ArchiveBudget, archive_files, archive_start, replay
-from sinks.map.picture import Limits
+from sinks.map.picture import Limits, Picture
 
 T0 = datetime(2026, 11, 27, 6, 0, tzinfo=UTC)
 
@@ -212,3 +213,25 @@ def test_the_endpoint_answers_a_past_instant_and_refuses_without_an_archive(tmp_
             assert (await client.get("/api/archive")).status_code == 404
 
     anyio.run(main)
+
+
+def test_every_layer_replays_as_the_live_picture_drew_it(tmp_path: Path) -> None:
+    """Airframes, links, detections, tracks, units, cues, orders and their status: the replay
+    at an instant equals the live picture fed the same events up to it."""
+    first = list(sample_events(frozenset(EventKind)))
+    start = first[0].time
+    cue = next(e for e in first if e.kind == EventKind.HANDOFF)
+    revised = cue.model_copy(
+        update={"revision": 1, "time": start + timedelta(seconds=10), "note": "revised"}
+    )
+    live = write(tmp_path / "archive.jsonl", [*first, revised])
+    for seconds, events in ((5, first), (15, [*first, revised])):
+        expected = Picture(Limits())
+        for event in events:
+            expected.apply(event)
+        done = replay(live, start + timedelta(seconds=seconds), Limits(), ArchiveBudget())
+        assert done.picture.snapshot() == expected.snapshot()
+        assert done.skipped == 0
+    (shown,) = done.picture.snapshot()["cue"]
+    assert [r["revision"] for r in shown["revisions"]] == [0, 1]
+    assert all(done.picture.sizes()[layer] == 1 for layer in ("airframe", "track", "order"))
