@@ -44,7 +44,7 @@ from starlette.routing import Mount, Route
 from starlette.staticfiles import StaticFiles
 
 from gateway.domain.geodesy import to_mgrs
-from sinks.map.archive import ArchiveBudget, archive_start, replay
+from sinks.map.archive import ArchiveBudget, Replay, archive_start, replay
 from sinks.map.hub import CLOSED, Hub, sse
 from sinks.map.picture import LAYERS, Picture
 from sinks.map.tiles import TileSet
@@ -184,13 +184,17 @@ def build_app(
                 status_code=503,
                 headers={"retry-after": "1"},
             )
+        archive = state.archive
+
+        def job() -> Replay:
+            try:
+                return replay(archive, at, state.picture.limits, state.budget)
+            finally:
+                state.replaying = False  # when the thread is done, even if abandoned
+
         state.replaying = True
-        try:
-            done = await anyio.to_thread.run_sync(
-                replay, state.archive, at, state.picture.limits, state.budget
-            )
-        finally:
-            state.replaying = False
+        # Abandoned on cancel (a drain, a client gone): the thread ends within its budget.
+        done = await anyio.to_thread.run_sync(job, abandon_on_cancel=True)
         state.replays += 1
         full = done.picture.snapshot()
         return JSONResponse(
