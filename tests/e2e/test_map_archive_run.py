@@ -228,6 +228,9 @@ def test_the_slider_shows_the_picture_as_it_was_over_the_nodes_own_tiles(
             # The operator drags the slider back to an instant between the two reports.
             page.wait_for_selector("#time", state="visible")
             value = page.evaluate("iso => fgMap.sliderValueFor(iso)", at.isoformat())
+            page.wait_for_function(
+                "v => Number(document.getElementById('time').max) > v", arg=value
+            )
             page.locator("#time").fill(str(value))
             page.wait_for_function(
                 "() => fgMap.state.mode === 'replay' && fgMap.state.replays >= 1"

@@ -268,6 +268,7 @@ def go_back_in_time(page: Any, node: Node) -> None:
     wait_until(lambda: datetime.now(UTC) > instant + timedelta(seconds=2), 10.0, "the instant")
     page.wait_for_selector("#time", state="visible")
     value = page.evaluate("iso => fgMap.sliderValueFor(iso)", instant.isoformat())
+    page.wait_for_function("v => Number(document.getElementById('time').max) > v", arg=value)
     page.locator("#time").fill(str(value))
     page.wait_for_function("() => fgMap.state.mode === 'replay' && fgMap.state.replays >= 1")
     replayed = datetime.fromisoformat(page.evaluate("fgMap.state.replayAt"))

@@ -387,8 +387,8 @@
   let pending = null;
   let scrubbing = false; // the operator is moving the slider: the clock leaves it alone
 
-  function instant() {
-    return new Date(span.start + Number(slider.value) * 1000);
+  function instant(value) {
+    return new Date(span.start + (value === undefined ? Number(slider.value) : value) * 1000);
   }
   function stamp(date) {
     return date.toISOString().replace(/\.\d{3}Z$/, "Z");
@@ -462,8 +462,10 @@
     clearTimeout(pending);
     scrubbing = false;
     if (span.start === null) return;
-    if (Number(slider.value) >= Number(slider.max)) goLive();
-    else showAt(instant());
+    const value = Number(slider.value);
+    tick(); // the right end is now, not when the clock last moved it
+    if (value >= Number(slider.max)) goLive();
+    else { slider.value = String(value); showAt(instant(value)); }
   });
   liveButton.addEventListener("click", goLive);
 
