@@ -331,6 +331,8 @@ def prepare_demo(
         options = sink["options"]
         if sink["type"] == "jsonl":
             options["path"] = str(archive)
+        elif sink["type"] == "map":
+            options["archive"] = str(archive)  # the map's time slider replays it
         elif sink["type"] == "gute2":
             options.update(client_tls, url=f"https://127.0.0.1:{battery.port}/gute2/handoffs")
         elif sink["type"] == "slb":

@@ -65,8 +65,9 @@ ORIGINS = {
     "fischer-gateway.service": "deploy",
     "example.yaml": "config",
 }
-#: A markdown link: its text, its target and an optional #anchor (a bare #anchor is no match).
-_LINK = re.compile(r"\[([^\]]*)\]\(([^)#\s]+)(#[^)\s]*)?\)")
+#: A markdown link or image (``!``): its text, its target and an optional #anchor (a bare
+#: #anchor is no match).
+_LINK = re.compile(r"(!?)\[([^\]]*)\]\(([^)#\s]+)(#[^)\s]*)?\)")
 
 
 def _origin(name: str) -> str:
@@ -98,12 +99,14 @@ def shipped_text(name: str) -> str:
     folder = posixpath.dirname(_origin(name))
 
     def relink(match: re.Match[str]) -> str:
-        label, target, anchor = match[1], match[2], match[3] or ""
+        image, label, target, anchor = match[1], match[2], match[3], match[4] or ""
         if re.match(r"[a-z][a-z0-9+.-]*:", target):
             return match[0]  # the web, mail
         path = posixpath.normpath(posixpath.join(folder, target))
         if path in shipped:
-            return f"[{label}]({shipped[path]}{anchor})"
+            return f"{image}[{label}]({shipped[path]}{anchor})"
+        if image:  # a picture the share does not hold: say where it is
+            return f"{label} (picture: `{path}` in the source tree)"
         return label if path.strip("/") in label else f"{label} (`{path}` in the source tree)"
 
     return _LINK.sub(relink, text)

@@ -11,13 +11,14 @@ from __future__ import annotations
 
 import ipaddress
 from pathlib import Path
+from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
 
 from gateway.c2.sink import SinkConfig
 from gateway.events import EventKind
 
-__all__ = ["MIN_TOKEN_CHARS", "MapSinkConfig", "MapTls", "is_loopback", "read_token"]
+__all__ = ["MIN_TOKEN_CHARS", "MapSinkConfig", "MapTiles", "MapTls", "is_loopback", "read_token"]
 
 MIN_TOKEN_CHARS = 16
 _MAX_TOKEN_CHARS = 512
@@ -87,6 +88,32 @@ class MapTls(BaseModel):
         return self
 
 
+class MapTiles(BaseModel):
+    """A local raster base map: a directory of ``z/x/y`` tiles or an MBTiles file."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    path: Path = Field(description="A directory of z/x/y.<format> files, or an .mbtiles file.")
+    format: Literal["png", "jpg", "jpeg", "webp"] = Field(
+        default="png", description="The files' format in a directory (an MBTiles file says)."
+    )
+    min_zoom: int | None = Field(default=None, ge=0, le=24, description="Lowest zoom served.")
+    max_zoom: int | None = Field(default=None, ge=0, le=24, description="Highest zoom served.")
+    attribution: str = Field(
+        default="", max_length=200, description="Credit shown on the map (plain text)."
+    )
+
+    @model_validator(mode="after")
+    def _usable(self, info: ValidationInfo) -> MapTiles:
+        low, high = self.min_zoom, self.max_zoom
+        if low is not None and high is not None and low > high:
+            raise ValueError("min_zoom is above max_zoom")
+        on_node = isinstance(info.context, dict) and info.context.get("environment")
+        if on_node and not (self.path.is_dir() or self.path.is_file()):
+            raise ValueError(f"path {self.path} is neither a directory nor a file")
+        return self
+
+
 class MapSinkConfig(SinkConfig):
     """Options of the map sink."""
 
@@ -143,6 +170,20 @@ class MapSinkConfig(SinkConfig):
     )
     expire_after_s: float = Field(
         default=900.0, gt=0, description="An entity unheard this long leaves the map (s)."
+    )
+
+    archive: Path | None = Field(
+        default=None,
+        description="The live file of a jsonl sink (its `path`): the time slider replays it.",
+    )
+    replay_max_mb: int = Field(
+        default=64, ge=1, le=4096, description="Archive read per time-slider request (MiB)."
+    )
+    replay_max_s: float = Field(
+        default=10.0, gt=0, le=120, description="Time spent per time-slider request (s)."
+    )
+    tiles: MapTiles | None = Field(
+        default=None, description="Local raster tiles as the base map (else world-atlas)."
     )
 
     @field_validator("kinds")

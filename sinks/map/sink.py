@@ -27,9 +27,11 @@ import structlog
 
 from gateway.errors import TransientSinkError
 from gateway.events import Event, EventKind
+from sinks.map.archive import ArchiveBudget
 from sinks.map.config import MapSinkConfig, MapTls, is_loopback, read_token
 from sinks.map.hub import Hub
 from sinks.map.picture import Limits, Picture
+from sinks.map.tiles import TilesError, TileSet, open_tiles
 
 __all__ = ["EXTRA_MISSING", "MapSink"]
 
@@ -75,6 +77,7 @@ class MapSink:
         self.hub = Hub(queue_max=config.queue_max)
         self._socket: socket.socket | None = None
         self._state: Any = None
+        self._tiles: TileSet | None = None
         self.url: str | None = None
         self._counts = {"applied": 0, "ignored": 0}
 
@@ -89,6 +92,7 @@ class MapSink:
 
         if self.config.tls is not None:
             _check_tls(self.config.tls, self.name)
+        self._tiles = self._open_tiles()
         try:
             self._socket = listen(self.config.host, self.config.port)
         except OSError as exc:
@@ -113,7 +117,16 @@ class MapSink:
         if self._socket is None:
             raise TransientSinkError(f"sink {self.name}: not open", sink=self.name)
         state = MapState(
-            self.picture, self.hub, title=self.config.title, keepalive_s=self.config.keepalive_s
+            self.picture,
+            self.hub,
+            title=self.config.title,
+            keepalive_s=self.config.keepalive_s,
+            archive=self.config.archive,
+            budget=ArchiveBudget(
+                max_bytes=self.config.replay_max_mb * 1024 * 1024,
+                max_seconds=self.config.replay_max_s,
+            ),
+            tiles=self._tiles,
         )
         self._state = state
         app = build_app(
@@ -174,6 +187,8 @@ class MapSink:
             "expired": self.picture.expired,
             "refused_busy": 0 if state is None else state.refused_busy,
             "refused_token": 0 if state is None else state.refused_token,
+            "replays": 0 if state is None else state.replays,
+            "tiles": None if self._tiles is None else self._tiles.kind,
         }
 
     def counts(self) -> Mapping[str, int]:
@@ -184,6 +199,21 @@ class MapSink:
             "expired": self.picture.expired,
             "streams_cut": self.hub.cut_off,
         }
+
+    def _open_tiles(self) -> TileSet | None:
+        tiles = self.config.tiles
+        if tiles is None:
+            return None
+        try:
+            return open_tiles(
+                tiles.path,
+                fmt=tiles.format,
+                min_zoom=tiles.min_zoom,
+                max_zoom=tiles.max_zoom,
+                attribution=tiles.attribution,
+            )
+        except (TilesError, OSError) as exc:
+            raise TransientSinkError(f"sink {self.name}: {exc}", sink=self.name) from exc
 
     def _allowed_hosts(self) -> list[str]:
         host = self.config.host.strip("[]")

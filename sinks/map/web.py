@@ -4,6 +4,10 @@ Routes (docs/map.md §3):
 
 - ``GET /``: the page; ``GET /static/...``: its script, style and the vendored libraries;
 - ``GET /api/picture``: the whole picture as JSON (``seq`` says which change it includes);
+  ``?at=<ISO 8601 time>``: the picture as it was then, from the archive (``archive``);
+- ``GET /api/info``: the page's settings (title, whether there is an archive, the tiles);
+- ``GET /api/archive``: the archive's span (its first event's time, and now);
+- ``GET /tiles/{z}/{x}/{y}``: a tile of the local base map (``tiles``);
 - ``GET /api/stream``: Server-Sent Events, a ``snapshot`` then one ``change`` per change;
   ``?layers=track,detection`` limits both to those layers;
 - ``GET /api/mgrs?lat=..&lon=..``: the MGRS reference of a point (the page's cursor readout).
@@ -18,6 +22,7 @@ from __future__ import annotations
 import hmac
 import math
 from collections.abc import AsyncIterator, Awaitable, Callable, MutableMapping
+from datetime import UTC, datetime, timedelta
 from http.cookies import SimpleCookie
 from pathlib import Path
 from typing import Any
@@ -39,14 +44,17 @@ from starlette.routing import Mount, Route
 from starlette.staticfiles import StaticFiles
 
 from gateway.domain.geodesy import to_mgrs
+from sinks.map.archive import ArchiveBudget, Replay, archive_start, replay
 from sinks.map.hub import CLOSED, Hub, sse
 from sinks.map.picture import LAYERS, Picture
+from sinks.map.tiles import TileSet
 
 __all__ = ["STATIC", "TOKEN_COOKIE", "MapState", "build_app"]
 
 STATIC = Path(__file__).with_name("static")
 #: A stream's write gathers what is queued up to about this size.
 _CHUNK_BYTES = 64 * 1024
+_MAX_AT_CHARS = 40
 TOKEN_COOKIE = "fg_map_token"  # noqa: S105 - the cookie's name, not a secret
 
 Scope = MutableMapping[str, Any]
@@ -70,15 +78,48 @@ _HEADERS = [
 
 
 class MapState:
-    """What the application reads: the picture, the hub and the page's settings."""
+    """What the application reads: the picture, the hub, the archive, tiles and settings."""
 
-    def __init__(self, picture: Picture, hub: Hub, *, title: str, keepalive_s: float) -> None:
+    def __init__(
+        self,
+        picture: Picture,
+        hub: Hub,
+        *,
+        title: str,
+        keepalive_s: float,
+        archive: Path | None = None,
+        budget: ArchiveBudget | None = None,
+        tiles: TileSet | None = None,
+    ) -> None:
         self.picture = picture
         self.hub = hub
         self.title = title
         self.keepalive_s = keepalive_s
+        self.archive = archive
+        self.budget = budget or ArchiveBudget()
+        self.tiles = tiles
         self.refused_busy = 0
         self.refused_token = 0
+        self.replays = 0
+        self.replaying = False
+
+
+def _at(text: str) -> datetime | str:
+    """The time the ``at`` parameter names, or why it names none."""
+    if len(text) > _MAX_AT_CHARS:
+        return f"at: longer than {_MAX_AT_CHARS} characters"
+    try:
+        at = datetime.fromisoformat(text.strip())
+    except ValueError:
+        return "at: not an ISO 8601 time (e.g. 2026-11-27T06:30:00Z)"
+    if at.tzinfo is None:
+        return "at: give the time zone (Z for UTC)"
+    now = datetime.now(UTC)
+    if at > now + timedelta(minutes=1):
+        return "at: in the future"
+    if at.year < 2000:
+        return "at: before 2000"
+    return at.astimezone(UTC)
 
 
 def _layers(request: Request) -> frozenset[str] | Response:
@@ -125,7 +166,76 @@ def build_app(
         layers = _layers(request)
         if isinstance(layers, Response):
             return layers
+        if "at" in request.query_params:
+            return await past(request.query_params["at"], layers)
         return JSONResponse(_snapshot(state, layers))
+
+    async def past(text: str, layers: frozenset[str]) -> Response:
+        if state.archive is None:
+            return JSONResponse(
+                {"error": "at: no archive (set the map sink's archive option)"}, status_code=404
+            )
+        at = _at(text)
+        if isinstance(at, str):
+            return JSONResponse({"error": at}, status_code=400)
+        if state.replaying:
+            return JSONResponse(
+                {"error": "busy: one archive replay at a time"},
+                status_code=503,
+                headers={"retry-after": "1"},
+            )
+        archive = state.archive
+
+        def job() -> Replay:
+            try:
+                return replay(archive, at, state.picture.limits, state.budget)
+            finally:
+                state.replaying = False  # when the thread is done, even if abandoned
+
+        state.replaying = True
+        # Abandoned on cancel (a drain, a client gone): the thread ends within its budget.
+        done = await anyio.to_thread.run_sync(job, abandon_on_cancel=True)
+        state.replays += 1
+        full = done.picture.snapshot()
+        return JSONResponse(
+            {
+                "seq": None,
+                "title": state.title,
+                "at": at.isoformat().replace("+00:00", "Z"),
+                "replay": done.summary(),
+                "layers": {layer: full[layer] for layer in LAYERS if layer in layers},
+            }
+        )
+
+    async def info(request: Request) -> Response:
+        return JSONResponse(
+            {
+                "title": state.title,
+                "archive": state.archive is not None,
+                "tiles": None if state.tiles is None else state.tiles.describe(),
+            }
+        )
+
+    async def archive(request: Request) -> Response:
+        if state.archive is None:
+            return JSONResponse({"error": "no archive"}, status_code=404)
+        start = await anyio.to_thread.run_sync(archive_start, state.archive, state.budget)
+        return JSONResponse(
+            {
+                "start": None if start is None else start.isoformat().replace("+00:00", "Z"),
+                "now": datetime.now(UTC).isoformat().replace("+00:00", "Z"),
+            }
+        )
+
+    async def tile(request: Request) -> Response:
+        tiles = state.tiles
+        z, x, y = (request.path_params[k] for k in ("z", "x", "y"))
+        if tiles is None or not tiles.valid(z, x, y):
+            return Response(status_code=404)
+        found = await anyio.to_thread.run_sync(tiles.tile, z, x, y)
+        if found is None:
+            return Response(status_code=404)
+        return Response(found[0], media_type=found[1])
 
     async def stream(request: Request) -> Response:
         layers = _layers(request)
@@ -182,6 +292,9 @@ def build_app(
             Route("/api/picture", picture),
             Route("/api/stream", stream),
             Route("/api/mgrs", mgrs),
+            Route("/api/info", info),
+            Route("/api/archive", archive),
+            Route("/tiles/{z:int}/{x:int}/{y:int}", tile),
             Route("/favicon.ico", lambda request: Response(status_code=204)),
             Mount("/static", StaticFiles(directory=STATIC), name="static"),
         ],

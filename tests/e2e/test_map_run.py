@@ -10,13 +10,18 @@ airframes over UDP, the platoons over CoT.
 - Debian's Chromium, headless and held to the node by its launch flags and a route that
   aborts any other request, loads the page: the base map and the libraries come from the
   node; the symbols drawn equal the picture's entities; a track's symbol moves when the track
-  does; a cue appears. The screenshot is kept in the test's temporary folder.
+  does; a cue appears; the time slider, moved back to a second after the first cue, shows the
+  cued track where the node's JSONL archive says it was then, and the cue. The screenshot is
+  kept in the test's temporary folder, and also where ``FG_MAP_SCREENSHOT`` says:
+  ``FG_MAP_SCREENSHOT=docs/map.png pytest tests/e2e/test_map_run.py`` makes the README's
+  picture (docs/map.md §9).
 """
 
 from __future__ import annotations
 
 import http.client
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -25,12 +30,13 @@ import time
 import urllib.request
 from collections.abc import Iterator
 from dataclasses import dataclass, field
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
 
 import pytest
-from daemon_support import Daemon, free_udp_port, wait_until
+from daemon_support import Daemon, archive_events, free_udp_port, wait_until
 from tools import need, required
 
 from gateway.sim.scenario import load_scenario
@@ -76,9 +82,13 @@ processors:
           lon_deg: {battery.lon_deg}
           effectors: {list(battery.effectors)}
 sinks:
-  - {{name: map, type: map, options: {{port: 0, title: Brigade}}}}
+  - {{name: archive, type: jsonl, options: {{path: '{tmp_path / "archive.jsonl"}'}}}}
+  - name: map
+    type: map
+    options: {{port: 0, title: Brigade, archive: '{tmp_path / "archive.jsonl"}'}}
 routes:
-  - {{sinks: [map], kinds: [telemetry, link_state, detection, track, blue_force, handoff]}}
+  - sinks: [map, archive]
+    kinds: [telemetry, link_state, detection, track, blue_force, handoff]
 """
     )
     return config
@@ -127,6 +137,7 @@ class Node:
     url: str
     stream: StreamReader
     sim: subprocess.Popen[bytes]
+    archive: Path
 
 
 @pytest.fixture(scope="module")
@@ -144,7 +155,7 @@ def node(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Node]:
         command += ["--to", f"udp://127.0.0.1:{link}", "--cot", f"udp://127.0.0.1:{cot}"]
         command += ["--speed", str(SPEED)]
         sim = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-        yield Node(daemon, url, stream, sim)
+        yield Node(daemon, url, stream, sim, tmp_path / "archive.jsonl")
     finally:
         if sim is not None:
             if sim.poll() is None:
@@ -188,6 +199,7 @@ def test_the_page_draws_the_picture_moves_a_track_and_shows_a_cue(
             page.goto(node.url)
             page.wait_for_function("() => window.fgMap && window.fgMap.state.snapshots >= 1")
             page.wait_for_function("() => window.fgMap.state.baseMap === true")
+            assert page.evaluate("fgMap.state.baseKind") == "world-atlas"
 
             # A track's symbol moves when the track does.
             page.wait_for_function("() => window.fgMap.ids('track').length > 0", timeout=60_000)
@@ -235,10 +247,54 @@ def test_the_page_draws_the_picture_moves_a_track_and_shows_a_cue(
                 "() => document.getElementById('mgrs').textContent.startsWith('MGRS 3')"
             )
             page.screenshot(path=str(tmp_path / "map.png"))
+            keep = os.environ.get("FG_MAP_SCREENSHOT")
+            if keep:
+                shutil.copyfile(tmp_path / "map.png", keep)
+
+            # The time slider: a second after the first cue, the cued track was where the
+            # archive says it was then, and the cue stood.
+            go_back_in_time(page, node)
             assert errors == []
             assert foreign == []
         finally:
             browser.close()
+
+
+def go_back_in_time(page: Any, node: Node) -> None:
+    handoffs = [e for e in archive_events(node.archive) if e["kind"] == "handoff"]
+    assert handoffs, "the cue is on the page, so in the archive"
+    first = handoffs[0]
+    instant = datetime.fromisoformat(first["time"]) + timedelta(seconds=1)
+    wait_until(lambda: datetime.now(UTC) > instant + timedelta(seconds=2), 10.0, "the instant")
+    page.wait_for_selector("#time", state="visible")
+    value = page.evaluate("iso => fgMap.sliderValueFor(iso)", instant.isoformat())
+    page.wait_for_function("v => Number(document.getElementById('time').max) > v", arg=value)
+    page.locator("#time").fill(str(value))
+    page.wait_for_function("() => fgMap.state.mode === 'replay' && fgMap.state.replays >= 1")
+    replayed = datetime.fromisoformat(page.evaluate("fgMap.state.replayAt"))
+    assert abs((replayed - instant).total_seconds()) <= 1.5
+    events = archive_events(node.archive)
+    track_id = first["track"]["track_id"]
+    then = [
+        e
+        for e in events
+        if e["kind"] == "track"
+        and e["track_id"] == track_id
+        and datetime.fromisoformat(e["time"]) <= replayed
+    ]
+    shown = page.evaluate("id => fgMap.position('track', id)", track_id)
+    if then[-1]["status"] in ("lost", "merged"):
+        assert shown is None
+    else:
+        where = then[-1]["position"]
+        assert shown is not None
+        assert (shown["lat"], shown["lon"]) == (
+            round(where["lat_deg"], 7),
+            round(where["lon_deg"], 7),
+        )
+    assert first["handoff_id"] in page.evaluate("fgMap.ids('cue')")
+    page.click("#live")
+    page.wait_for_function("() => fgMap.state.mode === 'live' && fgMap.state.snapshots >= 2")
 
 
 def test_an_integrators_stream_client_receives_tracks_airframes_blue_forces_and_cues(

@@ -16,21 +16,55 @@
   const drawn = {}; // layer -> id -> {marker, extras: [], data}
   for (const layer of LAYERS) drawn[layer] = new Map();
   const symbolCache = new Map();
-  const state = { seq: 0, snapshots: 0, changes: 0, fitted: false, connected: false };
+  const state = {
+    seq: 0, snapshots: 0, changes: 0, fitted: false, connected: false,
+    mode: "live", replays: 0, replayAt: null, baseKind: null,
+  };
 
-  // -- base map: world-atlas land, offline ---------------------------------------------
-  fetch("/static/vendor/world-atlas/land-50m.json")
-    .then((r) => r.json())
-    .then((topo) => {
-      const land = topojson.feature(topo, topo.objects.land);
-      unwrapAll(land);
-      L.geoJSON(land, {
-        interactive: false,
-        style: { color: "#7d8b6a", weight: 0.6, fillColor: "#eef0e4", fillOpacity: 1 },
-      }).addTo(map).bringToBack();
+  // -- base map: the node's own tiles when it has them, else world-atlas land; offline -----
+  function worldAtlas() {
+    fetch("/static/vendor/world-atlas/land-50m.json")
+      .then((r) => r.json())
+      .then((topo) => {
+        const land = topojson.feature(topo, topo.objects.land);
+        unwrapAll(land);
+        L.geoJSON(land, {
+          interactive: false,
+          style: { color: "#7d8b6a", weight: 0.6, fillColor: "#eef0e4", fillOpacity: 1 },
+        }).addTo(map).bringToBack();
+        state.baseKind = "world-atlas";
+        state.baseMap = true;
+      })
+      .catch(() => { state.baseMap = false; });
+  }
+
+  function localTiles(tiles) {
+    const layer = L.tileLayer("/tiles/{z}/{x}/{y}", {
+      minZoom: 0,
+      maxZoom: 19,
+      minNativeZoom: tiles.min_zoom,
+      maxNativeZoom: tiles.max_zoom,
+      attribution: "",
+    });
+    state.tilesLoaded = 0;
+    layer.on("tileload", () => {
+      state.tilesLoaded += 1;
+      state.baseKind = "tiles";
       state.baseMap = true;
-    })
-    .catch(() => { state.baseMap = false; });
+    });
+    layer.addTo(map).bringToBack();
+    if (tiles.attribution) {
+      // The credit is the operator's text: shown as text, never as HTML.
+      const Credit = L.Control.extend({
+        onAdd() {
+          const el = L.DomUtil.create("div", "fg-credit");
+          el.textContent = tiles.attribution;
+          return el;
+        },
+      });
+      new Credit({ position: "bottomright" }).addTo(map);
+    }
+  }
 
   // world-atlas is made for spherical drawing: its rings cross the antimeridian (Chukotka) and
   // Antarctica's goes round the pole. On a flat map such a ring would get an edge across the
@@ -310,28 +344,145 @@
     state.changes += 1;
   }
 
+  let source = null;
+  const linkEl = document.getElementById("link");
+
   function connect() {
-    const source = new EventSource("/api/stream");
-    const linkEl = document.getElementById("link");
+    source = new EventSource("/api/stream");
     source.addEventListener("open", () => { state.connected = true; linkEl.textContent = "live"; linkEl.className = "up"; });
     source.addEventListener("error", () => { state.connected = false; linkEl.textContent = "reconnecting"; linkEl.className = "down"; });
     source.addEventListener("snapshot", (msg) => {
+      if (state.mode !== "live") return;
       const snap = JSON.parse(msg.data);
       document.getElementById("title").textContent = snap.title;
-      clearAll();
-      for (const layer of LAYERS) for (const e of snap.layers[layer] || []) upsert(layer, e);
+      drawAll(snap.layers);
       state.seq = snap.seq;
       state.snapshots += 1;
       if (!state.fitted) state.fitted = fit();
-      showCounts();
     });
     source.addEventListener("change", (msg) => {
+      if (state.mode !== "live") return;
       applyChange(JSON.parse(msg.data));
       if (!state.fitted) state.fitted = fit();
       showCounts();
     });
     source.addEventListener("overflow", () => { linkEl.textContent = "catching up"; });
   }
+
+  function drawAll(layers) {
+    clearAll();
+    for (const layer of LAYERS) for (const e of layers[layer] || []) upsert(layer, e);
+    showCounts();
+  }
+
+  // -- the time slider: the picture as it was, from the node's archive ---------------------
+  // Dragging back leaves the live stream and asks the node for the picture at that instant
+  // (GET /api/picture?at=...); "Live" (or the slider's right end) returns to the stream.
+  const historyBar = document.getElementById("history");
+  const slider = document.getElementById("time");
+  const whenEl = document.getElementById("when");
+  const liveButton = document.getElementById("live");
+  const span = { start: null, offset: 0 };
+  let asked = 0;
+  let pending = null;
+  let scrubbing = false; // the operator is moving the slider: the clock leaves it alone
+
+  function instant(value) {
+    return new Date(span.start + (value === undefined ? Number(slider.value) : value) * 1000);
+  }
+  function stamp(date) {
+    return date.toISOString().replace(/\.\d{3}Z$/, "Z");
+  }
+
+  // The archive's span: its first event (asked of the node), to now (the node's clock).
+  function refreshSpan() {
+    return fetch("/api/archive")
+      .then((r) => (r.ok ? r.json() : null))
+      .then((body) => {
+        if (body === null || body.start === null) return;
+        span.start = Date.parse(body.start);
+        span.offset = Date.parse(body.now) - Date.now();
+        historyBar.hidden = false;
+        state.archiveStart = body.start;
+        tick();
+      })
+      .catch(() => {});
+  }
+  function tick() {
+    if (span.start === null) return;
+    slider.max = String(Math.max(0, Math.floor((Date.now() + span.offset - span.start) / 1000)));
+    if (state.mode === "live" && !scrubbing) slider.value = slider.max;
+  }
+
+  function showAt(date) {
+    const at = stamp(date);
+    const ticket = ++asked;
+    state.mode = "replay";
+    if (source !== null) { source.close(); source = null; }
+    state.connected = false;
+    linkEl.textContent = "archive";
+    linkEl.className = "past";
+    whenEl.textContent = at.replace("T", " ");
+    whenEl.className = "past";
+    liveButton.disabled = false;
+    fetch("/api/picture?at=" + encodeURIComponent(at))
+      .then((r) => r.json().then((body) => ({ ok: r.ok, body })))
+      .then(({ ok, body }) => {
+        if (ticket !== asked || state.mode !== "replay") return; // a newer question, or live again
+        if (!ok) { whenEl.textContent = body.error || "no picture"; return; }
+        drawAll(body.layers);
+        state.replayAt = body.at;
+        state.replay = body.replay;
+        state.replays += 1;
+        if (body.replay.truncated) whenEl.textContent += " (partial)";
+      })
+      .catch(() => { if (ticket === asked) whenEl.textContent = "no answer"; });
+  }
+
+  function goLive() {
+    asked += 1;
+    state.mode = "live";
+    state.replayAt = null;
+    whenEl.textContent = "live";
+    whenEl.className = "";
+    liveButton.disabled = true;
+    slider.value = slider.max;
+    if (source === null) connect();
+  }
+
+  slider.addEventListener("pointerdown", () => { scrubbing = true; refreshSpan(); });
+  slider.addEventListener("pointerup", () => { setTimeout(() => { scrubbing = false; }, 0); });
+  slider.addEventListener("input", () => {
+    scrubbing = true;
+    whenEl.textContent = stamp(instant()).replace("T", " ");
+    clearTimeout(pending);
+    pending = setTimeout(() => { slider.dispatchEvent(new Event("change")); }, 300);
+  });
+  slider.addEventListener("change", () => {
+    clearTimeout(pending);
+    scrubbing = false;
+    if (span.start === null) return;
+    const value = Number(slider.value);
+    tick(); // the right end is now, not when the clock last moved it
+    if (value >= Number(slider.max)) goLive();
+    else { slider.value = String(value); showAt(instant(value)); }
+  });
+  liveButton.addEventListener("click", goLive);
+
+  fetch("/api/info")
+    .then((r) => r.json())
+    .then((info) => {
+      document.getElementById("title").textContent = info.title;
+      if (info.tiles) localTiles(info.tiles);
+      else worldAtlas();
+      if (info.archive) {
+        refreshSpan();
+        // Until the archive holds an event, ask again; then the slider's end follows the clock.
+        setInterval(() => { if (span.start === null) refreshSpan(); else tick(); }, 1000);
+      }
+    })
+    .catch(() => worldAtlas());
+
   connect();
   document.getElementById("fit").addEventListener("click", () => { fit(); });
 
@@ -368,5 +519,7 @@
       return { lat: item.data.lat, lon: item.data.lon, x: p.x, y: p.y };
     },
     ids: (layer) => Array.from(drawn[layer].keys()),
+    // The slider's value (seconds after the archive's start) for an instant.
+    sliderValueFor: (iso) => Math.round((Date.parse(iso) - span.start) / 1000),
   };
 })();
