@@ -429,7 +429,7 @@ def main() -> None:
     args.key_file.chmod(0o600)
     kinds = ["gateway"] + (["compare"] if args.compare else []) + ["forwarder"]
     kinds += ["mavproxy"] if args.mavproxy else []
-    start = {k: args.start for k in kinds}
+    start = dict.fromkeys(kinds, args.start)
     start["forwarder"] = args.start * 4
     rows: dict[str, dict[str, list[float]]] = {k: {} for k in kinds}
     for _ in range(args.rounds):
