@@ -111,6 +111,9 @@ class AirframeState:
         self._agl_for: tuple[float, float, float | None] | None = None
         self._agl: tuple[float | None, float | None] = (None, None)
         self._seq = 0
+        #: ``event_id(airframe, "tel", BOOT_ID, n)`` is this prefix and n.
+        self._id_prefix = event_id(airframe, "tel", BOOT_ID, "")
+        self._endurance: tuple[float | None, float | None] = (None, None)
         self._fields: dict[str, Any] = {}
         self._geoid_sep_m: float | None = None
         self._handlers: dict[str, Callable[[MavMessage], bool]] = {
@@ -146,7 +149,7 @@ class AirframeState:
         # Every field was checked when it was merged (the update handlers, ``_derive``).
         return checked(
             Telemetry,
-            event_id=event_id(self.airframe, "tel", BOOT_ID, self._seq),
+            event_id=f"{self._id_prefix}{self._seq}",
             airframe=self.airframe,
             time=self._clock(),
             active_link=self.active_link,
@@ -183,10 +186,11 @@ class AirframeState:
         elif consumed is not None:
             wh_left = profile.battery_usable_wh - consumed
         if wh_left is not None:
-            # No solar measurement arrives over MAVLink: predict the worst case (night).
-            out["endurance_remaining_min"] = endurance_remaining_min(
-                wh_left, profile, enrichment.ew_mode
-            )
+            if self._endurance[0] != wh_left:  # the battery changes far less often than this runs
+                # No solar measurement arrives over MAVLink: predict the worst case (night).
+                minutes = endurance_remaining_min(wh_left, profile, enrichment.ew_mode)
+                self._endurance = (wh_left, minutes)
+            out["endurance_remaining_min"] = self._endurance[1]
         return out
 
     def apply(self, name: str, msg: MavMessage) -> Telemetry | None:
