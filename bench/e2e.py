@@ -194,11 +194,10 @@ class System:
 
     def stop(self) -> None:
         self.proc.send_signal(signal.SIGTERM)
-        try:
+        with contextlib.suppress(subprocess.TimeoutExpired):
             self.proc.wait(timeout=15)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            self.proc.wait()
+        self.proc.kill()  # does nothing once it has exited
+        self.proc.wait()
 
 
 def start_gateway(
