@@ -10,9 +10,8 @@ from __future__ import annotations
 
 from datetime import UTC, datetime, timedelta
 from typing import Literal
-from xml.sax.saxutils import quoteattr
 
-from sinks.cot.event import CotEvent, xml_safe
+from sinks.cot.event import CotEvent, xml_attribute
 from sinks.cot.proto import double, mesh_frame, message, stream_frame, string, uint
 
 __all__ = ["Encoded", "Encoding", "cot_time", "decimal", "tak_control", "to_proto", "to_xml"]
@@ -24,8 +23,9 @@ _DECLARATION = b'<?xml version="1.0" encoding="UTF-8" standalone="yes"?>\n'
 
 def cot_time(value: datetime) -> str:
     """A CoT timestamp: UTC, milliseconds (truncated), ``Z``."""
-    utc = value.astimezone(UTC)
-    return utc.strftime("%Y-%m-%dT%H:%M:%S.") + f"{utc.microsecond // 1000:03d}Z"
+    utc = value if value.tzinfo is UTC else value.astimezone(UTC)
+    # isoformat cuts the microseconds to milliseconds as strftime's digits did (no rounding).
+    return utc.replace(tzinfo=None).isoformat(timespec="milliseconds") + "Z"
 
 
 _EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
@@ -44,7 +44,7 @@ def decimal(value: float, places: int) -> str:
 
 
 def _attrs(**values: str) -> str:
-    return "".join(f" {k}={quoteattr(xml_safe(v))}" for k, v in values.items())
+    return "".join(f" {k}={xml_attribute(v)}" for k, v in values.items())
 
 
 def to_xml(event: CotEvent) -> bytes:
