@@ -21,9 +21,13 @@ Encoding = Literal["xml", "mesh", "stream"]
 _DECLARATION = b'<?xml version="1.0" encoding="UTF-8" standalone="yes"?>\n'
 
 
+_ZERO = timedelta(0)
+
+
 def cot_time(value: datetime) -> str:
     """A CoT timestamp: UTC, milliseconds (truncated), ``Z``."""
-    utc = value if value.tzinfo is UTC else value.astimezone(UTC)
+    # Events read back from the spool carry pydantic's own UTC tzinfo, not datetime.UTC.
+    utc = value if value.utcoffset() == _ZERO else value.astimezone(UTC)
     # isoformat cuts the microseconds to milliseconds as strftime's digits did (no rounding).
     return utc.replace(tzinfo=None).isoformat(timespec="milliseconds") + "Z"
 
