@@ -310,18 +310,19 @@ def measure(kind: str, rate: float, args: argparse.Namespace, workdir: Path) -> 
     key = cot_key if is_gateway else debug_key
     receiver = ctx.Process(target=receive, args=(sinks, key, count, arrivals, ready, stop))
     receiver.start()
-    ready.wait(10)
-    if is_gateway:
-        tree = args.compare if kind == "compare" else None
-        system = start_gateway(sinks, args.airframes, args.key_file, workdir, tree)
-        frames = detection_frames(count, args.airframes)
-    elif kind == "forwarder":
-        system = start_forwarder(sinks)
-        frames = debug_frames(count)
-    else:
-        system = start_mavproxy(args.mavproxy, sinks, workdir)
-        frames = debug_frames(count)
+    system: System | None = None
     try:
+        ready.wait(10)
+        if is_gateway:
+            tree = args.compare if kind == "compare" else None
+            system = start_gateway(sinks, args.airframes, args.key_file, workdir, tree)
+            frames = detection_frames(count, args.airframes)
+        elif kind == "forwarder":
+            system = start_forwarder(sinks)
+            frames = debug_frames(count)
+        else:
+            system = start_mavproxy(args.mavproxy, sinks, workdir)
+            frames = debug_frames(count)
         time.sleep(system.ready_wait_s)
         cpu0, t0 = cpu_s(system.proc.pid), time.perf_counter()
         sender = ctx.Process(
@@ -335,7 +336,8 @@ def measure(kind: str, rate: float, args: argparse.Namespace, workdir: Path) -> 
         cpu = cpu_s(system.proc.pid) - cpu0
         wall = time.perf_counter() - t0
     finally:
-        system.stop()
+        if system is not None:
+            system.stop()
         stop.set()
         receiver.join(10)
     sends = stamps.get_obj()  # type: ignore[attr-defined]
