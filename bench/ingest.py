@@ -248,12 +248,7 @@ def daemon_run(
     key: str,
 ) -> dict[str, float]:
     """The daemon in its own process under a fixed load; loss, latency, CPU, RSS."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
-        probe.bind(("127.0.0.1", 0))
-        port = probe.getsockname()[1]
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        health = probe.getsockname()[1]
+    port, health = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_STREAM)
     cfg = config(airframes, tunnel, port, key if tunnel else None).model_dump(mode="json")
     cfg["health"]["port"] = health
     if tunnel:
@@ -269,13 +264,8 @@ def daemon_run(
     )
     try:
         url = f"http://127.0.0.1:{health}"
-        for _ in range(200):
-            try:
-                urllib.request.urlopen(url + "/readyz", timeout=1)  # noqa: S310 - loopback
-                break
-            except OSError:
-                time.sleep(0.05)
-        cpu0 = _cpu_s(proc.pid)
+        wait_ready(health, proc)
+        cpu0 = cpu_s(proc.pid)
         sent = multiprocessing.Value("q", 0)
         child = multiprocessing.Process(
             target=sender, args=(port, datagrams, rate, seconds, sent, ids if tunnel else None)
@@ -285,7 +275,7 @@ def daemon_run(
         child.join()
         time.sleep(0.5)
         wall = time.perf_counter() - t0
-        cpu = _cpu_s(proc.pid) - cpu0
+        cpu = cpu_s(proc.pid) - cpu0
         text = urllib.request.urlopen(url + "/metrics", timeout=5).read().decode()  # noqa: S310
         frames = metric(text, "fg_link_frames_total")
         return {
@@ -302,7 +292,28 @@ def daemon_run(
         proc.wait(timeout=15)
 
 
-def _cpu_s(pid: int) -> float:
+def free_port(kind: socket.SocketKind) -> int:
+    """A loopback port free for ``kind`` (SOCK_DGRAM or SOCK_STREAM) at the time of asking."""
+    with socket.socket(socket.AF_INET, kind) as probe:
+        probe.bind(("127.0.0.1", 0))
+        return int(probe.getsockname()[1])
+
+
+def wait_ready(health: int, proc: subprocess.Popen[bytes]) -> None:
+    """Wait until the daemon answers /readyz on ``health`` (or has exited)."""
+    for _ in range(400):
+        if proc.poll() is not None:
+            raise RuntimeError(f"the gateway exited {proc.returncode} before it was ready")
+        try:
+            urllib.request.urlopen(f"http://127.0.0.1:{health}/readyz", timeout=1)
+            return
+        except OSError:
+            time.sleep(0.05)
+    raise RuntimeError("the gateway did not become ready")
+
+
+def cpu_s(pid: int) -> float:
+    """User + system CPU seconds of process ``pid`` so far."""
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
@@ -314,18 +325,19 @@ def _rss_mb(pid: int) -> float:
     return math.nan
 
 
-def mavproxy_rate(datagrams: list[bytes], rate: float, seconds: float) -> float | None:
-    """Share of datagrams MAVProxy forwards at ``rate`` (None if MAVProxy is absent)."""
-    exe = shutil.which("mavproxy.py") or shutil.which(
+def mavproxy_exe() -> str | None:
+    """The ``mavproxy.py`` script on PATH or beside this Python (None if not installed)."""
+    return shutil.which("mavproxy.py") or shutil.which(
         "mavproxy.py", path=str(Path(sys.executable).parent)
     )
+
+
+def mavproxy_rate(datagrams: list[bytes], rate: float, seconds: float) -> float | None:
+    """Share of datagrams MAVProxy forwards at ``rate`` (None if MAVProxy is absent)."""
+    exe = mavproxy_exe()
     if exe is None:
         return None
-    ports = []
-    for _ in range(2):
-        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
-            probe.bind(("127.0.0.1", 0))
-            ports.append(probe.getsockname()[1])
+    ports = [free_port(socket.SOCK_DGRAM) for _ in range(2)]
     out = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     out.bind(("127.0.0.1", ports[1]))
     out.settimeout(0.2)

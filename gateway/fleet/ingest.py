@@ -51,7 +51,7 @@ from gateway.fleet.session import AirframeSession, Transmit
 from gateway.fleet.video import CameraView
 from gateway.ops.instruments import Instruments
 from gateway.ops.logsetup import RateLimit
-from gateway.ops.metrics import CounterChild
+from gateway.ops.metrics import CounterChild, HistogramChild
 
 __all__ = ["Ingest", "LinkIntake"]
 
@@ -130,6 +130,7 @@ class Ingest:
         self._dirty: dict[str, AirframeSession] = {}
         self._flush_pending = False
         self._reject_log = RateLimit(interval_s=REJECT_LOG_INTERVAL_S)
+        self._latency: dict[tuple[str, str], HistogramChild] = {}
 
     def register_link(self, intake: LinkIntake) -> None:
         """Declare a link endpoint before it delivers data."""
@@ -211,17 +212,20 @@ class Ingest:
             except FrameError as exc:
                 self._rejected(label, exc.reason, str(exc))
                 return
-        now = self._clock() if opened else None
+        now_ms = int(self._clock().timestamp() * 1000) if opened else 0
         for frame in opened:
             airframe = self._by_id.get(frame.airframe)
             if airframe is None or label not in airframe.labels:
                 # A valid key, but this link is not one of that airframe's links.
                 self._rejected(label, "foreign_link", f"{frame.airframe} is not configured here")
                 continue
-            if now is not None:
-                latency_s = (now - frame.sent).total_seconds()
-                self._inst.link_latency.labels(frame.airframe, label).observe(max(latency_s, 0.0))
-                airframe.health.latency(label, latency_s)
+            latency_s = (now_ms - frame.sent_ms) / 1000.0
+            histogram = self._latency.get((frame.airframe, label))
+            if histogram is None:  # bounded: configured (airframe, link) pairs only
+                histogram = self._inst.link_latency.labels(frame.airframe, label)
+                self._latency[(frame.airframe, label)] = histogram
+            histogram.observe(max(latency_s, 0.0))
+            airframe.health.latency(label, latency_s)
             # The key authenticated the datagram, so the sender is this airframe's peer.
             key = frame.airframe if not intake.is_stream else (peer, frame.airframe)
             for msg in self._parse(intake, key, frame.payload):

@@ -3,6 +3,11 @@
 This is the one place where values from the wire are checked: MAVLink's "unknown" sentinels
 (-1, UINT16_MAX, 0 for optional extensions, NaN) become None, units become SI, and a position
 of exactly 0,0 (an autopilot without a fix) becomes no position. After this, events are trusted.
+
+Because the checks are made here, on values the decoder already typed, Telemetry and Detection
+are built with ``events.checked`` (no second validation by pydantic). The small models inside
+them (Position, Velocity, Attitude) still go through pydantic: validating three to five floats
+costs less than building the instance by hand, and keeps the range checks.
 """
 
 from __future__ import annotations
@@ -24,6 +29,7 @@ from gateway.events import (
     Sensor,
     Telemetry,
     Velocity,
+    checked,
     event_id,
 )
 from gateway.fleet.dialect import CLASS_NAMES, SENSOR_NAMES
@@ -78,6 +84,9 @@ class AirframeState:
         self._agl_for: tuple[float, float, float | None] | None = None
         self._agl: tuple[float | None, float | None] = (None, None)
         self._seq = 0
+        #: ``event_id(airframe, "tel", BOOT_ID, n)`` is this prefix and n.
+        self._id_prefix = event_id(airframe, "tel", BOOT_ID, "")
+        self._endurance: tuple[float | None, float | None] = (None, None)
         self._fields: dict[str, Any] = {}
         self._geoid_sep_m: float | None = None
         self._handlers: dict[str, Callable[[MavMessage], bool]] = {
@@ -110,8 +119,10 @@ class AirframeState:
         derived: dict[str, Any] = {}
         if self._enrichment is not None:
             derived = self._derive(self._enrichment)
-        return Telemetry(
-            event_id=event_id(self.airframe, "tel", BOOT_ID, self._seq),
+        # Every field was checked when it was merged (the update handlers, ``_derive``).
+        return checked(
+            Telemetry,
+            event_id=f"{self._id_prefix}{self._seq}",
             airframe=self.airframe,
             time=self._clock(),
             active_link=self.active_link,
@@ -148,10 +159,11 @@ class AirframeState:
         elif consumed is not None:
             wh_left = profile.battery_usable_wh - consumed
         if wh_left is not None:
-            # No solar measurement arrives over MAVLink: predict the worst case (night).
-            out["endurance_remaining_min"] = endurance_remaining_min(
-                wh_left, profile, enrichment.ew_mode
-            )
+            if self._endurance[0] != wh_left:  # the battery changes far less often than this runs
+                # No solar measurement arrives over MAVLink: predict the worst case (night).
+                minutes = endurance_remaining_min(wh_left, profile, enrichment.ew_mode)
+                self._endurance = (wh_left, minutes)
+            out["endurance_remaining_min"] = self._endurance[1]
         return out
 
     def apply(self, name: str, msg: MavMessage) -> Telemetry | None:
@@ -274,7 +286,9 @@ def detection_from(airframe: str, msg: MavMessage, now: datetime) -> Detection |
     if -_DAY_US <= ahead_us <= _AHEAD_US:
         observed = now + timedelta(microseconds=ahead_us)
     subtype = msg.subtype.decode("ascii", "replace") if isinstance(msg.subtype, bytes) else ""
-    return Detection(
+    # Every value was checked above (the ranges pydantic would check included): no validation.
+    return checked(
+        Detection,
         event_id=event_id(airframe, "det", msg.detection_id, msg.time_usec),
         airframe=airframe,
         time=observed,
@@ -287,5 +301,5 @@ def detection_from(airframe: str, msg: MavMessage, now: datetime) -> Detection |
             lon_deg=lon,
             alt_msl_m=msg.alt_msl if math.isfinite(msg.alt_msl) else None,
         ),
-        sigma_h_m=sigma,
+        sigma_h_m=float(sigma),
     )

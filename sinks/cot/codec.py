@@ -10,9 +10,8 @@ from __future__ import annotations
 
 from datetime import UTC, datetime, timedelta
 from typing import Literal
-from xml.sax.saxutils import quoteattr
 
-from sinks.cot.event import CotEvent, xml_safe
+from sinks.cot.event import CotEvent, xml_attribute
 from sinks.cot.proto import double, mesh_frame, message, stream_frame, string, uint
 
 __all__ = ["Encoded", "Encoding", "cot_time", "decimal", "tak_control", "to_proto", "to_xml"]
@@ -22,10 +21,15 @@ Encoding = Literal["xml", "mesh", "stream"]
 _DECLARATION = b'<?xml version="1.0" encoding="UTF-8" standalone="yes"?>\n'
 
 
+_ZERO = timedelta(0)
+
+
 def cot_time(value: datetime) -> str:
     """A CoT timestamp: UTC, milliseconds (truncated), ``Z``."""
-    utc = value.astimezone(UTC)
-    return utc.strftime("%Y-%m-%dT%H:%M:%S.") + f"{utc.microsecond // 1000:03d}Z"
+    # Events read back from the spool carry pydantic's own UTC tzinfo, not datetime.UTC.
+    utc = value if value.utcoffset() == _ZERO else value.astimezone(UTC)
+    # isoformat cuts the microseconds to milliseconds as strftime's digits did (no rounding).
+    return utc.replace(tzinfo=None).isoformat(timespec="milliseconds") + "Z"
 
 
 _EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
@@ -44,7 +48,7 @@ def decimal(value: float, places: int) -> str:
 
 
 def _attrs(**values: str) -> str:
-    return "".join(f" {k}={quoteattr(xml_safe(v))}" for k, v in values.items())
+    return "".join(f" {k}={xml_attribute(v)}" for k, v in values.items())
 
 
 def to_xml(event: CotEvent) -> bytes:

@@ -58,6 +58,7 @@ MAGIC = b"F6"
 VERSION = 1
 MAX_ID_BYTES = 64
 _EPOCH = date(1970, 1, 1)
+_DAY_MS = 86_400_000
 _TAG = 16
 _NONCE = 12
 _FIXED = struct.Struct(">2sBHB")
@@ -66,6 +67,11 @@ _PLAIN_MAVLINK = (0xFD, 0xFE)  # MAVLink 2 and 1 start bytes
 _MAX_ACCEPTED = 65_536  # magic, version, key_day, id_len
 #: Bytes a sealed frame adds to its payload, for an airframe id of 8 bytes.
 OVERHEAD_BYTES = _FIXED.size + 8 + 6 + _NONCE + _TAG
+
+
+def _utc_ms(now: datetime) -> int:
+    """Milliseconds since 1970 (UTC) of an aware datetime."""
+    return int(now.timestamp() * 1000)
 
 
 def day_number(day: date) -> int:
@@ -103,11 +109,11 @@ class DayKeys:
             raise ValueError("give either a master key or a set of day keys")
         self._master = master
         self._keys = dict(keys or {})
-        self._cache: dict[tuple[str, int], AESGCM] = {}
+        self._cache: dict[tuple[str, date], AESGCM] = {}
 
     def aead(self, airframe: str, day: date) -> AESGCM | None:
         """The cipher for (airframe, day), derived once and cached."""
-        cache_key = (airframe, day_number(day))
+        cache_key = (airframe, day)
         cipher = self._cache.get(cache_key)
         if cipher is None:
             if self._master is not None:
@@ -203,7 +209,13 @@ class Opened:
     airframe: str
     payload: bytes
     key_day: date
-    sent: datetime
+    sent_ms: int
+    """The sender's clock when it sealed the frame, milliseconds since 1970 (UTC)."""
+
+    @property
+    def sent(self) -> datetime:
+        """``sent_ms`` as an aware datetime."""
+        return datetime.fromtimestamp(self.sent_ms / 1000, tz=UTC)
 
 
 @dataclass(slots=True)
@@ -247,23 +259,38 @@ class TunnelOpener:
         # The replay windows live in memory, so a frame sealed before this opener existed
         # could be a capture from before a restart: refuse it (docs/tunnel.md, "Restarts").
         self.started_ms = int(clock().timestamp() * 1000)
+        self._days: dict[int, date] = {}
+        self._ids: dict[bytes, str] = {}
 
     def accepted_days(self, now: datetime) -> tuple[date, ...]:
         """The key days a frame may use at ``now``: today, plus neighbours near midnight."""
-        today = now.date()
-        days = [today]
-        midnight = datetime(today.year, today.month, today.day, tzinfo=UTC)
-        if (now - midnight).total_seconds() <= self.grace_s:
-            days.append(today - timedelta(days=1))
-        if (midnight + timedelta(days=1) - now).total_seconds() <= self.skew_s:
-            days.append(today + timedelta(days=1))
-        return tuple(days)
+        today = day_number(now.date())
+        return tuple(self._day(n) for n in self._accepted_day_numbers(_utc_ms(now), today))
+
+    def _accepted_day_numbers(self, now_ms: int, today: int) -> tuple[int, ...]:
+        # Integer arithmetic on the ms clock: this runs once per frame.
+        into_ms = now_ms - today * _DAY_MS
+        days: tuple[int, ...] = (today,)
+        if into_ms <= self.grace_s * 1000:
+            days += (today - 1,)
+        if _DAY_MS - into_ms <= self.skew_s * 1000:
+            days += (today + 1,)
+        return days
+
+    def _day(self, key_day: int) -> date:
+        day = self._days.get(key_day)
+        if day is None:
+            if len(self._days) > 64:
+                self._days.clear()
+            day = self._days[key_day] = _EPOCH + timedelta(days=key_day)
+        return day
 
     def open_frame(self, frame: bytes, stream: object = None) -> Opened:
         """Authenticate ``frame`` (from link ``stream``) and return its plaintext."""
-        if len(frame) > self.max_frame_bytes:
-            raise Oversize(len(frame), self.max_frame_bytes)
-        if len(frame) < _FIXED.size:
+        size = len(frame)
+        if size > self.max_frame_bytes:
+            raise Oversize(size, self.max_frame_bytes)
+        if size < _FIXED.size:
             raise Malformed("shorter than a tunnel header")
         magic, version, key_day, id_len = _FIXED.unpack_from(frame)
         if magic != MAGIC:
@@ -274,25 +301,32 @@ class TunnelOpener:
             raise Malformed(f"tunnel version {version} is not supported")
         id_end = _FIXED.size + id_len
         header_end = id_end + 6 + _NONCE
-        if id_len == 0 or id_len > MAX_ID_BYTES or len(frame) < header_end + _TAG:
+        if id_len == 0 or id_len > MAX_ID_BYTES or size < header_end + _TAG:
             raise Malformed("tunnel header lengths are inconsistent")
-        try:
-            airframe = frame[_FIXED.size : id_end].decode("ascii")
-        except UnicodeDecodeError as exc:
-            raise Malformed("airframe id is not ASCII") from exc
-        if airframe not in self._airframes:
-            raise AuthenticationFailed("frame from an unknown airframe")
-        now = self._clock()
-        day = _EPOCH + timedelta(days=key_day)
-        if day not in self.accepted_days(now):
+        raw_id = frame[_FIXED.size : id_end]
+        airframe = self._ids.get(raw_id)
+        if airframe is None:
+            try:
+                airframe = raw_id.decode("ascii")
+            except UnicodeDecodeError as exc:
+                raise Malformed("airframe id is not ASCII") from exc
+            if airframe not in self._airframes:
+                raise AuthenticationFailed("frame from an unknown airframe")
+            self._ids[raw_id] = airframe  # bounded: only configured ids are kept
+        now_ms = _utc_ms(self._clock())
+        today = now_ms // _DAY_MS
+        if key_day != today and key_day not in self._accepted_day_numbers(now_ms, today):
             raise AuthenticationFailed("key day outside the accepted range")
+        day = self._day(key_day)
         cipher = self._keys.aead(airframe, day)
         if cipher is None:
             raise AuthenticationFailed("no key for this airframe and day")
         header = frame[:header_end]
         nonce = frame[id_end + 6 : header_end]
         sent_ms = int.from_bytes(frame[id_end : id_end + 6], "big")
-        sessions = self._streams.setdefault((stream, airframe), _Sessions())
+        sessions = self._streams.get((stream, airframe))
+        if sessions is None:
+            sessions = self._streams[(stream, airframe)] = _Sessions()
         salt, counter = nonce[:8], int.from_bytes(nonce[8:], "big")
         window = sessions.windows.get(salt)
         if window is not None and not window.check(counter):
@@ -302,7 +336,6 @@ class TunnelOpener:
         except InvalidTag as exc:
             raise AuthenticationFailed("authentication tag did not verify") from exc
         # Freshness is judged only after authentication, so a forged timestamp costs nothing.
-        now_ms = int(now.timestamp() * 1000)
         if abs(now_ms - sent_ms) > self.freshness_s * 1000:
             raise Replayed("frame is older (or newer) than the freshness window")
         if sent_ms < self.started_ms:
@@ -314,8 +347,7 @@ class TunnelOpener:
             sessions.windows[salt] = window
         window.record(counter)
         window.last_seen_ms = now_ms
-        sent = datetime.fromtimestamp(sent_ms / 1000, tz=UTC)
-        return Opened(airframe, payload, day, sent)
+        return Opened(airframe, payload, day, sent_ms)
 
     def _check_other_links(self, airframe: str, nonce: bytes, stream: object) -> None:
         """Refuse a frame first accepted on another link longer ago than ``cross_link_s``.

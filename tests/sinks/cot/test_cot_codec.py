@@ -2,17 +2,18 @@
 
 from __future__ import annotations
 
-from datetime import UTC, datetime, timedelta
+from datetime import UTC, datetime, timedelta, timezone
 from pathlib import Path
 
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from pydantic import TypeAdapter
 from test_cot_event import EVENTS, T0, options
 
 from gateway.events import Detection, Position, Sensor, Telemetry, Track, Velocity
 from gateway.testing import fuzz_examples
-from sinks.cot.codec import Encoded, decimal, to_proto, to_xml
+from sinks.cot.codec import Encoded, cot_time, decimal, to_proto, to_xml
 from sinks.cot.event import CotEvent, build
 from sinks.cot.proto import mesh_frame, stream_frame
 from sinks.cot.validate import parse_cot
@@ -187,3 +188,22 @@ class TestProtobuf:
         short = CotEvent(**{**_fields(event), "stale": event.start + timedelta(seconds=1)})
         assert parse_cot(to_xml(short), strict=True).stale > parse_cot(to_xml(short)).start
         assert event.time == T0
+
+
+@settings(max_examples=fuzz_examples(300), deadline=None)
+@given(
+    st.datetimes(
+        min_value=datetime(1970, 1, 2),  # noqa: DTZ001 - hypothesis adds the zone
+        max_value=datetime(2999, 12, 30),  # noqa: DTZ001
+        timezones=st.sampled_from(
+            [UTC, timezone(timedelta(hours=2)), timezone(timedelta(minutes=-330))]
+        ),
+    ),
+    st.booleans(),
+)
+def test_a_cot_time_is_utc_with_milliseconds_cut_not_rounded(value: datetime, read: bool) -> None:
+    if read:  # as read back from the spool: pydantic's own UTC tzinfo
+        value = TypeAdapter(datetime).validate_json(f'"{value.isoformat()}"')
+    utc = value.astimezone(UTC)
+    expected = utc.strftime("%Y-%m-%dT%H:%M:%S.") + f"{utc.microsecond // 1000:03d}Z"
+    assert cot_time(value) == expected

@@ -5,9 +5,12 @@ from __future__ import annotations
 import struct
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
+from xml.sax.saxutils import quoteattr
 
 import pytest
 import yaml
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from gateway.domain.geoid import GeoidGrid, bundled_geoid
 from gateway.domain.symbols import cot_type_from_sidc, object_symbol, own_symbol
@@ -21,8 +24,9 @@ from gateway.events import (
     Track,
     Velocity,
 )
+from gateway.testing import fuzz_examples
 from sinks.cot.codec import to_xml
-from sinks.cot.event import CotOptions, StaleTimes, build
+from sinks.cot.event import CotOptions, StaleTimes, build, xml_attribute, xml_safe
 from sinks.cot.validate import UNKNOWN
 
 T0 = datetime(2026, 11, 22, 10, 15, 30, 250000, tzinfo=UTC)
@@ -406,3 +410,13 @@ class TestBlueForce:
         assert plain is not None
         assert plain.type == "a-f-G"
         assert build(self.friend(position=Position(lat_deg=0.0, lon_deg=0.0)), CotOptions()) is None
+
+
+@settings(max_examples=fuzz_examples(300), deadline=None)
+@given(
+    st.text()
+    | st.text(alphabet="abc.:-_ 0123&<>\"'\t\n\r\x00\x7f\ufffe")
+    | st.sampled_from(["2026-11-27T08:00:00.123Z", "a-h-G-U-C", "fischer-det-F26E-001-det-7-1"])
+)
+def test_an_attribute_value_is_quoted_as_quoteattr_of_xml_safe_quotes_it(text: str) -> None:
+    assert xml_attribute(text) == quoteattr(xml_safe(text))
