@@ -1,0 +1,148 @@
+"""The ``nats`` sink and source against real nats-servers on loopback (one per test).
+
+Node ``b`` is a leaf of hub ``a``; each runs JetStream in its own domain. The sink on ``b``
+publishes acked with the event id as ``Nats-Msg-Id``; the source on ``a`` consumes the
+aggregate stream, marks each event with its origin and never takes one twice.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from datetime import UTC, datetime
+from pathlib import Path
+
+import anyio
+import pytest
+from nats_server import NatsServer, nats_server_binary
+from pydantic import ValidationError
+
+from gateway.errors import TransientSinkError
+from gateway.events import Detection, Event, Position, Sensor, Telemetry
+from sinks.nats.sink import NatsSink, NatsSinkConfig
+from sinks.nats.source import NatsSource, NatsSourceConfig
+from sinks.nats.subjects import BadMessage, airframe_token, decode_event, encode_event, subject_for
+
+pytestmark = pytest.mark.skipif(nats_server_binary() is None, reason="no nats-server installed")
+
+NOW = datetime(2026, 11, 27, 8, 0, 0, tzinfo=UTC)
+
+
+def detection(airframe: str, n: int) -> Detection:
+    return Detection(
+        event_id=f"{airframe}-det-{n}-{1000 + n}",
+        airframe=airframe,
+        time=NOW,
+        sensor=Sensor.EO,
+        object_class="tank",
+        confidence=0.9,
+        position=Position(lat_deg=65.8, lon_deg=21.7),
+        sigma_h_m=8.0,
+    )
+
+
+def test_airframe_ids_with_dots_and_wildcards_become_one_token() -> None:
+    assert airframe_token("F26E-001") == "F26E-001"
+    assert airframe_token("a.b*c >d_") == "a_2Eb_2Ac_20_3Ed_5F"
+    long = airframe_token("x" * 300)
+    assert len(long) <= 96
+    assert long != airframe_token("x" * 299)
+    assert subject_for("b", detection("F.1", 1)) == "fsg.b.det.F_2E1"
+
+
+def test_a_message_is_refused_with_its_reason() -> None:
+    event = detection("F1", 1)
+    body = encode_event(event)
+    assert decode_event("fsg.b.det.F1", body).origin_node == "b"
+    for subject, data, reason in [
+        ("fsg.b.tlm.F1", body, "carries a detection"),
+        ("fsg.b.det.F2", body, "airframe"),
+        ("fsg.b.trk.F1", body, "not carried"),
+        ("fsg.b.det", body, "is not fsg"),
+        ("fsg.b.det.F1", b"{", "not a valid event"),
+        ("fsg.b.det.F1", b"x" * 70_000, "too large"),
+        (
+            "fsg.b.det.F1",
+            event.model_copy(update={"origin_node": "c"}).model_dump_json().encode(),
+            "relayed",
+        ),
+    ]:
+        with pytest.raises(BadMessage, match=reason):
+            decode_event(subject, data)
+
+
+def test_options_are_checked() -> None:
+    with pytest.raises(ValidationError, match="node"):
+        NatsSinkConfig(node="a.b")
+    with pytest.raises(ValidationError, match="not carried"):
+        NatsSinkConfig.model_validate({"node": "a", "kinds": ["track"]})
+    with pytest.raises(ValidationError, match="nats://"):
+        NatsSinkConfig(node="a", servers=["http://x"])
+    with pytest.raises(ValidationError, match="named twice"):
+        NatsSourceConfig(node="a", remotes=["b", "b"])
+    with pytest.raises(ValidationError, match="no such file"):
+        NatsSinkConfig.model_validate(
+            {"node": "a", "creds_file": "/nonexistent.creds"}, context={"environment": True}
+        )
+
+
+@pytest.fixture
+def nodes(tmp_path: Path) -> Iterator[tuple[NatsServer, NatsServer]]:
+    with NatsServer(tmp_path, "a", hub=True) as hub:
+        with NatsServer(tmp_path, "b", leaf_of=f"nats-leaf://127.0.0.1:{hub.leaf_port}") as leaf:
+            deadline = 200
+            while not hub.leafz().get("leafs") and deadline:
+                anyio.run(anyio.sleep, 0.02)
+                deadline -= 1
+            yield hub, leaf
+
+
+def test_the_sink_publishes_acked_once_and_the_source_takes_each_once(
+    nodes: tuple[NatsServer, NatsServer],
+) -> None:
+    hub, leaf = nodes
+    received: list[Event] = []
+
+    async def main() -> NatsSink:
+        sink = NatsSink("out", NatsSinkConfig(node="b", servers=[leaf.url]))
+        await sink.open()
+        batch: list[Event] = [detection("F.1", n) for n in range(50)]
+        batch.append(Telemetry(event_id="t1", airframe="F.1", time=NOW))
+        await sink.send(batch)
+        await sink.send(batch[:10])  # a retried batch: the stream drops the repeats
+        relayed = detection("R1", 1).model_copy(update={"origin_node": "c"})
+        await sink.send([relayed])  # another node's: never published again
+        source = NatsSource(
+            "in",
+            NatsSourceConfig(node="a", servers=[hub.url], remotes=["b"]),
+            lambda event: received.append(event) or True,
+            clock=lambda: NOW,
+        )
+        async with anyio.create_task_group() as tg:
+            await tg.start(source.run)
+            with anyio.fail_after(30):
+                while len(received) < 51:
+                    await anyio.sleep(0.05)
+            await anyio.sleep(0.3)
+            tg.cancel_scope.cancel()
+        await sink.aclose()
+        assert source.status()["by_node"] == {"b": 51}
+        return sink
+
+    sink = anyio.run(main)
+    assert sink.counts() == {"published": 51, "duplicate": 10, "relayed_skipped": 1}
+    assert len(received) == 51
+    assert {e.origin_node for e in received} == {"b"}
+    ids = [e.event_id for e in received if isinstance(e, Detection)]
+    assert sorted(ids) == sorted(f"F.1-det-{n}-{1000 + n}" for n in range(50))
+
+
+def test_an_unreachable_server_is_a_transient_error(tmp_path: Path) -> None:
+    async def main() -> None:
+        sink = NatsSink(
+            "out", NatsSinkConfig(node="b", servers=["nats://127.0.0.1:1"], connect_timeout_s=0.2)
+        )
+        with pytest.raises(TransientSinkError, match="cannot reach NATS"):
+            await sink.open()
+        await sink.aclose()
+
+    anyio.run(main)
