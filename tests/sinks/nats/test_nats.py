@@ -7,6 +7,7 @@ aggregate stream, marks each event with its origin and never takes one twice.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterator
 from datetime import UTC, datetime
 from pathlib import Path
@@ -87,13 +88,13 @@ def test_options_are_checked() -> None:
 
 @pytest.fixture
 def nodes(tmp_path: Path) -> Iterator[tuple[NatsServer, NatsServer]]:
-    with NatsServer(tmp_path, "a", hub=True) as hub:
-        with NatsServer(tmp_path, "b", leaf_of=f"nats-leaf://127.0.0.1:{hub.leaf_port}") as leaf:
-            deadline = 200
-            while not hub.leafz().get("leafs") and deadline:
-                anyio.run(anyio.sleep, 0.02)
-                deadline -= 1
-            yield hub, leaf
+    hub = NatsServer(tmp_path, "a", hub=True)
+    leaf = NatsServer(tmp_path, "b", leaf_of=f"nats-leaf://127.0.0.1:{hub.leaf_port}")
+    with hub, leaf:
+        deadline = time.monotonic() + 20
+        while not hub.leafz().get("leafs") and time.monotonic() < deadline:
+            time.sleep(0.02)
+        yield hub, leaf
 
 
 def test_the_sink_publishes_acked_once_and_the_source_takes_each_once(
@@ -120,7 +121,7 @@ def test_the_sink_publishes_acked_once_and_the_source_takes_each_once(
         async with anyio.create_task_group() as tg:
             await tg.start(source.run)
             with anyio.fail_after(30):
-                while len(received) < 51:
+                while len(received) < 51:  # noqa: ASYNC110 - polling what a callback appends
                     await anyio.sleep(0.05)
             await anyio.sleep(0.3)
             tg.cancel_scope.cancel()
