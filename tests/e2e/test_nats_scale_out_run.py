@@ -29,13 +29,13 @@ from daemon_support import (
     running,
     wait_until,
 )
-from nats_server import NatsServer, TcpCut, nats_server_binary
+from nats_server import NEEDS_NATS, NatsServer, TcpCut
 
 from gateway.fleet.dialect import fischer_detection
 
 pytestmark = [
     pytest.mark.timeout(150),
-    pytest.mark.skipif(nats_server_binary() is None, reason="no nats-server installed"),
+    NEEDS_NATS,
 ]
 
 LEAF_AIRFRAMES = 30

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import anyio
 import pytest
-from nats_server import NatsServer, nats_server_binary
+from nats_server import NEEDS_NATS, NatsServer
 from pydantic import ValidationError
 
 from gateway.errors import TransientSinkError
@@ -23,7 +23,7 @@ from sinks.nats.sink import NatsSink, NatsSinkConfig
 from sinks.nats.source import NatsSource, NatsSourceConfig
 from sinks.nats.subjects import BadMessage, airframe_token, decode_event, encode_event, subject_for
 
-pytestmark = pytest.mark.skipif(nats_server_binary() is None, reason="no nats-server installed")
+pytestmark = NEEDS_NATS
 
 NOW = datetime(2026, 11, 27, 8, 0, 0, tzinfo=UTC)
 
