@@ -14,6 +14,7 @@ from pathlib import Path
 
 import anyio
 import pytest
+import trustme
 from nats_server import NEEDS_NATS, NatsServer
 from pydantic import ValidationError
 
@@ -147,3 +148,53 @@ def test_an_unreachable_server_is_a_transient_error(tmp_path: Path) -> None:
         await sink.aclose()
 
     anyio.run(main)
+
+
+def _pki(tmp: Path) -> tuple[Path, Path, Path, Path, Path]:
+    """A CA, the server's certificate for 127.0.0.1 and a node's client certificate."""
+    ca = trustme.CA()
+    server = ca.issue_cert("127.0.0.1")
+    client = ca.issue_cert("node-b.fischer")
+    paths = [tmp / name for name in ("ca.pem", "srv.pem", "srv.key", "cli.pem", "cli.key")]
+    ca.cert_pem.write_to_path(str(paths[0]))
+    server.cert_chain_pems[0].write_to_path(str(paths[1]))
+    server.private_key_pem.write_to_path(str(paths[2]))
+    client.cert_chain_pems[0].write_to_path(str(paths[3]))
+    client.private_key_pem.write_to_path(str(paths[4]))
+    return paths[0], paths[1], paths[2], paths[3], paths[4]
+
+
+def test_tls_with_a_client_certificate_from_files(tmp_path: Path) -> None:
+    ca, srv, srv_key, cli, cli_key = _pki(tmp_path)
+    with NatsServer(tmp_path, "b", tls=(ca, srv, srv_key)) as server:
+        url = server.url.replace("nats://", "tls://")
+        options = {"node": "b", "servers": [url], "connect_timeout_s": 0.5}
+        tls = {"ca_file": str(ca), "cert_file": str(cli), "key_file": str(cli_key)}
+        good = NatsSinkConfig.model_validate({**options, "tls": tls}, context={"environment": True})
+
+        async def main() -> None:
+            sink = NatsSink("out", good)
+            await sink.open()
+            await sink.send([detection("F1", 1)])
+            await sink.aclose()
+            assert sink.counts() == {"published": 1}
+            # A certificate of another CA: the server refuses the node.
+            stranger = trustme.CA().issue_cert("stranger")
+            stranger.cert_chain_pems[0].write_to_path(str(tmp_path / "x.pem"))
+            stranger.private_key_pem.write_to_path(str(tmp_path / "x.key"))
+            other = {
+                **tls,
+                "cert_file": str(tmp_path / "x.pem"),
+                "key_file": str(tmp_path / "x.key"),
+            }
+            refused = NatsSink("out", NatsSinkConfig.model_validate({**options, "tls": other}))
+            with pytest.raises(TransientSinkError, match="cannot reach NATS"):
+                await refused.open()
+            await refused.aclose()
+
+        anyio.run(main)
+    with pytest.raises(ValidationError, match=r"missing\.pem"):
+        NatsSinkConfig.model_validate(
+            {**options, "tls": {**tls, "cert_file": str(tmp_path / "missing.pem")}},
+            context={"environment": True},
+        )
