@@ -2,7 +2,8 @@
 
 Each event goes to ``fsg.<node>.<kind>.<airframe token>`` (``sinks.nats.subjects``) with
 ``Nats-Msg-Id`` = its event id, and the server's acknowledgement is awaited: a batch is
-published at once (pipelined) and ``send`` returns only when every publish of it is acked,
+published at once (``publish_async``, pipelined) and ``send`` returns only when every publish
+of it is acked,
 so the runner confirms to the spool only acked events. Any failure (server unreachable, an
 ack missing within ``request_timeout_s``) raises ``TransientSinkError``: the runner retries
 the same batch, and the ids already stored are dropped by the stream's de-duplication
@@ -20,10 +21,12 @@ import asyncio
 from collections import Counter
 from collections.abc import Mapping, Sequence
 
+import anyio
 import structlog
 from nats.aio.client import Client
 from nats.errors import MaxPayloadError
 from nats.js import JetStreamContext
+from nats.js.api import PubAck
 from pydantic import Field, field_validator
 
 from gateway.c2.sink import SinkConfig
@@ -143,8 +146,7 @@ class NatsSink:
 
     async def send(self, batch: Sequence[Event]) -> None:
         """Publish every event of this node in ``batch`` at once and await every ack."""
-        js = self._js
-        if js is None:
+        if self._js is None:
             raise TransientSinkError(f"sink {self.name}: not open", sink=self.name)
         own: list[Event] = []
         for event in batch:
@@ -154,19 +156,7 @@ class NatsSink:
                 own.append(event)
         if not own:
             return
-        timeout = self.config.request_timeout_s
-        node = self.config.node
-        publishes = [
-            js.publish(
-                subject_for(node, event),
-                encode_event(event),
-                timeout=timeout,
-                stream=self._streams[event.kind],
-                headers={"Nats-Msg-Id": event.event_id},
-            )
-            for event in own
-        ]
-        results = await asyncio.gather(*publishes, return_exceptions=True)
+        results = await self._publish_all(own)
         too_large: list[str] = []
         failure: BaseException | None = None
         for event, result in zip(own, results, strict=True):
@@ -193,6 +183,51 @@ class NatsSink:
                 sink=self.name,
                 event_ids=too_large,
             )
+
+    async def _publish_all(self, events: list[Event]) -> list[PubAck | BaseException]:
+        """Publish ``events`` pipelined and wait for every ack, at most ``request_timeout_s``.
+
+        ``publish_async`` futures have no deadline of their own (a server that dies leaves
+        them pending for ever): what is not acked by then is cancelled and failed here, and
+        the whole batch is sent again with the same ids.
+        """
+        js = self._js
+        if js is None:
+            raise TransientSinkError(f"sink {self.name}: not open", sink=self.name)
+        node = self.config.node
+        timeout = self.config.request_timeout_s
+        futures: list[asyncio.Future[PubAck]] = []
+        try:
+            with anyio.fail_after(timeout):
+                for event in events:
+                    try:
+                        future = await js.publish_async(
+                            subject_for(node, event),
+                            encode_event(event),
+                            stream=self._streams[event.kind],
+                            headers={"Nats-Msg-Id": event.event_id},
+                        )
+                    except MaxPayloadError as exc:  # refused before sending: this one only
+                        future = asyncio.get_running_loop().create_future()
+                        future.set_exception(exc)
+                    futures.append(future)
+                await asyncio.wait(futures)
+        except TimeoutError:
+            pass
+        finally:
+            for future in futures:
+                future.cancel()  # no-op for a done one; frees the client's slot otherwise
+        results: list[PubAck | BaseException] = []
+        for future in futures:
+            if future.cancelled():
+                results.append(TimeoutError(f"no ack within {timeout} s"))
+            elif (error := future.exception()) is not None:
+                results.append(error)
+            else:
+                results.append(future.result())
+        missing = len(events) - len(results)
+        results += [TimeoutError(f"not published within {timeout} s")] * missing
+        return results
 
     async def aclose(self) -> None:
         """Flush and close the connection; safe when ``open`` never ran or failed."""
