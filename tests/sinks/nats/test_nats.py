@@ -15,7 +15,7 @@ from pathlib import Path
 import anyio
 import pytest
 import trustme
-from nats_server import NEEDS_NATS, NatsServer
+from nats_server import DEBIAN_NATS_SERVER, NEEDS_DEBIAN_NATS, NEEDS_NATS, NatsServer
 from pydantic import ValidationError
 
 from gateway.errors import TransientSinkError
@@ -87,10 +87,20 @@ def test_options_are_checked() -> None:
         )
 
 
-@pytest.fixture
-def nodes(tmp_path: Path) -> Iterator[tuple[NatsServer, NatsServer]]:
-    hub = NatsServer(tmp_path, "a", hub=True)
-    leaf = NatsServer(tmp_path, "b", leaf_of=f"nats-leaf://127.0.0.1:{hub.leaf_port}")
+@pytest.fixture(
+    params=[
+        pytest.param(None, id="current"),
+        pytest.param(DEBIAN_NATS_SERVER, id="debian-2.9", marks=NEEDS_DEBIAN_NATS),
+    ]
+)
+def nodes(
+    tmp_path: Path, request: pytest.FixtureRequest
+) -> Iterator[tuple[NatsServer, NatsServer]]:
+    binary = request.param
+    hub = NatsServer(tmp_path, "a", hub=True, binary=binary)
+    leaf = NatsServer(
+        tmp_path, "b", leaf_of=f"nats-leaf://127.0.0.1:{hub.leaf_port}", binary=binary
+    )
     with hub, leaf:
         deadline = time.monotonic() + 20
         while not hub.leafz().get("leafs") and time.monotonic() < deadline:
