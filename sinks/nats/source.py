@@ -126,7 +126,7 @@ class NatsSource:
         self._counts: Counter[str] = Counter()
         self._by_node: Counter[str] = Counter()
         self._seen: OrderedDict[str, None] = OrderedDict()
-        self._connected = False
+        self._connected = self._was_connected = False
         self._stale: list[str] = []
         self._reason: str | None = None
         self._log_limit = RateLimit(interval_s=10.0)
@@ -151,14 +151,19 @@ class NatsSource:
         task_status.started()
         pause = 0.2
         while True:
+            self._was_connected = False
             try:
                 await self._consume()
             except Exception as exc:  # noqa: BLE001 - any NATS failure: retried, shown on /status
                 self._connected = False
+                while isinstance(exc, ExceptionGroup) and len(exc.exceptions) == 1:
+                    exc = exc.exceptions[0]  # the task group's one failure, not its wrapper
                 self._reason = f"{type(exc).__name__}: {str(exc)[:200]}"
                 self._counts["reconnects"] += 1
                 if self._log_limit.allow("failed"):
                     log.warning("nats_source_retry", source=self.name, reason=self._reason)
+            if self._was_connected:
+                pause = 0.2  # it worked for a while: the next failure starts short again
             await anyio.sleep(pause)
             pause = min(pause * 2, _RETRY_MAX_S)
 
@@ -187,7 +192,7 @@ class NatsSource:
                     max_ack_pending=max(cfg.batch * 4, 1024),
                 ),
             )
-            self._connected = True
+            self._connected = self._was_connected = True
             self._reason = None
             async with anyio.create_task_group() as tasks:
                 tasks.start_soon(self._watch, js, wanted.name or "")
@@ -215,26 +220,37 @@ class NatsSource:
         last = -self.config.nudge_s
         while True:
             await anyio.sleep(min(1.0, self.config.nudge_s))
-            info = await js.stream_info(stream)
-            stale = sorted(
-                source.name
-                for source in info.sources or []
-                if source.error is not None
-                or source.active is None
-                or not 0 <= source.active <= stale_ns
-            )
-            self._stale = stale
-            now = anyio.current_time()
-            if stale and now - last >= self.config.nudge_s:
-                last = now
-                # Re-applying the same config changes nothing on 2.11+ (measured): the stale
-                # sources are taken out and put back, which restarts them where they were
-                # (the stream remembers each source's last sequence; nothing is re-copied).
-                config = info.config
-                kept = [source for source in config.sources or [] if source.name not in stale]
-                await js.update_stream(dataclasses.replace(config, sources=kept))
-                await js.update_stream(config)
-                self._counts["nudges"] += 1
+            try:
+                last = await self._check_sources(js, stream, stale_ns, last)
+            except Exception as exc:  # noqa: BLE001 - a slow API call: try again next time
+                if self._log_limit.allow("watch"):
+                    log.info("nats_source_watch_failed", source=self.name, error=str(exc)[:200])
+
+    async def _check_sources(
+        self, js: JetStreamContext, stream: str, stale_ns: float, last: float
+    ) -> float:
+        """Nudge the stale sources unless nudged within ``nudge_s``; the last nudge's time."""
+        info = await js.stream_info(stream)
+        stale = sorted(
+            source.name
+            for source in info.sources or []
+            if source.error is not None
+            or source.active is None
+            or not 0 <= source.active <= stale_ns
+        )
+        self._stale = stale
+        now = anyio.current_time()
+        if stale and now - last >= self.config.nudge_s:
+            last = now
+            # Re-applying the same config changes nothing on 2.11+ (measured): the stale
+            # sources are taken out and put back, which restarts them where they were
+            # (the stream remembers each source's last sequence; nothing is re-copied).
+            config = info.config
+            kept = [source for source in config.sources or [] if source.name not in stale]
+            await js.update_stream(dataclasses.replace(config, sources=kept))
+            await js.update_stream(config)
+            self._counts["nudges"] += 1
+        return last
 
     async def _take(self, message: Msg) -> bool:
         """Publish one message's event and ack it; False when the bus refused it (nak)."""
