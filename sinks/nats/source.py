@@ -201,8 +201,12 @@ class NatsSource:
                         messages = await subscription.fetch(cfg.batch, timeout=1.0)
                     except NatsTimeoutError:
                         continue  # nothing waiting: an empty batch, not an error
-                    for message in messages:
+                    for index, message in enumerate(messages):
                         if not await self._take(message):
+                            # The bus is full: this one and the rest of the batch again in
+                            # a second, in order (not after ack_wait).
+                            for later in messages[index + 1 :]:
+                                await later.nak(delay=1.0)
                             break
         finally:
             self._connected = False

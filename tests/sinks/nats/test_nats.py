@@ -13,6 +13,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 import anyio
+import nats
 import pytest
 import trustme
 from nats_server import DEBIAN_NATS_SERVER, NEEDS_DEBIAN_NATS, NEEDS_NATS, NatsServer
@@ -113,6 +114,14 @@ def test_the_sink_publishes_acked_once_and_the_source_takes_each_once(
 ) -> None:
     hub, leaf = nodes
     received: list[Event] = []
+    refusals = [True]  # the bus refuses the first event once (a full spool): asked again
+
+    def publish(event: Event) -> bool:
+        if refusals:
+            refusals.pop()
+            return False
+        received.append(event)
+        return True
 
     async def main() -> NatsSink:
         sink = NatsSink("out", NatsSinkConfig(node="b", servers=[leaf.url]))
@@ -123,10 +132,20 @@ def test_the_sink_publishes_acked_once_and_the_source_takes_each_once(
         await sink.send(batch[:10])  # a retried batch: the stream drops the repeats
         relayed = detection("R1", 1).model_copy(update={"origin_node": "c"})
         await sink.send([relayed])  # another node's: never published again
+        # Hostile messages on node b's subjects: counted and dropped, never the end of it.
+        raw = await nats.connect(leaf.url)
+        good = encode_event(detection("F9", 9))
+        for subject, body in [
+            ("fsg.b.det.F1", b"{"),  # not JSON
+            ("fsg.b.det.F1", good),  # another airframe than the subject names
+            ("fsg.b.det.F9", encode_event(relayed)),  # already relayed
+        ]:
+            await raw.jetstream().publish(subject, body)
+        await raw.close()
         source = NatsSource(
             "in",
             NatsSourceConfig(node="a", servers=[hub.url], remotes=["b"]),
-            lambda event: received.append(event) or True,
+            publish,
             clock=lambda: NOW,
         )
         async with anyio.create_task_group() as tg:
@@ -137,7 +156,9 @@ def test_the_sink_publishes_acked_once_and_the_source_takes_each_once(
             await anyio.sleep(0.3)
             tg.cancel_scope.cancel()
         await sink.aclose()
-        assert source.status()["by_node"] == {"b": 51}
+        status = source.status()
+        assert status["by_node"] == {"b": 51}
+        assert status["counts"] == {"bad": 3, "refused": 1, "detection": 50, "telemetry": 1}
         return sink
 
     sink = anyio.run(main)
