@@ -45,8 +45,16 @@ CUT_S = 5.0
 
 
 def node_config(
-    tmp: Path, node: str, airframes: list[str], udp_port: int, nats_url: str, *, hub: bool
+    tmp: Path,
+    node: str,
+    airframes: list[str],
+    udp_port: int,
+    nats_url: str,
+    *,
+    remotes: list[str] | None = None,
 ) -> tuple[Path, Path]:
+    """A node's config: its airframes on one UDP port and a jsonl archive; with ``remotes``
+    the aggregating node (fusion, the ``nats`` source), else a node with the ``nats`` sink."""
     archive = tmp / f"{node}.jsonl"
     lines = [
         "gateway: {shutdown_deadline_s: 2}",
@@ -64,13 +72,13 @@ def node_config(
         "sinks:",
         f"  - {{name: archive, type: jsonl, options: {{path: '{archive}'}}}}",
     ]
-    if hub:
+    if remotes is not None:
         lines += [
             "processors:",
             "  - {name: fusion, type: fusion, options: {update_interval_s: 0.5, tick_s: 0.2}}",
             "sources:",
             f"  - {{name: brigades, type: nats, node: {node}, servers: ['{nats_url}'],"
-            " remotes: [b]}",
+            f" remotes: [{', '.join(remotes)}]}}",
             "routes:",
             "  - {kinds: [detection, telemetry, track], sinks: [archive]}",
         ]
@@ -149,10 +157,10 @@ def test_the_aggregating_node_holds_every_airframe_and_detection_once_across_a_c
             b_ids = [f"B-{n:02d}.bde2" for n in range(1, LEAF_AIRFRAMES + 1)]  # ids with '.'
             a_ids = [f"A-{n:02d}" for n in range(1, HUB_AIRFRAMES + 1)]
             b_udp, a_udp = free_udp_port(), free_udp_port()
-            b_config, b_archive = node_config(
-                tmp_path, "b", b_ids, b_udp, leaf_server.url, hub=False
+            b_config, b_archive = node_config(tmp_path, "b", b_ids, b_udp, leaf_server.url)
+            a_config, a_archive = node_config(
+                tmp_path, "a", a_ids, a_udp, hub_server.url, remotes=["b"]
             )
-            a_config, a_archive = node_config(tmp_path, "a", a_ids, a_udp, hub_server.url, hub=True)
             b_fleet, a_fleet = Fleet(b_udp, LEAF_AIRFRAMES), Fleet(a_udp, HUB_AIRFRAMES)
             with running(a_config) as hub, running(b_config) as leaf:
                 b_fleet.state()
