@@ -275,6 +275,9 @@ class Telemetry(BaseModel):
     """HEARTBEAT ``system_status`` (MAVLink MAV_STATE)."""
     active_link: str | None = None
     """The label of the link the gateway uses for this airframe now; None when none is up."""
+    origin_node: str | None = Field(default=None, pattern=r"^[A-Za-z0-9_-]{1,32}$")
+    """The gateway node this event came from when another node sent it (the ``nats`` source);
+    None for this node's own. A node never sends on an event that carries one."""
 
 
 class LinkState(BaseModel):
@@ -332,6 +335,9 @@ class Detection(BaseModel):
     """Where the object is (latitude, longitude; altitude above MSL when given)."""
     sigma_h_m: float = Field(ge=0.0)
     """One-sigma horizontal position error, metres (ingest refuses one above 10 km)."""
+    origin_node: str | None = Field(default=None, pattern=r"^[A-Za-z0-9_-]{1,32}$")
+    """The gateway node this event came from when another node sent it (the ``nats`` source);
+    None for this node's own. A node never sends on an event that carries one."""
     late_by_s: float | None = Field(default=None, ge=0.0)
     """Set when the spool delivers the event after its kind's stale threshold: how many seconds
     it waited."""

@@ -24,7 +24,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 #: The integrations, each a package under ``sinks`` that imports only the core (``c2``, the
 #: public face and the layers below): never another integration.
-INTEGRATIONS = ("cot", "gute2", "klv", "map", "nffi", "ra180", "slb", "sweccis")
+INTEGRATIONS = ("cot", "gute2", "klv", "map", "nats", "nffi", "ra180", "slb", "sweccis")
 
 #: (layer, part) for each module prefix; the longest matching prefix wins.
 LAYERS: dict[str, tuple[int, str]] = {

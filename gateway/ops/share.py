@@ -53,6 +53,7 @@ DESCRIPTIONS = {
     "klv.md": "STANAG 4609 / MISB ST 0601 KLV metadata over UDP and MPEG-TS",
     "map.md": "the live map page and its change stream: JSON, options, security",
     "orders.md": "five-line orders to the airframes: checks, missions, statuses",
+    "scale-out.md": "several nodes, one picture: NATS JetStream between gateway nodes",
     "tracking.md": "scoring tracks against ground truth: truth files, GOSPA, the scenarios",
     "README.md": "what works today",
 }

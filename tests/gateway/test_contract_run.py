@@ -14,6 +14,7 @@ import anyio
 import anyio.abc
 import pytest
 from anyio.streams.memory import MemoryObjectReceiveStream
+from nats_server import NatsServer
 from own_plugins import own_types
 from pydantic import ConfigDict, Field
 from slb_peer import SlbPeer
@@ -64,6 +65,9 @@ def source_options(type_name: str, tmp_path: Path) -> Iterator[dict[str, Any]]:
         yield {"uri": "tcp://127.0.0.1:0", "allow": ["127.0.0.1/32"]}
     elif type_name == "cot":
         yield {"uri": "udp://127.0.0.1:0"}
+    elif type_name == "nats":  # a real nats-server (JetStream) on loopback
+        with NatsServer(tmp_path, "contract") as server:
+            yield {"node": "contract", "servers": [server.url], "remotes": ["brigade"]}
     else:
         pytest.fail(f"a new source {type_name!r}: give it options here")
 

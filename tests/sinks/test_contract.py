@@ -11,6 +11,7 @@ from typing import Any
 import anyio
 import pytest
 from gute_peer import GutePeer
+from nats_server import NatsServer
 from own_plugins import own_types
 from pydantic import ValidationError
 from slb_peer import SlbPeer
@@ -51,6 +52,10 @@ def options_for(type_name: str, tmp_path: Path) -> Iterator[dict[str, Any]]:
     if type_name == "sweccis":  # a real SWECCIS server (TLS, frames, XSD) on loopback
         with SweccisPeer(tmp_path).in_thread() as sweccis:
             yield sweccis.link_options()
+        return
+    if type_name == "nats":  # a real nats-server (JetStream) on loopback
+        with NatsServer(tmp_path, "contract") as server:
+            yield {"node": "contract", "servers": [server.url]}
         return
     make = OPTIONS.get(type_name)
     yield make(tmp_path) if make else {}

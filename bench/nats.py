@@ -1,0 +1,179 @@
+"""Scale-out benchmark: detections from node b to node a over NATS JetStream.
+
+Reproducible: ``python bench/nats.py`` (``--help`` for options). Prints a Markdown table.
+
+Two real nats-servers on loopback, each with JetStream in its own domain: hub ``a`` and
+leaf ``b`` joined by a leafnode connection, as docs/scale-out.md lays out a division and a
+brigade node. In the same run:
+
+* **nats-py acked publish** (the peer): ``js.publish_async`` of ``--events`` detection
+  bodies with ``Nats-Msg-Id`` to node b's detections stream, then waiting for every ack:
+  nats-py's own pipelined, acknowledged publish rate on this machine;
+* **gateway b → a**: the ``nats`` sink on b sends the same number of Detection events in
+  batches of ``--batch`` (each batch published at once, every ack awaited, as the sink
+  runner calls it), and the ``nats`` source on a takes them from its aggregate stream onto a
+  bus callback: events/s from the first send to the last event taken at a;
+* **latency at 10 % load**: the sink sends one event at a time at a tenth of the gateway
+  rate just measured; latency is from ``send`` at b to the bus callback at a (p50, p99).
+
+Not measured here: the daemon around the sink and source (spool, sink runner, routes);
+``tests/e2e/test_nats_scale_out_run.py`` runs that through ``fischer-gateway run``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import platform
+import statistics
+import sys
+import tempfile
+import time
+from datetime import UTC, datetime
+from pathlib import Path
+
+# This file is named nats.py: run as a script, its folder would shadow the nats package.
+_HERE = Path(__file__).resolve().parent
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE]
+sys.path.insert(0, str(_HERE.parent))  # the project's packages first (tests/sinks is no sinks)
+sys.path.append(str(_HERE.parent / "tests"))
+
+import anyio  # noqa: E402
+import nats  # noqa: E402
+from nats_server import NatsServer  # noqa: E402 - the tests' server helper
+
+from gateway.events import Detection, Event, Position, Sensor  # noqa: E402
+from sinks.nats.sink import NatsSink, NatsSinkConfig  # noqa: E402
+from sinks.nats.source import NatsSource, NatsSourceConfig  # noqa: E402
+from sinks.nats.subjects import encode_event, subject_for  # noqa: E402
+
+
+def detections(count: int, prefix: str) -> list[Detection]:
+    now = datetime.now(UTC)
+    return [
+        Detection(
+            event_id=f"{prefix}-det-{n}",
+            airframe=f"B-{n % 40:02d}",
+            time=now,
+            sensor=Sensor.EO,
+            object_class="loitering_munition",
+            confidence=0.85,
+            position=Position(lat_deg=65.8 + n * 1e-6, lon_deg=21.7, alt_msl_m=250.0),
+            sigma_h_m=8.0,
+        )
+        for n in range(count)
+    ]
+
+
+async def peer_rate(url: str, events: list[Detection]) -> float:
+    """nats-py's own pipelined acked publish to node b's stream, events/s."""
+    nc = await nats.connect(url)
+    js = nc.jetstream()
+    bodies = [(subject_for("b", e), encode_event(e), e.event_id + "-peer") for e in events]
+    start = time.perf_counter()
+    futures = [
+        await js.publish_async(subject, body, headers={"Nats-Msg-Id": msg_id})
+        for subject, body, msg_id in bodies
+    ]
+    await asyncio.gather(*futures)
+    elapsed = time.perf_counter() - start
+    await nc.close()
+    return len(events) / elapsed
+
+
+async def gateway_run(
+    leaf: str, hub: str, events: list[Detection], batch: int, paced_hz: float | None
+) -> tuple[float, list[float]]:
+    """The sink at b, the source at a: (events/s, latencies in ms)."""
+    sent_at: dict[str, float] = {}
+    latencies: list[float] = []
+    done = anyio.Event()
+    wanted = {e.event_id for e in events}
+
+    def taken(event: Event) -> bool:
+        if event.event_id in wanted:
+            latencies.append((time.perf_counter() - sent_at[event.event_id]) * 1000)
+            if len(latencies) == len(wanted):
+                done.set()
+        return True
+
+    sink = NatsSink("bench", NatsSinkConfig(node="b", servers=[leaf]))
+    source = NatsSource(
+        "bench",
+        NatsSourceConfig(node="a", servers=[hub], remotes=["b"], durable="bench"),
+        taken,
+        clock=lambda: datetime.now(UTC),
+    )
+    await sink.open()
+    async with anyio.create_task_group() as tasks:
+        await tasks.start(source.run)
+        await anyio.sleep(1.0)  # the consumer and the sourcing are up
+        start = time.perf_counter()
+        if paced_hz is None:
+            for i in range(0, len(events), batch):
+                chunk = events[i : i + batch]
+                now = time.perf_counter()
+                for event in chunk:
+                    sent_at[event.event_id] = now
+                await sink.send(chunk)
+        else:
+            interval = 1.0 / paced_hz
+            for n, event in enumerate(events):
+                delay = start + n * interval - time.perf_counter()
+                if delay > 0:
+                    await anyio.sleep(delay)
+                sent_at[event.event_id] = time.perf_counter()
+                await sink.send([event])
+        with anyio.fail_after(120):
+            await done.wait()
+        elapsed = time.perf_counter() - start
+        tasks.cancel_scope.cancel()
+    await sink.aclose()
+    return len(events) / elapsed, latencies
+
+
+def p(values: list[float], q: float) -> float:
+    ordered = sorted(values)
+    return ordered[min(len(ordered) - 1, int(q * len(ordered)))]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--events", type=int, default=20_000, help="detections per run")
+    parser.add_argument("--batch", type=int, default=256, help="events per sink send")
+    parser.add_argument("--paced", type=int, default=2000, help="events in the 10 %% load run")
+    args = parser.parse_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        hub = NatsServer(Path(tmp), "a", hub=True)
+        leaf = NatsServer(Path(tmp), "b", leaf_of=f"nats-leaf://127.0.0.1:{hub.leaf_port}")
+        with hub, leaf:
+            while not hub.leafz().get("leafs"):
+                time.sleep(0.02)
+
+            async def run() -> tuple[float, float, list[float], float]:
+                # The sink creates b's streams; the peer then publishes into the same one.
+                rate, _ = await gateway_run(
+                    leaf.url, hub.url, detections(args.events, "g"), args.batch, None
+                )
+                peer = await peer_rate(leaf.url, detections(args.events, "p"))
+                load = rate * 0.10
+                _, lat = await gateway_run(leaf.url, hub.url, detections(args.paced, "l"), 1, load)
+                return rate, peer, lat, load
+
+            rate, peer, lat, load = anyio.run(run)
+    print(
+        f"nats bench: {platform.python_implementation()} {platform.python_version()}, "
+        f"{args.events} detections, batch {args.batch}\n"
+    )
+    print("| measure | value |")
+    print("| --- | --- |")
+    print(f"| nats-py acked pipelined publish (peer) | {peer:,.0f} events/s |")
+    print(
+        f"| gateway b → a (sink, leaf, source) | {rate:,.0f} events/s ({rate / peer:.0%} of peer) |"
+    )
+    print(f"| latency at 10 % load ({load:,.0f}/s): p50 | {statistics.median(lat):.2f} ms |")
+    print(f"| latency at 10 % load: p99 | {p(lat, 0.99):.2f} ms |")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,297 @@
+"""The ``nats`` source: other nodes' detections and airframe states onto this node's bus.
+
+An aggregating node's ``FSG_<node>_PIC`` stream sources every remote node's detections
+and newest airframe states over the leaf link (``sinks.nats.streams``). One durable pull
+consumer per source reads it: each message is checked (``sinks.nats.subjects``: the subject
+names a configured remote, the body is a valid event of the kind and airframe it names),
+marked with its node of origin (``origin_node``) and published on the bus. It is
+acknowledged only once the bus has taken it (a detection is then in the spool); a message
+the spool refused is asked again for later. A detection whose event id was already taken is
+acknowledged and dropped: JetStream de-duplicates only inside its window, the consumer side
+by id. A remote stream not heard from for ``nudge_s`` is nudged (its source taken out of
+the aggregate stream and put back): newer servers otherwise back off retrying a failed
+source for up to two minutes after the link is back. The ``nats`` sink never publishes an
+event with an ``origin_node``, so nothing loops.
+
+The source never ends on a NATS failure: it reconnects with a growing pause and shows the
+reason on ``/status``. Bad messages are counted by reason and acknowledged (never
+redelivered), logged at most every 10 s.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+from collections import Counter, OrderedDict
+from collections.abc import Callable
+
+import anyio
+import anyio.abc
+import structlog
+from nats.aio.client import Client
+from nats.aio.msg import Msg
+from nats.errors import TimeoutError as NatsTimeoutError
+from nats.js import JetStreamContext
+from nats.js.api import AckPolicy, ConsumerConfig, DeliverPolicy
+from pydantic import Field, field_validator
+
+from gateway.c2.source import SourceConfig
+from gateway.clock import Clock
+from gateway.events import Detection, Event
+from gateway.ops.logsetup import RateLimit
+from sinks.nats.connection import NatsServer, connect
+from sinks.nats.streams import aggregate_stream, ensure_stream
+from sinks.nats.subjects import NODE_PATTERN, BadMessage, decode_event
+
+__all__ = ["NatsSource", "NatsSourceConfig"]
+
+log = structlog.get_logger(__name__)
+
+_RETRY_MAX_S = 10.0
+
+
+class NatsSourceConfig(SourceConfig, NatsServer):
+    """Options of the ``nats`` source: this node's server and the nodes it aggregates."""
+
+    remotes: list[str] = Field(
+        min_length=1,
+        max_length=64,
+        description="The nodes whose events this node takes (each a JetStream domain "
+        "reachable over the leaf link).",
+    )
+    durable: str | None = Field(
+        default=None,
+        pattern=r"^[A-Za-z0-9_-]{1,64}$",
+        description="Durable consumer name; defaults to fsg-<source name>.",
+    )
+    create_streams: bool = Field(
+        default=True,
+        description="Create the aggregate stream if missing; false: only check the one ops made.",
+    )
+    batch: int = Field(default=256, ge=1, le=4096, description="Messages fetched at once.")
+    ack_wait_s: float = Field(
+        default=30.0, ge=1, le=3600, description="Redelivery after this long unacknowledged."
+    )
+    max_age_h: float = Field(default=72.0, gt=0, le=24 * 365, description="Kept in the stream.")
+    max_bytes: int = Field(default=1 << 30, ge=1 << 20, description="Aggregate stream size cap.")
+    duplicate_window_s: float = Field(
+        default=600.0, ge=10, le=86_400, description="De-duplication window of the stream."
+    )
+    nudge_s: float = Field(
+        default=3.0,
+        ge=0.5,
+        le=600,
+        description="A remote stream not heard from (or in error) for this long is nudged: "
+        "the aggregate stream's config re-applied, at most once per this interval.",
+    )
+    remember_ids: int = Field(
+        default=200_000,
+        ge=1000,
+        le=5_000_000,
+        description="Detection ids remembered to drop a repeat beyond the window.",
+    )
+
+    @field_validator("remotes")
+    @classmethod
+    def _nodes(cls, remotes: list[str]) -> list[str]:
+        import re
+
+        for node in remotes:
+            if not re.fullmatch(NODE_PATTERN, node):
+                raise ValueError(f"{node!r}: a node name is 1-32 letters, digits, '_' or '-'")
+        if len(set(remotes)) != len(remotes):
+            raise ValueError("a node is named twice")
+        return remotes
+
+
+class NatsSource:
+    """A durable pull consumer of the aggregate stream feeding the local bus."""
+
+    config_model = NatsSourceConfig
+
+    def __init__(
+        self,
+        name: str,
+        config: NatsSourceConfig,
+        publish: Callable[[Event], bool],
+        *,
+        clock: Clock,
+    ) -> None:
+        if config.node in config.remotes:
+            raise ValueError(f"remotes: {config.node!r} is this node itself")
+        self.name = name
+        self.config = config
+        self._publish = publish
+        self._clock = clock
+        self._counts: Counter[str] = Counter()
+        self._by_node: Counter[str] = Counter()
+        self._seen: OrderedDict[str, None] = OrderedDict()
+        self._connected = self._was_connected = False
+        self._stale: list[str] = []
+        self._reason: str | None = None
+        self._log_limit = RateLimit(interval_s=10.0)
+        self._remotes = frozenset(config.remotes)
+
+    def status(self) -> dict[str, object]:
+        """Connection, the last failure, counts by outcome and events taken per node."""
+        return {
+            "node": self.config.node,
+            "remotes": list(self.config.remotes),
+            "connected": self._connected,
+            "reason": self._reason,
+            "stale_sources": list(self._stale),
+            "counts": dict(self._counts),
+            "by_node": dict(self._by_node),
+        }
+
+    async def run(
+        self, *, task_status: anyio.abc.TaskStatus[None] = anyio.TASK_STATUS_IGNORED
+    ) -> None:
+        """Report started at once, then consume until cancelled, reconnecting as needed."""
+        task_status.started()
+        pause = 0.2
+        while True:
+            self._was_connected = False
+            try:
+                await self._consume()
+            except Exception as exc:  # noqa: BLE001 - any NATS failure: retried, shown on /status
+                self._connected = False
+                while isinstance(exc, ExceptionGroup) and len(exc.exceptions) == 1:
+                    exc = exc.exceptions[0]  # the task group's one failure, not its wrapper
+                self._reason = f"{type(exc).__name__}: {str(exc)[:200]}"
+                self._counts["reconnects"] += 1
+                if self._log_limit.allow("failed"):
+                    log.warning("nats_source_retry", source=self.name, reason=self._reason)
+            if self._was_connected:
+                pause = 0.2  # it worked for a while: the next failure starts short again
+            await anyio.sleep(pause)
+            pause = min(pause * 2, _RETRY_MAX_S)
+
+    async def _consume(self) -> None:
+        cfg = self.config
+        nc = await connect(cfg, self.name)
+        try:
+            js = nc.jetstream(timeout=cfg.request_timeout_s)
+            wanted = aggregate_stream(
+                cfg.node,
+                cfg.remotes,
+                cfg.max_age_h * 3600.0,
+                cfg.max_bytes,
+                cfg.duplicate_window_s,
+            )
+            await ensure_stream(js, wanted, create=cfg.create_streams)
+            durable = cfg.durable or f"fsg-{self.name}"
+            subscription = await js.pull_subscribe(
+                "fsg.>",
+                durable=durable,
+                stream=wanted.name,
+                config=ConsumerConfig(
+                    ack_policy=AckPolicy.EXPLICIT,
+                    deliver_policy=DeliverPolicy.ALL,
+                    ack_wait=cfg.ack_wait_s,
+                    max_ack_pending=max(cfg.batch * 4, 1024),
+                ),
+            )
+            self._connected = self._was_connected = True
+            self._reason = None
+            async with anyio.create_task_group() as tasks:
+                tasks.start_soon(self._watch, js, wanted.name or "")
+                while True:
+                    try:
+                        messages = await subscription.fetch(cfg.batch, timeout=1.0)
+                    except NatsTimeoutError:
+                        continue  # nothing waiting: an empty batch, not an error
+                    for index, message in enumerate(messages):
+                        if not await self._take(message):
+                            # The bus is full: this one and the rest of the batch again in
+                            # a second, in order (not after ack_wait).
+                            for later in messages[index + 1 :]:
+                                await later.nak(delay=1.0)
+                            break
+        finally:
+            self._connected = False
+            await _close(nc)
+
+    async def _watch(self, js: JetStreamContext, stream: str) -> None:
+        """Nudge the aggregate stream when a remote source is stale.
+
+        Newer servers back off retrying a source (up to minutes) after it failed: a remote
+        stream not there yet, a leaf link cut. Taking the stale sources out and putting them
+        back restarts sourcing at once, so a link that is back is caught up in about a
+        second; while the link is still down a nudge costs two local API calls.
+        """
+        stale_ns = self.config.nudge_s * 1e9
+        last = -self.config.nudge_s
+        while True:
+            await anyio.sleep(min(1.0, self.config.nudge_s))
+            try:
+                last = await self._check_sources(js, stream, stale_ns, last)
+            except Exception as exc:  # noqa: BLE001 - a slow API call: try again next time
+                if self._log_limit.allow("watch"):
+                    log.info("nats_source_watch_failed", source=self.name, error=str(exc)[:200])
+
+    async def _check_sources(
+        self, js: JetStreamContext, stream: str, stale_ns: float, last: float
+    ) -> float:
+        """Nudge the stale sources unless nudged within ``nudge_s``; the last nudge's time."""
+        info = await js.stream_info(stream)
+        stale = sorted(
+            source.name
+            for source in info.sources or []
+            if source.error is not None
+            or source.active is None
+            or not 0 <= source.active <= stale_ns
+        )
+        self._stale = stale
+        now = anyio.current_time()
+        if stale and now - last >= self.config.nudge_s:
+            last = now
+            # Re-applying the same config changes nothing on 2.11+ (measured): the stale
+            # sources are taken out and put back, which restarts them where they were
+            # (the stream remembers each source's last sequence; nothing is re-copied).
+            config = info.config
+            kept = [source for source in config.sources or [] if source.name not in stale]
+            await js.update_stream(dataclasses.replace(config, sources=kept))
+            await js.update_stream(config)
+            self._counts["nudges"] += 1
+        return last
+
+    async def _take(self, message: Msg) -> bool:
+        """Publish one message's event and ack it; False when the bus refused it (nak)."""
+        try:
+            event = decode_event(message.subject, message.data)
+            if event.origin_node not in self._remotes:
+                raise BadMessage(f"subject {message.subject[:120]!r}: not a configured remote")
+        except BadMessage as exc:
+            self._counts["bad"] += 1
+            if self._log_limit.allow("bad"):
+                log.warning("nats_message_refused", source=self.name, reason=str(exc))
+            await message.ack()
+            return True
+        if isinstance(event, Detection) and event.event_id in self._seen:
+            self._counts["duplicate"] += 1
+            await message.ack()
+            return True
+        if not self._publish(event):
+            self._counts["refused"] += 1
+            await message.nak(delay=1.0)
+            return False
+        if isinstance(event, Detection):
+            self._remember(event.event_id)
+        self._counts["detection" if isinstance(event, Detection) else "telemetry"] += 1
+        self._by_node[event.origin_node or ""] += 1
+        await message.ack()
+        return True
+
+    def _remember(self, event_id: str) -> None:
+        self._seen[event_id] = None
+        if len(self._seen) > self.config.remember_ids:
+            self._seen.popitem(last=False)
+
+
+async def _close(nc: Client) -> None:
+    with anyio.CancelScope(shield=True):
+        try:
+            await asyncio.wait_for(nc.close(), timeout=2.0)
+        except Exception as exc:  # noqa: BLE001 - closing: nothing left to do but log it
+            log.debug("nats_close_failed", error=str(exc)[:200])

@@ -1,0 +1,108 @@
+"""Subjects, message ids and message bodies of the events nodes exchange over NATS.
+
+A subject is ``fsg.<node>.<kind>.<airframe token>``: the node token is the origin, so a
+stream on one node never captures another node's subjects. An airframe id may hold ``.``,
+``*``, ``>`` or spaces, which NATS reads as structure; the token keeps ASCII letters, digits
+and ``-`` and writes every other byte of the UTF-8 id as ``_XX`` (hex), so it is reversible
+and a filter on one airframe still works. An id whose token would pass ``MAX_TOKEN`` is
+cut and ends in a hash of the whole id.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import re
+
+from gateway.errors import GatewayError
+from gateway.events import Detection, Event, EventKind, Telemetry, event_adapter
+
+__all__ = [
+    "KIND_TOKENS",
+    "MAX_BODY_BYTES",
+    "MAX_TOKEN",
+    "NODE_PATTERN",
+    "BadMessage",
+    "airframe_token",
+    "decode_event",
+    "encode_event",
+    "node_of",
+    "subject_for",
+]
+
+#: A node's name: a NATS subject token, a stream-name part and a JetStream domain at once.
+NODE_PATTERN = r"^[A-Za-z0-9_-]{1,32}$"
+#: The kinds that cross between nodes, and their subject tokens.
+KIND_TOKENS: dict[EventKind, str] = {EventKind.DETECTION: "det", EventKind.TELEMETRY: "tlm"}
+_TOKEN_KINDS = {token: kind for kind, token in KIND_TOKENS.items()}
+MAX_TOKEN = 96
+#: A body larger than this is refused on the way in (an event is well under 4 KiB).
+MAX_BODY_BYTES = 64 * 1024
+_PLAIN = re.compile(rb"[A-Za-z0-9-]")
+_NODE = re.compile(NODE_PATTERN)
+
+
+class BadMessage(GatewayError):
+    """A message from NATS that is not an event this node takes; the text says why."""
+
+
+def airframe_token(airframe: str) -> str:
+    """``airframe`` as one subject token (reversible unless cut to ``MAX_TOKEN``)."""
+    token = "".join(
+        chr(byte) if _PLAIN.fullmatch(bytes((byte,))) else f"_{byte:02X}"
+        for byte in airframe.encode()
+    )
+    if not token:
+        return "_"
+    if len(token) <= MAX_TOKEN:
+        return token
+    digest = hashlib.sha256(airframe.encode()).hexdigest()[:16]
+    return f"{token[: MAX_TOKEN - 18]}_H{digest}"
+
+
+def subject_for(node: str, event: Event) -> str:
+    """The subject of ``event`` published by ``node``; ``KeyError`` for a kind not carried."""
+    token = KIND_TOKENS[event.kind]
+    airframe = getattr(event, "airframe", "")
+    return f"fsg.{node}.{token}.{airframe_token(str(airframe))}"
+
+
+def encode_event(event: Event) -> bytes:
+    """The message body: the event's JSON (its ``origin_node`` is never set here)."""
+    return event.model_dump_json(exclude_none=True).encode()
+
+
+def node_of(subject: str) -> tuple[str, EventKind]:
+    """The origin node and kind a subject names; ``BadMessage`` if it is not one of ours."""
+    parts = subject.split(".")
+    if len(parts) != 4 or parts[0] != "fsg":
+        raise BadMessage(f"subject {subject[:120]!r} is not fsg.<node>.<kind>.<airframe>")
+    node, token = parts[1], parts[2]
+    if not _NODE.fullmatch(node):
+        raise BadMessage(f"subject {subject[:120]!r}: node {node[:40]!r} is not a node name")
+    kind = _TOKEN_KINDS.get(token)
+    if kind is None:
+        raise BadMessage(f"subject {subject[:120]!r}: kind {token[:20]!r} is not carried")
+    return node, kind
+
+
+def decode_event(subject: str, body: bytes) -> Detection | Telemetry:
+    """The event a message carries, marked with its node of origin.
+
+    ``BadMessage`` for an oversize body, invalid JSON or event, a kind the subject does not
+    name, an airframe the subject does not name, or a body that already names an origin (a
+    node never sends on another node's events).
+    """
+    node, kind = node_of(subject)
+    if len(body) > MAX_BODY_BYTES:
+        raise BadMessage(f"subject {subject[:120]!r}: body of {len(body)} bytes is too large")
+    try:
+        event = event_adapter.validate_json(body)
+    except ValueError as exc:
+        raise BadMessage(f"subject {subject[:120]!r}: not a valid event ({exc})") from None
+    if event.kind is not kind or not isinstance(event, Detection | Telemetry):
+        raise BadMessage(f"subject {subject[:120]!r}: carries a {event.kind.value} event")
+    if airframe_token(event.airframe) != subject.split(".")[3]:
+        raise BadMessage(f"subject {subject[:120]!r}: event of airframe {event.airframe[:64]!r}")
+    if event.origin_node is not None:
+        raise BadMessage(f"subject {subject[:120]!r}: event relayed from {event.origin_node!r}")
+    return event.model_copy(update={"origin_node": node})

@@ -1,0 +1,231 @@
+"""The ``nats`` sink and source against real nats-servers on loopback (one per test).
+
+Node ``b`` is a leaf of hub ``a``; each runs JetStream in its own domain. The sink on ``b``
+publishes acked with the event id as ``Nats-Msg-Id``; the source on ``a`` consumes the
+aggregate stream, marks each event with its origin and never takes one twice.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from datetime import UTC, datetime
+from pathlib import Path
+
+import anyio
+import nats
+import pytest
+import trustme
+from nats_server import DEBIAN_NATS_SERVER, NEEDS_DEBIAN_NATS, NEEDS_NATS, NatsServer
+from pydantic import ValidationError
+
+from gateway.errors import TransientSinkError
+from gateway.events import Detection, Event, Position, Sensor, Telemetry
+from sinks.nats.sink import NatsSink, NatsSinkConfig
+from sinks.nats.source import NatsSource, NatsSourceConfig
+from sinks.nats.subjects import BadMessage, airframe_token, decode_event, encode_event, subject_for
+
+pytestmark = NEEDS_NATS
+
+NOW = datetime(2026, 11, 27, 8, 0, 0, tzinfo=UTC)
+
+
+def detection(airframe: str, n: int) -> Detection:
+    return Detection(
+        event_id=f"{airframe}-det-{n}-{1000 + n}",
+        airframe=airframe,
+        time=NOW,
+        sensor=Sensor.EO,
+        object_class="tank",
+        confidence=0.9,
+        position=Position(lat_deg=65.8, lon_deg=21.7),
+        sigma_h_m=8.0,
+    )
+
+
+def test_airframe_ids_with_dots_and_wildcards_become_one_token() -> None:
+    assert airframe_token("F26E-001") == "F26E-001"
+    assert airframe_token("a.b*c >d_") == "a_2Eb_2Ac_20_3Ed_5F"
+    long = airframe_token("x" * 300)
+    assert len(long) <= 96
+    assert long != airframe_token("x" * 299)
+    assert subject_for("b", detection("F.1", 1)) == "fsg.b.det.F_2E1"
+
+
+def test_a_message_is_refused_with_its_reason() -> None:
+    event = detection("F1", 1)
+    body = encode_event(event)
+    assert decode_event("fsg.b.det.F1", body).origin_node == "b"
+    for subject, data, reason in [
+        ("fsg.b.tlm.F1", body, "carries a detection"),
+        ("fsg.b.det.F2", body, "airframe"),
+        ("fsg.b.trk.F1", body, "not carried"),
+        ("fsg.b.det", body, "is not fsg"),
+        ("fsg.b.det.F1", b"{", "not a valid event"),
+        ("fsg.b.det.F1", b"x" * 70_000, "too large"),
+        (
+            "fsg.b.det.F1",
+            event.model_copy(update={"origin_node": "c"}).model_dump_json().encode(),
+            "relayed",
+        ),
+    ]:
+        with pytest.raises(BadMessage, match=reason):
+            decode_event(subject, data)
+
+
+def test_options_are_checked() -> None:
+    with pytest.raises(ValidationError, match="node"):
+        NatsSinkConfig(node="a.b")
+    with pytest.raises(ValidationError, match="not carried"):
+        NatsSinkConfig.model_validate({"node": "a", "kinds": ["track"]})
+    with pytest.raises(ValidationError, match="nats://"):
+        NatsSinkConfig(node="a", servers=["http://x"])
+    with pytest.raises(ValidationError, match="named twice"):
+        NatsSourceConfig(node="a", remotes=["b", "b"])
+    with pytest.raises(ValidationError, match="no such file"):
+        NatsSinkConfig.model_validate(
+            {"node": "a", "creds_file": "/nonexistent.creds"}, context={"environment": True}
+        )
+
+
+@pytest.fixture(
+    params=[
+        pytest.param(None, id="current"),
+        pytest.param(DEBIAN_NATS_SERVER, id="debian-2.9", marks=NEEDS_DEBIAN_NATS),
+    ]
+)
+def nodes(
+    tmp_path: Path, request: pytest.FixtureRequest
+) -> Iterator[tuple[NatsServer, NatsServer]]:
+    binary = request.param
+    hub = NatsServer(tmp_path, "a", hub=True, binary=binary)
+    leaf = NatsServer(
+        tmp_path, "b", leaf_of=f"nats-leaf://127.0.0.1:{hub.leaf_port}", binary=binary
+    )
+    with hub, leaf:
+        deadline = time.monotonic() + 20
+        while not hub.leafz().get("leafs") and time.monotonic() < deadline:
+            time.sleep(0.02)
+        yield hub, leaf
+
+
+def test_the_sink_publishes_acked_once_and_the_source_takes_each_once(
+    nodes: tuple[NatsServer, NatsServer],
+) -> None:
+    hub, leaf = nodes
+    received: list[Event] = []
+    refusals = [True]  # the bus refuses the first event once (a full spool): asked again
+
+    def publish(event: Event) -> bool:
+        if refusals:
+            refusals.pop()
+            return False
+        received.append(event)
+        return True
+
+    async def main() -> NatsSink:
+        sink = NatsSink("out", NatsSinkConfig(node="b", servers=[leaf.url]))
+        await sink.open()
+        batch: list[Event] = [detection("F.1", n) for n in range(50)]
+        batch.append(Telemetry(event_id="t1", airframe="F.1", time=NOW))
+        await sink.send(batch)
+        await sink.send(batch[:10])  # a retried batch: the stream drops the repeats
+        relayed = detection("R1", 1).model_copy(update={"origin_node": "c"})
+        await sink.send([relayed])  # another node's: never published again
+        # Hostile messages on node b's subjects: counted and dropped, never the end of it.
+        raw = await nats.connect(leaf.url)
+        good = encode_event(detection("F9", 9))
+        for subject, body in [
+            ("fsg.b.det.F1", b"{"),  # not JSON
+            ("fsg.b.det.F1", good),  # another airframe than the subject names
+            ("fsg.b.det.F9", encode_event(relayed)),  # already relayed
+        ]:
+            await raw.jetstream().publish(subject, body)
+        await raw.close()
+        source = NatsSource(
+            "in",
+            NatsSourceConfig(node="a", servers=[hub.url], remotes=["b"]),
+            publish,
+            clock=lambda: NOW,
+        )
+        async with anyio.create_task_group() as tg:
+            await tg.start(source.run)
+            with anyio.fail_after(30):
+                while len(received) < 51:  # noqa: ASYNC110 - polling what a callback appends
+                    await anyio.sleep(0.05)
+            await anyio.sleep(0.3)
+            tg.cancel_scope.cancel()
+        await sink.aclose()
+        status = source.status()
+        assert status["by_node"] == {"b": 51}
+        assert status["counts"] == {"bad": 3, "refused": 1, "detection": 50, "telemetry": 1}
+        return sink
+
+    sink = anyio.run(main)
+    assert sink.counts() == {"published": 51, "duplicate": 10, "relayed_skipped": 1}
+    assert len(received) == 51
+    assert {e.origin_node for e in received} == {"b"}
+    ids = [e.event_id for e in received if isinstance(e, Detection)]
+    assert sorted(ids) == sorted(f"F.1-det-{n}-{1000 + n}" for n in range(50))
+
+
+def test_an_unreachable_server_is_a_transient_error(tmp_path: Path) -> None:
+    async def main() -> None:
+        sink = NatsSink(
+            "out", NatsSinkConfig(node="b", servers=["nats://127.0.0.1:1"], connect_timeout_s=0.2)
+        )
+        with pytest.raises(TransientSinkError, match="cannot reach NATS"):
+            await sink.open()
+        await sink.aclose()
+
+    anyio.run(main)
+
+
+def _pki(tmp: Path) -> tuple[Path, Path, Path, Path, Path]:
+    """A CA, the server's certificate for 127.0.0.1 and a node's client certificate."""
+    ca = trustme.CA()
+    server = ca.issue_cert("127.0.0.1")
+    client = ca.issue_cert("node-b.fischer")
+    paths = [tmp / name for name in ("ca.pem", "srv.pem", "srv.key", "cli.pem", "cli.key")]
+    ca.cert_pem.write_to_path(str(paths[0]))
+    server.cert_chain_pems[0].write_to_path(str(paths[1]))
+    server.private_key_pem.write_to_path(str(paths[2]))
+    client.cert_chain_pems[0].write_to_path(str(paths[3]))
+    client.private_key_pem.write_to_path(str(paths[4]))
+    return paths[0], paths[1], paths[2], paths[3], paths[4]
+
+
+def test_tls_with_a_client_certificate_from_files(tmp_path: Path) -> None:
+    ca, srv, srv_key, cli, cli_key = _pki(tmp_path)
+    with NatsServer(tmp_path, "b", tls=(ca, srv, srv_key)) as server:
+        url = server.url.replace("nats://", "tls://")
+        options = {"node": "b", "servers": [url], "connect_timeout_s": 0.5}
+        tls = {"ca_file": str(ca), "cert_file": str(cli), "key_file": str(cli_key)}
+        good = NatsSinkConfig.model_validate({**options, "tls": tls}, context={"environment": True})
+
+        async def main() -> None:
+            sink = NatsSink("out", good)
+            await sink.open()
+            await sink.send([detection("F1", 1)])
+            await sink.aclose()
+            assert sink.counts() == {"published": 1}
+            # A certificate of another CA: the server refuses the node.
+            stranger = trustme.CA().issue_cert("stranger")
+            stranger.cert_chain_pems[0].write_to_path(str(tmp_path / "x.pem"))
+            stranger.private_key_pem.write_to_path(str(tmp_path / "x.key"))
+            other = {
+                **tls,
+                "cert_file": str(tmp_path / "x.pem"),
+                "key_file": str(tmp_path / "x.key"),
+            }
+            refused = NatsSink("out", NatsSinkConfig.model_validate({**options, "tls": other}))
+            with pytest.raises(TransientSinkError, match="cannot reach NATS"):
+                await refused.open()
+            await refused.aclose()
+
+        anyio.run(main)
+    with pytest.raises(ValidationError, match=r"missing\.pem"):
+        NatsSinkConfig.model_validate(
+            {**options, "tls": {**tls, "cert_file": str(tmp_path / "missing.pem")}},
+            context={"environment": True},
+        )
