@@ -718,6 +718,10 @@ class OrdersProcessor:
         return order.model_copy(update={"location": OrderArea(point=point)})
 
     def _on_telemetry(self, telemetry: Telemetry) -> None:
+        if telemetry.origin_node is not None:
+            # Another node's airframe (relayed over NATS): never planned with, never tasked,
+            # and never mistaken for one of ours that bears the same id.
+            return
         self._telemetry[telemetry.airframe] = telemetry
         running = self._running.get(telemetry.airframe)
         if running is not None:

@@ -411,6 +411,13 @@ class TestProcessor:
         assert published[-1].source == "brigade-slb"
         assert published[-1].current_item == 1
 
+    async def test_another_nodes_telemetry_is_never_planned_with(self) -> None:
+        """An airframe relayed from another node (``origin_node``) under one of our ids."""
+        remote = telemetry().model_copy(update={"origin_node": "brigade-2"})
+        published = await run_orders(Commander(), [remote, order()])
+        assert states(published) == ["waiting"]
+        assert published[0].check == "link"
+
     async def test_mavlink_mode_commands_are_passed_on_with_the_intent(self) -> None:
         commander = Commander()
         await run_orders(
