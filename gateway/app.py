@@ -41,7 +41,7 @@ from gateway.ops.pluginstatus import read_status
 from gateway.ops.sdnotify import SystemdNotifier
 from gateway.ops.supervise import Supervised, supervise
 from gateway.spool.commits import COMMIT_FAILURE_REASONS
-from gateway.spool.orders import SpoolOrderBook
+from gateway.spool.orderbook import SpoolOrderBook
 from gateway.spool.store import Spool
 
 __all__ = ["Gateway", "utc_now"]

@@ -88,7 +88,7 @@ class OrderStatusListener(Protocol):
 
 
 class StatusArchive(Protocol):
-    """The statuses kept for each order (the spool's order book, ``gateway.spool.orders``)."""
+    """The statuses kept for each order (the spool's order book, ``gateway.spool.orderbook``)."""
 
     def statuses(self, order_event_id: str) -> list[OrderStatus]:
         """The statuses published for one order, by ``seq``."""

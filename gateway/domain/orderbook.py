@@ -3,7 +3,7 @@
 The orders processor (``processors.orders``) writes one ``OrderRecord`` per order event id
 each time the order moves (waiting, uploading, executing, done) and with it the status it is
 about to publish; after a restart it reads them back and carries on. The spool implements
-it (``gateway.spool.orders``) so a record joins the same group commit as the status events
+it (``gateway.spool.orderbook``) so a record joins the same group commit as the status events
 the bus appends: the record is written before the status is published. ``gateway.app``
 hands the book to every processor that asks for one (``KeepsOrders``); the processor never
 imports the spool.

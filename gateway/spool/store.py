@@ -493,7 +493,7 @@ class Spool:
         self.commits.succeeded()
 
     def writing(self) -> contextlib.AbstractContextManager[sqlite3.Connection]:
-        """A write of a table kept beside the spool's (``gateway.spool.orders``): it joins the
+        """A write of a table kept beside the spool's (``gateway.spool.orderbook``): it joins the
         open group commit like the spool's own writes (committed at once without a loop)."""
         return self._write()
 
