@@ -232,11 +232,16 @@ class LocalOrderSource:
             )
             await _say(stream, {"order_id": order.order_id, "status": "conflict", "reason": reason})
             return
+        if taken is None and self._archive is not None and self._archive.statuses(order.event_id):
+            taken = digest  # taken before the daemon restarted: its statuses are kept
         if taken is not None or order.event_id in self._watchers:
             # The orders processor answers each order id once: a second order with it
             # would wait for statuses that never come.
             self._count("duplicate_order_id", order_id=order.order_id)
-            reason = f"order_id: {order.order_id} was already taken; give a new order id"
+            reason = (
+                f"order_id: {order.order_id} was already taken; give a new order id"
+                f" (fischer-gateway order --status {order.order_id} shows its statuses)"
+            )
             await _say(stream, {"order_id": order.order_id, "status": "rejected", "reason": reason})
             return
         send, receive = anyio.create_memory_object_stream[OrderStatus](_WATCH_QUEUE)
