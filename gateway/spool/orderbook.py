@@ -11,7 +11,10 @@ versioned on their own (``meta`` key ``orders_schema``):
   issuer (sent again after a restart) and ``fischer-gateway order --status ID``.
 
 Writes join the spool's open group commit (``Spool.writing``): a row written as a status is
-published commits with the status events the bus appends, or neither does. At most
+published commits with the status events the bus appends, or neither does. A group holding
+a record never lingers past its loop pass: it commits at the end of the pass in which the
+status was published, before any source's task runs to send it (a commit that fails is
+logged and counted in ``failed``). At most
 ``max_orders`` orders are kept: beyond it the oldest done ones go, with their statuses.
 """
 
@@ -23,15 +26,19 @@ import time
 from datetime import datetime
 from typing import Any
 
+import structlog
 from pydantic import ValidationError
 
 from gateway.domain.mission import Loiter, MissionStep, Waypoint
 from gateway.domain.orderbook import OrderRecord, Phase
 from gateway.errors import SpoolError
 from gateway.events import FiveLineOrder, OrderStatus
+from gateway.ops.logsetup import RateLimit
 from gateway.spool.store import Spool
 
 __all__ = ["SpoolOrderBook"]
+
+log = structlog.get_logger(__name__)
 
 _SCHEMA_VERSION = "1"
 _SCHEMA = (
@@ -94,6 +101,9 @@ class SpoolOrderBook:
         self._spool = spool
         self.max_orders = max_orders
         self._saves = 0
+        #: Writes whose group commit failed (rolled back).
+        self.failed = 0
+        self._failed_log = RateLimit(interval_s=10.0)
         try:
             with spool.writing() as db:
                 for statement in _SCHEMA:
@@ -140,9 +150,18 @@ class SpoolOrderBook:
                     )
         except sqlite3.Error as exc:
             raise SpoolError(f"order book: {exc}") from exc
+        group = self._spool.open_group
+        if group is not None:
+            group.when_done(self._committed)  # and so no linger: this pass's end commits it
         self._saves += 1
         if self._saves % _PRUNE_EVERY == 0:
             self.prune()
+
+    def _committed(self, committed: bool) -> None:
+        if not committed:
+            self.failed += 1
+            if self._failed_log.allow("failed"):
+                log.error("order_book_commit_failed", failed=self.failed)
 
     def prune(self) -> int:
         """Forget the oldest done orders beyond ``max_orders``; how many went."""

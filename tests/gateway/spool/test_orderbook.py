@@ -8,6 +8,8 @@ from __future__ import annotations
 from datetime import UTC, datetime
 from pathlib import Path
 
+import anyio
+import anyio.lowlevel
 import pytest
 
 from gateway.domain.mission import Loiter, Waypoint
@@ -97,5 +99,26 @@ def test_an_order_book_of_another_schema_is_refused_naming_it(tmp_path: Path) ->
             db.execute("UPDATE meta SET value='9' WHERE key='orders_schema'")
         with pytest.raises(SpoolError, match="order book schema 9"):
             SpoolOrderBook(spool)
+    finally:
+        spool.close()
+
+
+@pytest.mark.anyio
+async def test_a_record_commits_at_the_end_of_its_loop_pass_without_lingering(
+    tmp_path: Path,
+) -> None:
+    spool = Spool(tmp_path / "spool.db")
+    try:
+        book = SpoolOrderBook(spool)
+        one = order()
+        book.save(OrderRecord(one, one.content_digest(), "waiting", seq=1))
+        group = spool.open_group
+        assert group is not None
+        assert group.waited_on  # so the end of the pass commits it, no linger
+        for _ in range(3):
+            await anyio.lowlevel.checkpoint()
+        assert group.committed is True
+        assert not group.lingered
+        assert book.failed == 0
     finally:
         spool.close()
