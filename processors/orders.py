@@ -59,7 +59,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from gateway.clock import Clock, utc_now
 from gateway.domain.geodesy import distance_bearing
-from gateway.domain.mission import MissionStep, ModeCommands, polygon_problem
+from gateway.domain.mission import Loiter, MissionStep, ModeCommands, polygon_problem
 from gateway.domain.orderbook import OrderBook, OrderRecord, Phase
 from gateway.domain.terrain import TerrainModel
 from gateway.errors import SpoolError
@@ -1011,6 +1011,18 @@ def _differs(planned: tuple[MissionStep, ...], got: tuple[MissionStep, ...]) -> 
                 f"item {seq} is at {theirs.lat_deg:.7f}, {theirs.lon_deg:.7f},"
                 f" {theirs.alt_msl_m:.1f} m; the order uploaded {mine.lat_deg:.7f},"
                 f" {mine.lon_deg:.7f}, {mine.alt_msl_m:.1f} m"
+            )
+        if (
+            isinstance(mine, Loiter)
+            and isinstance(theirs, Loiter)
+            and (
+                abs(mine.seconds - theirs.seconds) > _SAME_M
+                or abs(mine.radius_m - theirs.radius_m) > _SAME_M
+            )
+        ):
+            return (
+                f"item {seq} loiters {theirs.seconds:.0f} s at {theirs.radius_m:.0f} m; the"
+                f" order uploaded {mine.seconds:.0f} s at {mine.radius_m:.0f} m"
             )
     return None
 

@@ -151,6 +151,19 @@ async def test_an_executing_order_whose_airframe_flies_another_mission_fails(
 
 
 @pytest.mark.anyio
+async def test_a_loiter_of_another_time_is_another_mission(book: SpoolOrderBook) -> None:
+    first = Commander()
+    await run(book, first, [telemetry(), order()], reached(OrderState.EXECUTING))
+    waypoint, loiter = first.uploads[-1][1]
+    assert isinstance(loiter, Loiter)
+    again = Commander()
+    again.mission = (waypoint, Loiter(loiter.lat_deg, loiter.lon_deg, loiter.alt_msl_m, 5.0, 300.0))
+    after = await run(book, again, [telemetry()], reached(OrderState.FAILED))
+    assert after[-1].reason is not None
+    assert "item 1 loiters 5 s at 300 m; the order uploaded 600 s at 300 m" in after[-1].reason
+
+
+@pytest.mark.anyio
 async def test_an_order_killed_mid_upload_is_uploaded_again(book: SpoolOrderBook) -> None:
     stuck = Commander(upload_ok=False)
 
@@ -180,6 +193,19 @@ async def test_a_waiting_order_waits_on_and_is_taken_when_its_airframe_is_heard(
     assert record.deadline is not None
     after = await run(book, Commander(), [telemetry()], reached(OrderState.ACCEPTED))
     assert seqs(after)[:2] == [(1, "waiting"), (2, "accepted")]
+
+
+@pytest.mark.anyio
+async def test_a_waiting_order_is_rejected_at_its_kept_deadline_after_a_restart(
+    book: SpoolOrderBook,
+) -> None:
+    short = order(not_after=NOW + timedelta(seconds=0.3))
+    await run(book, Commander(linked=False), [short], reached(OrderState.WAITING))
+    after = await run(book, Commander(linked=False), [], reached(OrderState.REJECTED))
+    rejected = after[-1]
+    assert (rejected.seq, rejected.check) == (2, "link")
+    (record,) = book.load()
+    assert record.phase == "done"
 
 
 @pytest.mark.anyio
