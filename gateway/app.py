@@ -23,10 +23,11 @@ import structlog
 from gateway.c2.plugins import PROCESSOR_GROUP, SOURCE_GROUP, build_sink, load_component
 from gateway.c2.sink import ReleasesOwnAirframes, Sink
 from gateway.c2.sinkrunner import SinkRunner
-from gateway.c2.source import OrderStatusFeed, OrderStatusListener, Source
+from gateway.c2.source import KeepsStatuses, OrderStatusFeed, OrderStatusListener, Source
 from gateway.c2.sourcepublish import SourcePublish
 from gateway.clock import Clock, utc_now
 from gateway.config import Config
+from gateway.domain.orderbook import KeepsOrders
 from gateway.domain.terrain import DemSource, TerrainModel
 from gateway.events import Event
 from gateway.fleet.fleet import Fleet
@@ -40,6 +41,7 @@ from gateway.ops.pluginstatus import read_status
 from gateway.ops.sdnotify import SystemdNotifier
 from gateway.ops.supervise import Supervised, supervise
 from gateway.spool.commits import COMMIT_FAILURE_REASONS
+from gateway.spool.orderbook import SpoolOrderBook
 from gateway.spool.store import Spool
 
 __all__ = ["Gateway", "utc_now"]
@@ -169,6 +171,16 @@ class Gateway:
             # sees only the ``AirframeCommander`` port (``gateway.flow.tasking``).
             for processor in tasking:
                 processor.attach(self.fleet.commander, self.terrain, config.terrain.baro_sigma_m)
+        keeping = [
+            runner.processor
+            for runner in self.processors.values()
+            if isinstance(runner.processor, KeepsOrders)
+        ]
+        #: The orders processor's order book, in the spool (None without an orders processor).
+        self.order_book = SpoolOrderBook(self.spool) if keeping else None
+        if self.order_book is not None:
+            for keeper in keeping:
+                keeper.keep_orders(self.order_book)
         pinned = frozenset(
             uid
             for runner in self.processors.values()
@@ -194,6 +206,8 @@ class Gateway:
         for built in self.sources:
             if isinstance(built, OrderStatusListener):
                 self.order_status_feed.add(built)
+            if isinstance(built, KeepsStatuses) and self.order_book is not None:
+                built.keep_statuses(self.order_book)
         self.health: HealthServer | None = None
         if config.health.enabled:
             self.health = HealthServer(

@@ -878,6 +878,10 @@ class OrderStatus(BaseModel):
     """How many mission items the order uploaded (from ``accepted`` on); None otherwise."""
     current_item: int | None = Field(default=None, ge=0)
     """For ``completed``: the last mission item, reached and flown to."""
+    seq: int | None = Field(default=None, ge=1)
+    """The order's status sequence: 1 for its first status, then 2, 3, ... Statuses reach
+    the issuer at least once (those owed are sent again after a restart): a receiver drops
+    one whose ``order_event_id`` and ``seq`` it already has."""
     late_by_s: float | None = Field(default=None, ge=0.0)
     """Set when the spool delivers the event after its kind's stale threshold: how many seconds
     it waited."""

@@ -10,6 +10,9 @@ it waits on, past ``--timeout``, for the answer the window's end brings at the l
 status: 0 when the order was accepted (with ``--follow``: completed), 1 when it was rejected,
 failed or a conflict (its id was taken with other content), 2 when the daemon could not be
 reached or did not answer within ``--timeout``, 3 when it waits for its airframe.
+``--status ORDER_ID`` asks instead for every status the daemon keeps for an order (also those
+that came while no client was connected, or before a restart), one JSON line each with its
+``seq``; exit 0 if any is kept, 1 if none is.
 Reconnaissance tasking only: the tasks are observe, track, survey and return.
 """
 
@@ -62,11 +65,16 @@ def add_order_parser(sub: Any) -> None:
     )
     order.add_argument("--socket", required=True, help="the local source's Unix socket")
     order.add_argument(
+        "--status",
+        metavar="ORDER_ID",
+        help="print every status kept for this order (no order is sent)",
+    )
+    order.add_argument(
         "--task",
-        required=True,
+        help="required unless --status",
         choices=["observe_point", "track_target", "recon_area", "return_to_base"],
     )
-    where = order.add_mutually_exclusive_group(required=True)
+    where = order.add_mutually_exclusive_group()
     where.add_argument("--point", nargs=2, type=_number, metavar=("LAT", "LON"))
     where.add_argument("--mgrs", help="an MGRS reference, 1/10/100 m")
     where.add_argument("--polygon", nargs="+", type=_corner, metavar="LAT,LON")
@@ -125,6 +133,11 @@ def _document(args: argparse.Namespace) -> dict[str, Any]:
 
 def order_command(args: argparse.Namespace, out: TextIO, err: TextIO) -> int:
     """Run ``fischer-gateway order``; the exit status (see the module docstring)."""
+    if args.status is not None:
+        return _status_of(args, out, err)
+    if args.task is None or (args.point, args.mgrs, args.polygon) == (None, None, None):
+        print("order: --task and one of --point, --mgrs, --polygon are required", file=err)
+        return EXIT_UNREACHABLE
     document = _document(args)
     try:
         with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
@@ -154,3 +167,27 @@ def order_command(args: argparse.Namespace, out: TextIO, err: TextIO) -> int:
     except (OSError, ValueError) as exc:
         print(f"{args.socket}: {exc}", file=err)
         return EXIT_UNREACHABLE
+
+
+def _status_of(args: argparse.Namespace, out: TextIO, err: TextIO) -> int:
+    """``--status ORDER_ID``: print the statuses the daemon keeps for the order."""
+    lines = 0
+    try:
+        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
+            sock.settimeout(args.timeout)
+            sock.connect(str(args.socket))
+            sock.sendall(json.dumps({"status_of": args.status}).encode() + b"\n")
+            reader = sock.makefile("rb")
+            while raw := reader.readline(_MAX_LINE):
+                line = json.loads(raw)
+                print(json.dumps(line), file=out, flush=True)
+                if line.get("status") in ("unknown", "rejected"):
+                    return EXIT_REFUSED
+                lines += 1
+    except TimeoutError:
+        print(f"{args.socket}: no answer within {args.timeout} s", file=err)
+        return EXIT_UNREACHABLE
+    except (OSError, ValueError) as exc:
+        print(f"{args.socket}: {exc}", file=err)
+        return EXIT_UNREACHABLE
+    return EXIT_OK if lines else EXIT_REFUSED

@@ -30,6 +30,16 @@ fused track flies to that track's newest position and follows it: the orbit is p
 checked and uploaded again as the track moves (at most once every ``track_replan_s``), and
 the order completes when the track is lost or its window ends. Reconnaissance only: nothing
 here arms or releases.
+
+Order state is durable when the assembly hands over an order book
+(``gateway.domain.orderbook``, the spool's): each order's record (the order, its digest,
+where it stands, its mission items, the last item reached, its status sequence) is written
+before each status is published, and every status carries its ``seq`` (1, 2, ... per
+order). After a restart the statuses kept for unfinished orders (and those finished within
+``status_replay_s``) are published again (the issuer drops those it has by ``seq``); a
+waiting order waits on until its deadline; an order that was being uploaded is uploaded
+again once its airframe is heard; an executing order has the airframe's mission read back
+and goes on only if it is still the one uploaded, else it is reported ``failed`` saying so.
 """
 
 from __future__ import annotations
@@ -49,8 +59,10 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from gateway.clock import Clock, utc_now
 from gateway.domain.geodesy import distance_bearing
-from gateway.domain.mission import ModeCommands, polygon_problem
+from gateway.domain.mission import Loiter, MissionStep, ModeCommands, polygon_problem
+from gateway.domain.orderbook import OrderBook, OrderRecord, Phase
 from gateway.domain.terrain import TerrainModel
+from gateway.errors import SpoolError
 from gateway.events import (
     Event,
     EventKind,
@@ -165,6 +177,14 @@ class OrdersConfig(ProcessorConfig):
         default=100.0, ge=0, le=100_000, description="How far a track moves before the orbit does."
     )
 
+    status_replay_s: float = Field(
+        default=3600.0,
+        ge=0,
+        le=30 * 86400,
+        description="After a restart, the statuses of orders finished this recently are sent"
+        " again (those of unfinished orders always are).",
+    )
+
     max_start_delay_s: float = Field(
         default=3600.0,
         gt=0,
@@ -206,6 +226,32 @@ class _Waiting:
 
 
 @dataclass(slots=True)
+class _Kept:
+    """What the order book keeps of one order (``gateway.domain.orderbook.OrderRecord``)."""
+
+    order: FiveLineOrder
+    digest: str
+    phase: Phase = "done"
+    airframe: str | None = None
+    items: tuple[MissionStep, ...] = ()
+    deadline: datetime | None = None
+    reached: int = -1
+    seq: int = 0
+
+    def record(self) -> OrderRecord:
+        return OrderRecord(
+            order=self.order,
+            digest=self.digest,
+            phase=self.phase,
+            airframe=self.airframe,
+            items=self.items,
+            deadline=self.deadline,
+            reached=self.reached,
+            seq=self.seq,
+        )
+
+
+@dataclass(slots=True)
 class _Running:
     order: FiveLineOrder
     plan: Plan
@@ -219,6 +265,9 @@ class _Running:
     track_to: Position | None = None
     track_lost: bool = False
     replanned_s: float = 0.0
+    #: After a restart: "upload" (start the upload over) or "check" (read the mission back).
+    resumed: str | None = None
+    reached: int = -1
 
     @property
     def items(self) -> int:
@@ -247,8 +296,12 @@ class OrdersProcessor:
         self._terrain: TerrainModel | None = None
         self._baro_sigma_m = 0.5
         self._telemetry: dict[str, Telemetry] = {}
-        #: Order event id → the digest of its content (a changed order is a conflict).
-        self._seen: OrderedDict[str, str] = OrderedDict()
+        #: Order event id → its content's digest (a changed order is a conflict), where it
+        #: stands and its status sequence, as the order book keeps them.
+        self._seen: OrderedDict[str, _Kept] = OrderedDict()
+        self._book: OrderBook | None = None
+        #: After a restart: airframe → the order to carry on once the airframe is heard.
+        self._resuming: dict[str, _Running] = {}
         #: The newest position of each live fused track, for track_target orders naming one.
         self._tracks: OrderedDict[str, Position] = OrderedDict()
         #: Merged track id → the track it was folded into (an order may name either).
@@ -271,12 +324,17 @@ class OrdersProcessor:
         self._baro_sigma_m = baro_sigma_m
         commander.on_mission(self._on_mission)
 
+    def keep_orders(self, book: OrderBook) -> None:
+        """Keep order state in ``book`` (``gateway.app`` hands over the spool's)."""
+        self._book = book
+
     def status(self) -> dict[str, object]:
         """Counts by status, the orders running and those waiting for a link, for /status."""
         return {
             "counts": dict(self.counts),
             "running": {a: r.order.order_id for a, r in self._running.items()},
             "waiting": [w.order.order_id for w in self._waiting.values()],
+            "resuming": {a: r.order.order_id for a, r in self._resuming.items()},
         }
 
     async def run(
@@ -290,6 +348,7 @@ class OrdersProcessor:
         self._publish = publish
         async with anyio.create_task_group() as tg:
             self._tg = tg
+            self._resume()
             tg.start_soon(self._expire_waiting)
             task_status.started()
             async for event in events:
@@ -314,8 +373,15 @@ class OrdersProcessor:
         items: int | None = None,
         current: int | None = None,
         suffix: str = "",
+        phase: Phase | None = None,
     ) -> None:
         self.counts[status.value] = self.counts.get(status.value, 0) + 1
+        kept = self._kept(order)
+        kept.seq += 1
+        if phase is not None:
+            kept.phase = phase
+        if airframe is not None and status is not OrderState.CONFLICT:
+            kept.airframe = airframe
         event = OrderStatus(
             event_id=f"{order.event_id}-{status.value}{suffix}",
             order_event_id=order.event_id,
@@ -328,7 +394,9 @@ class OrdersProcessor:
             reason=None if reason is None else reason[:512],
             mission_items=items,
             current_item=current,
+            seq=kept.seq,
         )
+        self._save(kept, event)
         if not self._publish(event) and self._log_limit.allow("refused"):
             self.log.error("order_status_not_held", order_id=order.order_id, status=status.value)
         if not self._status_log.allow(status.value):
@@ -343,17 +411,93 @@ class OrdersProcessor:
             reason=reason,
         )
 
+    # -- the order book -------------------------------------------------------------------
+
+    def _kept(self, order: FiveLineOrder) -> _Kept:
+        kept = self._seen.get(order.event_id)
+        if kept is None:  # an order remembered no more (beyond _REMEMBERED_ORDERS)
+            kept = self._seen[order.event_id] = _Kept(order, order.content_digest())
+        return kept
+
+    def _save(self, kept: _Kept, status: OrderStatus | None = None) -> None:
+        """Write the order's record (and the status about to be published) to the book."""
+        if self._book is None:
+            return
+        try:
+            self._book.save(kept.record(), status)
+        except SpoolError as exc:
+            self.counts["book_failed"] = self.counts.get("book_failed", 0) + 1
+            if self._log_limit.allow("book_failed"):
+                self.log.error("order_book_write_failed", error=str(exc))
+
+    def _resume(self) -> None:
+        """Carry on the orders the book kept from before a restart (module docstring)."""
+        book = self._book
+        if book is None:
+            return
+        now = self._clock()
+        replay_after = now.timestamp() - self.config.status_replay_s
+        for record in book.load():
+            order = record.order
+            kept = _Kept(
+                order,
+                record.digest,
+                record.phase,
+                record.airframe,
+                record.items,
+                record.deadline,
+                record.reached,
+                record.seq,
+            )
+            self._seen[order.event_id] = kept
+            self._seen.move_to_end(order.event_id)
+            if record.phase != "done" or record.updated >= replay_after:
+                for status in book.statuses(order.event_id):
+                    self.counts["replayed"] = self.counts.get("replayed", 0) + 1
+                    self._publish(status)
+            if record.phase == "waiting":
+                deadline = record.deadline or now
+                refusal = Refusal("link", "the node restarted: its airframe is not heard yet")
+                self._waiting[order.event_id] = _Waiting(
+                    order, deadline, self._monotonic(), refusal
+                )
+            elif record.phase in ("uploading", "executing") and record.airframe is not None:
+                running = _Running(order, _resumed_plan(record.items))
+                running.resumed = "upload" if record.phase == "uploading" else "check"
+                running.reached = record.reached
+                self._resuming[record.airframe] = running
+        while len(self._seen) > _REMEMBERED_ORDERS:
+            self._seen.popitem(last=False)
+        if self._resuming or self._waiting:
+            self.log.info(
+                "orders_resumed",
+                resuming={a: r.order.order_id for a, r in self._resuming.items()},
+                waiting=[w.order.order_id for w in self._waiting.values()],
+            )
+
+    def _start_resumed(self, airframe: str) -> None:
+        """The airframe of an order kept from before a restart is heard: carry it on."""
+        tg = self._tg
+        commander = self._commander
+        if tg is None or commander is None or not commander.is_linked(airframe):
+            return
+        if airframe in self._running:
+            return
+        running = self._resuming.pop(airframe)
+        self._running[airframe] = running
+        tg.start_soon(self._carry_out, airframe, running)
+
     # -- intake -----------------------------------------------------------------------------
 
     def _on_order(self, order: FiveLineOrder, tg: anyio.abc.TaskGroup) -> None:
         digest = order.content_digest()
         seen = self._seen.get(order.event_id)
         if seen is None:
-            self._seen[order.event_id] = digest
+            self._seen[order.event_id] = _Kept(order, digest)
             while len(self._seen) > _REMEMBERED_ORDERS:
                 self._seen.popitem(last=False)
             self._take(order, tg)
-        elif seen != digest:
+        elif seen.digest != digest:
             # The same order id with other content: answered, never taken (the first stands).
             self._report(
                 order,
@@ -371,7 +515,12 @@ class OrdersProcessor:
             if self._may_wait(order, chosen):
                 return
             self._report(
-                order, OrderState.REJECTED, airframe, check=chosen.check, reason=chosen.reason
+                order,
+                OrderState.REJECTED,
+                airframe,
+                check=chosen.check,
+                reason=chosen.reason,
+                phase="done",
             )
             return
         if airframe is None:  # a plan always names its airframe
@@ -383,8 +532,19 @@ class OrdersProcessor:
                 airframe,
                 check="capacity",
                 reason=f"{self.config.max_active} orders are already being carried out",
+                phase="done",
             )
             return
+        kept_over = self._resuming.pop(airframe, None)
+        if kept_over is not None:  # kept from before a restart, not carried on yet
+            self._report(
+                kept_over.order,
+                OrderState.FAILED,
+                airframe,
+                check="superseded",
+                reason=f"superseded by order {order.order_id}",
+                phase="done",
+            )
         previous = self._running.get(airframe)
         if previous is not None:
             previous.superseded_by = order.order_id
@@ -394,7 +554,10 @@ class OrdersProcessor:
             running.track_id = self._live_track(order)
             running.replanned_s = self._monotonic()
         self._running[airframe] = running
-        self._report(order, OrderState.ACCEPTED, airframe, items=len(chosen.items))
+        self._kept(order).items = chosen.items
+        self._report(
+            order, OrderState.ACCEPTED, airframe, items=len(chosen.items), phase="uploading"
+        )
         tg.start_soon(self._carry_out, airframe, running)
 
     def _may_wait(self, order: FiveLineOrder, refusal: Refusal) -> bool:
@@ -407,12 +570,14 @@ class OrdersProcessor:
         now = self._clock()
         deadline = order.not_after or now + timedelta(seconds=self.config.link_wait_s)
         self._waiting[order.event_id] = _Waiting(order, deadline, self._monotonic(), refusal)
+        self._kept(order).deadline = deadline
         self._report(
             order,
             OrderState.WAITING,
             order.airframe,
             check=refusal.check,
             reason=f"{refusal.reason}; waiting for it until {_iso(deadline)}",
+            phase="waiting",
         )
         return True
 
@@ -447,6 +612,7 @@ class OrdersProcessor:
                     got_airframe,
                     check=chosen.check,
                     reason=chosen.reason,
+                    phase="done",
                 )
             else:
                 self._take(waiting.order, tg)
@@ -468,6 +634,21 @@ class OrdersProcessor:
                     check=waiting.refusal.check,
                     reason=f"{waiting.refusal.reason}; waited {waited_s:.0f} s, until the"
                     f" window's end at {_iso(waiting.deadline)}",
+                    phase="done",
+                )
+            for airframe, running in list(self._resuming.items()):
+                end = running.order.not_after
+                if end is None or end > now:
+                    continue
+                del self._resuming[airframe]
+                self._report(
+                    running.order,
+                    OrderState.FAILED,
+                    airframe,
+                    check="link",
+                    reason=f"the node restarted and {airframe} was not heard again before the"
+                    f" window's end at {_iso(end)}",
+                    phase="done",
                 )
 
     def _decide(self, order: FiveLineOrder) -> tuple[str | None, Plan | Refusal]:
@@ -549,6 +730,7 @@ class OrdersProcessor:
                     airframe,
                     check="superseded",
                     reason=f"superseded by order {running.superseded_by}",
+                    phase="done",
                 )
         finally:
             if self._running.get(airframe) is running:
@@ -576,7 +758,9 @@ class OrdersProcessor:
             )
             if not uploaded.ok:
                 reason = f"mission upload: {uploaded.detail}"
-                self._report(order, OrderState.FAILED, airframe, check="mission", reason=reason)
+                self._report(
+                    order, OrderState.FAILED, airframe, check="mission", reason=reason, phase="done"
+                )
                 return reason
             running.progress = Progress(chosen.items, cfg.acceptance_radius_m)
             answered = await commander.start_mission(
@@ -588,7 +772,12 @@ class OrdersProcessor:
             )
         if not answered.ok:
             self._report(
-                order, OrderState.FAILED, airframe, check="command", reason=answered.detail
+                order,
+                OrderState.FAILED,
+                airframe,
+                check="command",
+                reason=answered.detail,
+                phase="done",
             )
             return answered.detail
         return None
@@ -599,9 +788,19 @@ class OrdersProcessor:
             wait_s = (order.not_before - self._clock()).total_seconds()
             if wait_s > 0:
                 await anyio.sleep(wait_s)
-        if await self._fly(airframe, running) is not None:
-            return
-        self._report(order, OrderState.EXECUTING, airframe, items=running.items or None)
+        if running.resumed == "check":
+            if not await self._still_ours(airframe, running):
+                return
+        else:
+            if await self._fly(airframe, running) is not None:
+                return
+            self._report(
+                order,
+                OrderState.EXECUTING,
+                airframe,
+                items=running.items or None,
+                phase="executing",
+            )
         while True:
             ended = self._ended(airframe, running)
             if ended is not None:
@@ -618,7 +817,41 @@ class OrdersProcessor:
             reason=ended or None,
             items=running.items or None,
             current=None if running.items == 0 else running.items - 1,
+            phase="done",
         )
+
+    async def _still_ours(self, airframe: str, running: _Running) -> bool:
+        """After a restart: read the airframe's mission back; True if it is still this
+        order's (progress resumes), else the order is reported failed saying why."""
+        commander = self._commander
+        if commander is None:
+            return False
+        cfg = self.config
+        if running.items:
+            got, steps = await commander.download_mission(
+                airframe, timeout_s=cfg.mission_timeout_s, retries=cfg.mission_retries
+            )
+            why = None
+            if not got.ok:
+                why = f"its mission could not be read back: {got.detail}"
+            else:
+                why = _differs(running.plan.items, steps)
+            if why is not None:
+                self._report(
+                    running.order,
+                    OrderState.FAILED,
+                    airframe,
+                    check="mission",
+                    reason=f"after a restart of the node, {airframe}'s mission is no longer"
+                    f" this order's: {why}",
+                    phase="done",
+                )
+                return False
+            running.progress = Progress(running.plan.items, cfg.acceptance_radius_m)
+            running.progress.reach(running.reached)
+        self.counts["resumed"] = self.counts.get("resumed", 0) + 1
+        self.log.info("order_resumed", order_id=running.order.order_id, airframe=airframe)
+        return True
 
     def _ended(self, airframe: str, running: _Running) -> str | None:
         """Why the order is done ("" when it needs no saying), or None while it is not."""
@@ -661,6 +894,9 @@ class OrdersProcessor:
                 running.plan = planned
                 running.replanned_s = now_s
                 self.counts["track_replanned"] = self.counts.get("track_replanned", 0) + 1
+                kept = self._kept(running.order)
+                kept.items, kept.reached = planned.items, -1
+                self._save(kept)
                 return await self._fly(airframe, running) is None
         else:
             refusal = planned
@@ -670,6 +906,7 @@ class OrdersProcessor:
             airframe,
             check=refusal.check,
             reason=f"the track moved to {to.lat_deg:.5f}, {to.lon_deg:.5f}: {refusal.reason}",
+            phase="done",
         )
         return False
 
@@ -731,16 +968,67 @@ class OrdersProcessor:
             running.changed.set()
         if self._waiting:
             self._retry_waiting(telemetry.airframe)
+        if telemetry.airframe in self._resuming:
+            self._start_resumed(telemetry.airframe)
 
     def _on_mission(self, airframe: str, what: Literal["current", "reached"], seq: int) -> None:
         running = self._running.get(airframe)
         if running is None or running.progress is None or what != "reached":
             return  # MISSION_CURRENT says what the airframe flies, not what it has done
         # Only items this order uploaded count; anything else is a lie or another mission's.
+        before = running.progress.reached
         if not running.progress.reach(seq):
             self.counts["progress_ignored"] = self.counts.get("progress_ignored", 0) + 1
             return
+        if running.progress.reached != before:
+            kept = self._kept(running.order)
+            kept.reached = running.progress.reached
+            self._save(kept)
         running.changed.set()
+
+
+def _resumed_plan(items: tuple[MissionStep, ...]) -> Plan:
+    """The plan of an order carried on after a restart: its mission items (the checks held
+    when it was accepted)."""
+    alt = items[-1].alt_msl_m if items else 0.0
+    return Plan(items=items, task_points=(), route=(), alt_msl_m=alt, on_task_s=0.0, route_m=0.0)
+
+
+#: How near a read-back item must be to the uploaded one: MAVLink carries 1e-7° and float32.
+_SAME_DEG = 2e-7
+_SAME_M = 0.05
+
+
+def _differs(planned: tuple[MissionStep, ...], got: tuple[MissionStep, ...]) -> str | None:
+    """Why the airframe's mission ``got`` is not ``planned`` (None if it is the same)."""
+    if len(got) != len(planned):
+        return f"it has {len(got)} items, the order uploaded {len(planned)}"
+    for seq, (mine, theirs) in enumerate(zip(planned, got, strict=True)):
+        if type(mine) is not type(theirs):
+            return f"item {seq} is a {type(theirs).__name__}, not a {type(mine).__name__}"
+        if (
+            abs(mine.lat_deg - theirs.lat_deg) > _SAME_DEG
+            or abs(mine.lon_deg - theirs.lon_deg) > _SAME_DEG
+            or abs(mine.alt_msl_m - theirs.alt_msl_m) > _SAME_M
+        ):
+            return (
+                f"item {seq} is at {theirs.lat_deg:.7f}, {theirs.lon_deg:.7f},"
+                f" {theirs.alt_msl_m:.1f} m; the order uploaded {mine.lat_deg:.7f},"
+                f" {mine.lon_deg:.7f}, {mine.alt_msl_m:.1f} m"
+            )
+        if (
+            isinstance(mine, Loiter)
+            and isinstance(theirs, Loiter)
+            and (
+                abs(mine.seconds - theirs.seconds) > _SAME_M
+                or abs(mine.radius_m - theirs.radius_m) > _SAME_M
+            )
+        ):
+            return (
+                f"item {seq} loiters {theirs.seconds:.0f} s at {theirs.radius_m:.0f} m; the"
+                f" order uploaded {mine.seconds:.0f} s at {mine.radius_m:.0f} m"
+            )
+    return None
 
 
 def _iso(moment: datetime) -> str:

@@ -13,7 +13,13 @@ writes it), at most ``max_line_bytes``, within ``timeout_s``. The answer is JSON
 order is held durably (``{"status": "rejected", "reason": ..}`` for a malformed one,
 ``{"status": "not_held"}`` if the spool refused it), then each ``OrderStatus`` of the order
 from the orders processor as it comes (``status``, ``check``, ``reason``, ``airframe``),
-until a final one (``rejected``, ``completed``, ``failed``) or the client hangs up. An
+until a final one (``rejected``, ``completed``, ``failed``) or the client hangs up. Each
+status line carries the order's status ``seq``: statuses are sent at least once, and a
+reader drops one whose ``seq`` it has. A line ``{"status_of": ORDER_ID}`` (``fischer-gateway
+order --status ORDER_ID``) is answered with every status the daemon keeps for that order of
+this source, in ``seq`` order, from the spool's order book (kept across restarts, for a
+client that was gone when they came), then the connection closes; ``{"status": "unknown"}``
+if none is kept. An
 order id already taken is answered ``rejected`` (the same order again) or ``conflict`` (with
 other content: the first order stands). At most
 ``max_connections`` connections are served at once; more are closed at once, counted.
@@ -38,7 +44,7 @@ from anyio.streams.buffered import BufferedByteReceiveStream
 from anyio.streams.memory import MemoryObjectSendStream
 from pydantic import Field
 
-from gateway.c2.source import SourceConfig
+from gateway.c2.source import SourceConfig, StatusArchive
 from gateway.clock import utc_now
 from gateway.errors import OrderRejected
 from gateway.events import Event, OrderState, OrderStatus
@@ -56,6 +62,7 @@ _FINAL = frozenset(
 _WATCH_QUEUE = 32
 #: Order ids taken, remembered so a second order with one of them is refused, not lost.
 _REMEMBERED_IDS = 10_000
+_MAX_ORDER_ID = 128
 
 
 class LocalOrderSourceConfig(SourceConfig):
@@ -111,6 +118,7 @@ class LocalOrderSource:
         #: Order event ids taken, with the digest of each order's content.
         self._taken: OrderedDict[str, str] = OrderedDict()
         self._active = 0
+        self._archive: StatusArchive | None = None
         self.counts: Counter[str] = Counter()
         self._log_limit = RateLimit(interval_s=10.0)
         self.log = log.bind(source=name, socket=str(config.socket))
@@ -124,6 +132,10 @@ class LocalOrderSource:
             "connections": self._active,
             "counts": dict(self.counts),
         }
+
+    def keep_statuses(self, archive: StatusArchive) -> None:
+        """Answer ``status_of`` questions from ``archive`` (the assembly hands it over)."""
+        self._archive = archive
 
     def on_order_status(self, status: OrderStatus) -> None:
         """Pass a status of one of this source's orders to the connections waiting for it."""
@@ -198,6 +210,9 @@ class LocalOrderSource:
             self._count("malformed")
             await _say(stream, {"status": "rejected", "reason": "order: not JSON"})
             return
+        if isinstance(element, dict) and set(element) == {"status_of"}:
+            await self._status_of(stream, element["status_of"])
+            return
         try:
             parsed = read_order(element, source=self.name)
         except OrderRejected as exc:
@@ -217,11 +232,16 @@ class LocalOrderSource:
             )
             await _say(stream, {"order_id": order.order_id, "status": "conflict", "reason": reason})
             return
+        if taken is None and self._archive is not None and self._archive.statuses(order.event_id):
+            taken = digest  # taken before the daemon restarted: its statuses are kept
         if taken is not None or order.event_id in self._watchers:
             # The orders processor answers each order id once: a second order with it
             # would wait for statuses that never come.
             self._count("duplicate_order_id", order_id=order.order_id)
-            reason = f"order_id: {order.order_id} was already taken; give a new order id"
+            reason = (
+                f"order_id: {order.order_id} was already taken; give a new order id"
+                f" (fischer-gateway order --status {order.order_id} shows its statuses)"
+            )
             await _say(stream, {"order_id": order.order_id, "status": "rejected", "reason": reason})
             return
         send, receive = anyio.create_memory_object_stream[OrderStatus](_WATCH_QUEUE)
@@ -257,6 +277,21 @@ class LocalOrderSource:
             send.close()
             receive.close()
 
+    async def _status_of(self, stream: anyio.abc.SocketStream, order_id: object) -> None:
+        """Answer every status kept for one of this source's orders (module docstring)."""
+        if not isinstance(order_id, str) or not 0 < len(order_id) <= _MAX_ORDER_ID:
+            self._count("malformed")
+            await _say(stream, {"status": "rejected", "reason": "status_of: not an order id"})
+            return
+        self.counts["status_of"] += 1
+        kept = [] if self._archive is None else self._archive.statuses(EVENT_ID_PREFIX + order_id)
+        if not kept:
+            reason = "no statuses are kept for this order id"
+            await _say(stream, {"order_id": order_id, "status": "unknown", "reason": reason})
+            return
+        for status in kept:
+            await _say(stream, _line(status))
+
 
 class _NotJson(ValueError):
     """A constant JSON does not have (NaN, Infinity), as SLB's reader refuses it too."""
@@ -274,6 +309,7 @@ def _line(status: OrderStatus) -> dict[str, Any]:
         "check": status.check,
         "reason": status.reason,
         "event_id": status.event_id,
+        "seq": status.seq,
     }
 
 

@@ -22,7 +22,15 @@ from pydantic import BaseModel, ConfigDict
 
 from gateway.events import Event, EventKind, OrderStatus
 
-__all__ = ["OrderStatusFeed", "OrderStatusListener", "Source", "SourceClass", "SourceConfig"]
+__all__ = [
+    "KeepsStatuses",
+    "OrderStatusFeed",
+    "OrderStatusListener",
+    "Source",
+    "SourceClass",
+    "SourceConfig",
+    "StatusArchive",
+]
 
 
 class SourceConfig(BaseModel):
@@ -76,6 +84,24 @@ class OrderStatusListener(Protocol):
 
     def on_order_status(self, status: OrderStatus) -> None:
         """Take one status (any source's); never blocks, never raises."""
+        ...
+
+
+class StatusArchive(Protocol):
+    """The statuses kept for each order (the spool's order book, ``gateway.spool.orderbook``)."""
+
+    def statuses(self, order_event_id: str) -> list[OrderStatus]:
+        """The statuses published for one order, by ``seq``."""
+        ...
+
+
+@runtime_checkable
+class KeepsStatuses(Protocol):
+    """A source that answers questions about its orders' statuses from the archive (the
+    ``local`` source: ``fischer-gateway order --status ID``)."""
+
+    def keep_statuses(self, archive: StatusArchive) -> None:
+        """Take the archive (before ``run``)."""
         ...
 
 

@@ -12,7 +12,9 @@ MAVLink's mission protocol: MISSION_COUNT, then each MISSION_ITEM_INT the airfra
 step that gets no answer within ``timeout_s`` sends MISSION_COUNT again (the airframe starts
 over), at most ``retries`` times. Items are answered from the message handler (synchronous,
 on ingest's path) through a bounded queue that ``run`` sends from. MISSION_CURRENT and
-MISSION_ITEM_REACHED are passed to the listeners as progress; HOME_POSITION is kept. Only
+MISSION_ITEM_REACHED are passed to the listeners as progress; HOME_POSITION is kept. A
+mission is read back (after a restart) with MISSION_REQUEST_LIST, MISSION_COUNT, then a
+MISSION_REQUEST_INT per item answered by its MISSION_ITEM_INT, and a closing MISSION_ACK. Only
 messages addressed to the gateway (or broadcast) count, never a ground station's.
 """
 
@@ -28,7 +30,7 @@ import anyio.abc
 import structlog
 from anyio.streams.memory import MemoryObjectSendStream
 
-from gateway.domain.mission import MissionStep, ModeCommands, Outcome
+from gateway.domain.mission import Loiter, MissionStep, ModeCommands, Outcome, Waypoint
 from gateway.errors import FrameError, LinkError
 from gateway.fleet.mavlink import MavMessage, dialect
 from gateway.fleet.missionitems import (
@@ -37,6 +39,7 @@ from gateway.fleet.missionitems import (
     MAV_CMD_NAV_LOITER_TIME,
     MAV_CMD_NAV_RETURN_TO_LAUNCH,
     MAV_CMD_NAV_WAYPOINT,
+    MAV_FRAME_GLOBAL,
     Autopilot,
     MissionItem,
     Vehicle,
@@ -78,6 +81,24 @@ class _Upload:
     sent: set[int] = field(default_factory=set)
 
 
+@dataclass(slots=True)
+class _Download:
+    count: int | None = None
+    items: dict[int, MavMessage] = field(default_factory=dict)
+    moved: anyio.Event = field(default_factory=anyio.Event)
+
+
+def _step(seq: int, msg: MavMessage) -> MissionStep | str:
+    """The mission step a downloaded MISSION_ITEM_INT is, or what makes it none of ours."""
+    command = int(msg.command)
+    lat, lon, alt = msg.x / 1e7, msg.y / 1e7, float(msg.z)
+    if int(msg.frame) != MAV_FRAME_GLOBAL or command not in _ITEMS:
+        return f"item {seq} is command {command} in frame {int(msg.frame)}"
+    if command == MAV_CMD_NAV_LOITER_TIME:
+        return Loiter(lat, lon, alt, float(msg.param1), float(msg.param3))
+    return Waypoint(lat, lon, alt)
+
+
 def _for_us(msg: MavMessage) -> bool:
     system = int(getattr(msg, "target_system", 0) or 0)
     component = int(getattr(msg, "target_component", 0) or 0)
@@ -93,6 +114,7 @@ class FleetCommander:
         self._sessions = sessions
         self._linked = linked
         self._uploads: dict[str, _Upload] = {}
+        self._downloads: dict[str, _Download] = {}
         self._homes: dict[str, tuple[float, float]] = {}
         self._listeners: list[MissionListener] = []
         self._locks: dict[str, anyio.Lock] = {}
@@ -104,6 +126,8 @@ class FleetCommander:
             for name in ("MISSION_REQUEST_INT", "MISSION_REQUEST"):
                 session.on(name, self._on_request)
             session.on("MISSION_ACK", self._on_ack)
+            session.on("MISSION_COUNT", self._on_count)
+            session.on("MISSION_ITEM_INT", self._on_item)
             session.on("MISSION_CURRENT", self._on_progress)
             session.on("MISSION_ITEM_REACHED", self._on_progress)
             session.on("HOME_POSITION", self._on_home)
@@ -130,6 +154,61 @@ class FleetCommander:
         """Upload ``steps`` as the airframe's mission, one MAVLink item per step."""
         items = [mission_item(step) for step in steps]
         return await self.upload_items(airframe, items, timeout_s=timeout_s, retries=retries)
+
+    async def download_mission(
+        self, airframe: str, *, timeout_s: float, retries: int
+    ) -> tuple[Outcome, tuple[MissionStep, ...]]:
+        """Read the airframe's mission back (see the module docstring)."""
+        session = self._sessions[airframe]
+        lock = self._locks.setdefault(airframe, anyio.Lock())
+        try:
+            async with lock:
+                return await self._download(session, timeout_s, retries)
+        except (LinkError, FrameError) as exc:
+            return Outcome(False, f"not sent: {exc}", 0), ()
+
+    async def _download(
+        self, session: AirframeSession, timeout_s: float, retries: int
+    ) -> tuple[Outcome, tuple[MissionStep, ...]]:
+        down = _Download()
+        self._downloads[session.id] = down
+        target = session.config.sysid
+        attempts = 0
+        silent = 0  # requests in a row that got no answer: a step gets 1 + retries
+        try:
+            while (down.count is None or len(down.items) < down.count) and silent <= retries:
+                attempts += 1
+                silent += 1
+                had = (down.count, len(down.items))
+                if down.count is None:
+                    frame = session.pack("mission_request_list", target, 1, 0)
+                else:
+                    missing = min(set(range(down.count)) - set(down.items))
+                    frame = session.pack("mission_request_int", target, 1, missing, 0)
+                down.moved = anyio.Event()
+                await session.send(frame)
+                with anyio.move_on_after(timeout_s):
+                    await down.moved.wait()
+                if (down.count, len(down.items)) != had:
+                    silent = 0
+        finally:
+            del self._downloads[session.id]
+        if down.count is None:
+            return Outcome(False, f"no MISSION_COUNT after {attempts} requests", attempts), ()
+        if len(down.items) < down.count:
+            got = f"{len(down.items)} of {down.count} items"
+            return Outcome(
+                False, f"mission download: {got} after {attempts} requests", attempts
+            ), ()
+        with suppress(LinkError, FrameError):
+            await session.send(session.pack("mission_ack", target, 1, 0, 0))
+        steps: list[MissionStep] = []
+        for seq in range(down.count):
+            step = _step(seq, down.items[seq])
+            if isinstance(step, str):
+                return Outcome(False, step, attempts), ()
+            steps.append(step)
+        return Outcome(True, f"{down.count} items", attempts), tuple(steps)
 
     async def start_mission(
         self,
@@ -315,6 +394,23 @@ class FleetCommander:
             return
         upload.acked = int(msg.type)
         upload.moved.set()
+
+    def _on_count(self, session: AirframeSession, _label: str, msg: MavMessage) -> None:
+        down = self._downloads.get(session.id)
+        if down is None or not _for_us(msg) or int(getattr(msg, "mission_type", 0)) != 0:
+            return
+        if down.count is None:
+            down.count = max(0, min(int(msg.count), _MAX_ITEMS))
+            down.moved.set()
+
+    def _on_item(self, session: AirframeSession, _label: str, msg: MavMessage) -> None:
+        down = self._downloads.get(session.id)
+        if down is None or down.count is None or not _for_us(msg):
+            return
+        seq = int(msg.seq)
+        if int(getattr(msg, "mission_type", 0)) == 0 and 0 <= seq < down.count:
+            down.items[seq] = msg
+            down.moved.set()
 
     def _on_progress(self, session: AirframeSession, _label: str, msg: MavMessage) -> None:
         what: Literal["current", "reached"] = (

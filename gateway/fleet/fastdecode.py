@@ -90,6 +90,8 @@ GATEWAY_MESSAGES = frozenset(
         "GIMBAL_DEVICE_ATTITUDE_STATUS",
         "HOME_POSITION",
         "MISSION_ACK",
+        "MISSION_COUNT",
+        "MISSION_ITEM_INT",
         "MISSION_CURRENT",
         "MISSION_ITEM_REACHED",
         "MISSION_REQUEST",

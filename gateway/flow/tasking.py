@@ -47,6 +47,14 @@ class AirframeCommander(Protocol):
         it, having asked for every step (``timeout_s`` per step, ``retries`` restarts)."""
         ...
 
+    async def download_mission(
+        self, airframe: str, *, timeout_s: float, retries: int
+    ) -> tuple[Outcome, tuple[MissionStep, ...]]:
+        """Read the airframe's mission back (MISSION_REQUEST_LIST, then each item); ``ok``
+        with its steps, or not ok saying why (an item that is no waypoint or timed loiter
+        is no mission of ours: not ok, naming it)."""
+        ...
+
     async def start_mission(
         self,
         airframe: str,

@@ -492,6 +492,18 @@ class Spool:
             raise
         self.commits.succeeded()
 
+    def writing(self) -> contextlib.AbstractContextManager[sqlite3.Connection]:
+        """A write of a table kept beside the spool's (``gateway.spool.orderbook``): it joins the
+        open group commit like the spool's own writes (committed at once without a loop)."""
+        return self._write()
+
+    def read(self, sql: str, params: Sequence[object] = ()) -> list[tuple[object, ...]]:
+        """The rows of one query of a table kept beside the spool's."""
+        try:
+            return [tuple(row) for row in self._db.execute(sql, params).fetchall()]
+        except sqlite3.Error as exc:
+            raise SpoolError(f"spool {self._where}: {exc}") from exc
+
     def probe(self) -> bool:
         """One small write, to learn whether writes commit again after failing; True if so."""
         try:

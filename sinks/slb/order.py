@@ -248,8 +248,10 @@ def receipt_payload(
     time: datetime,
     reason: str | None = None,
     event_id: str | None = None,
+    seq: int | None = None,
 ) -> dict[str, Any]:
-    """The body of ``POST /orders/<order_id>/receipt`` (the schema's ``$defs/receipt``)."""
+    """The body of ``POST /orders/<order_id>/receipt`` (the schema's ``$defs/receipt``);
+    ``seq``: a status's sequence number (SLB drops a receipt whose ``seq`` it has)."""
     stamp = time.astimezone(UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
     return {
         "order_id": order_id,
@@ -257,4 +259,5 @@ def receipt_payload(
         "reason": None if reason is None else _cut(reason),
         "event_id": event_id,
         "time": stamp,
+        "seq": seq,
     }

@@ -203,6 +203,7 @@ class SlbSource:
                     time=status.time,
                     reason=_reason(status),
                     event_id=status.event_id,
+                    seq=status.seq,
                 )
                 outcome = await self._acknowledge(client, status.order_id, receipt)
                 if outcome == "retry":

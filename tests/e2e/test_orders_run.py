@@ -201,6 +201,8 @@ def test_area_order_round_trips_through_mavsdk(
 ) -> None:
     peer, airframe, _, events = tasked
     assert statuses(peer, "AREA") == ["received", "accepted", "executing", "completed"]
+    # Each status receipt carries its seq, for SLB to drop one sent again after a restart.
+    assert [r["seq"] for r in peer.receipts_for("AREA")] == [None, 1, 2, 3]
     # MAVSDK's mission server took a lawnmower over the area: two turn points per line.
     (mission,) = airframe.missions
     assert len(mission) >= 8

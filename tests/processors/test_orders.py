@@ -63,6 +63,7 @@ class Commander:
         self.uploads: list[tuple[str, list[MissionStep]]] = []
         self.commands: list[tuple[str, str, int | None, ModeCommands]] = []
         self.listeners: list[MissionListener] = []
+        self.mission: tuple[MissionStep, ...] | None = None
 
     def is_known(self, airframe: str) -> bool:
         return airframe == "F26E-001"
@@ -103,6 +104,15 @@ class Commander:
         return Outcome(
             self.upload_ok, "MAV_MISSION_ACCEPTED" if self.upload_ok else "MAV_MISSION_DENIED"
         )
+
+    async def download_mission(
+        self, airframe: str, *, timeout_s: float, retries: int
+    ) -> tuple[Outcome, tuple[MissionStep, ...]]:
+        """The mission last uploaded (or ``mission`` when set: another one)."""
+        if self.mission is not None:
+            return Outcome(True, "read back"), self.mission
+        steps = tuple(self.uploads[-1][1]) if self.uploads else ()
+        return Outcome(True, "read back"), steps
 
     def on_mission(self, listener: MissionListener) -> None:
         self.listeners.append(listener)

@@ -203,3 +203,63 @@ def test_the_command_says_when_the_daemon_is_not_there(tmp_path: Path) -> None:
     done = subprocess.run(command, capture_output=True, timeout=30, check=False)
     assert done.returncode == 2
     assert str(tmp_path / "none") in done.stderr.decode()
+
+
+class Archive:
+    """Statuses kept for orders (the spool's order book, as ``keep_statuses`` sees it)."""
+
+    def __init__(self, kept: dict[str, list[OrderStatus]]) -> None:
+        self.kept = kept
+
+    def statuses(self, order_event_id: str) -> list[OrderStatus]:
+        return self.kept.get(order_event_id, [])
+
+
+def kept_status(state: OrderState, seq: int) -> OrderStatus:
+    return OrderStatus(
+        event_id=f"local-order-OP-9-{state.value}",
+        order_event_id="local-order-OP-9",
+        order_id="OP-9",
+        source="operator",
+        time="2026-11-22T12:00:00Z",
+        status=state,
+        seq=seq,
+    )
+
+
+@pytest.mark.anyio
+async def test_the_statuses_kept_for_an_order_are_answered_by_seq(tmp_path: Path) -> None:
+    published: list[Event] = []
+    config = LocalOrderSourceConfig(socket=tmp_path / "o.sock")
+    source = LocalOrderSource("operator", config, lambda e: published.append(e) or True)
+    states = (OrderState.ACCEPTED, OrderState.EXECUTING, OrderState.COMPLETED)
+    archive = Archive({"local-order-OP-9": [kept_status(s, n) for n, s in enumerate(states, 1)]})
+    source.keep_statuses(archive)
+    with anyio.fail_after(10):
+        async with anyio.create_task_group() as tg:
+            await tg.start(source.run)
+            kept = await exchange(config.socket, b'{"status_of": "OP-9"}\n')
+            unknown = await exchange(config.socket, b'{"status_of": "OP-10"}\n')
+            bad = await exchange(config.socket, b'{"status_of": 7}\n')
+            # Taken before a restart (its statuses are kept): the same id is refused.
+            again = await exchange(config.socket, json.dumps(ORDER).encode() + b"\n")
+            tg.cancel_scope.cancel()
+    assert [(line["seq"], line["status"]) for line in kept] == [
+        (1, "accepted"),
+        (2, "executing"),
+        (3, "completed"),
+    ]
+    assert [line["status"] for line in unknown] == ["unknown"]
+    assert [line["status"] for line in bad] == ["rejected"]
+    assert [line["status"] for line in again] == ["rejected"]
+    assert "order --status OP-9" in str(again[0]["reason"])
+    assert published == []
+
+
+def test_the_command_asks_for_the_statuses_of_an_order(tmp_path: Path) -> None:
+    command = [sys.executable, "-m", "gateway", "order", "--socket", str(tmp_path / "none")]
+    done = subprocess.run([*command, "--status", "OP-9"], capture_output=True, timeout=30)
+    assert done.returncode == 2  # the daemon is not there
+    done = subprocess.run(command, capture_output=True, timeout=30, check=False)
+    assert done.returncode == 2
+    assert "--task and one of --point, --mgrs, --polygon are required" in done.stderr.decode()

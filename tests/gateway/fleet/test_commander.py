@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
+from types import SimpleNamespace
+from typing import Any
 
 import pytest
 
@@ -239,3 +241,77 @@ airframes:
     messages = {issue.key_path: issue.message for issue in caught.value.issues}
     assert "disagree" in messages["airframes[0]"]
     assert "px4" in messages["airframes[1].autopilot"]
+
+
+class _Airframe:
+    """A session whose airframe holds ``items`` and answers a download as told."""
+
+    def __init__(self, items: Sequence[MissionItem], *, silent: set[int] | None = None) -> None:
+        self.id = "F26E-001"
+        self.config = SimpleNamespace(sysid=1, autopilot=None)
+        self.items = items
+        self.silent = silent or set()  # item seqs whose requests go unanswered
+        self.handlers: dict[str, list[Any]] = {}
+        self.sent: list[tuple[str, tuple[object, ...]]] = []
+
+    def on(self, message: str, handler: Any) -> None:
+        self.handlers.setdefault(message, []).append(handler)
+
+    def pack(self, name: str, *args: object) -> tuple[str, tuple[object, ...]]:
+        return name, args
+
+    def _answer(self, name: str, **fields: object) -> None:
+        msg = SimpleNamespace(target_system=255, target_component=0, mission_type=0, **fields)
+        msg.get_type = lambda: name
+        for handler in self.handlers.get(name, []):
+            handler(self, name, msg)
+
+    async def send(self, frame: tuple[str, tuple[object, ...]]) -> None:
+        self.sent.append(frame)
+        name, args = frame
+        if name == "mission_request_list":
+            self._answer("MISSION_COUNT", count=len(self.items))
+        elif name == "mission_request_int" and args[2] not in self.silent:
+            seq = int(str(args[2]))
+            item = self.items[seq]
+            self._answer(
+                "MISSION_ITEM_INT", seq=seq, frame=item.frame, command=item.command,
+                param1=item.params[0], param3=item.params[2],
+                x=round(item.lat_deg * 1e7), y=round(item.lon_deg * 1e7), z=item.alt_msl_m,
+            )  # fmt: skip
+
+
+def _reading(airframe: _Airframe) -> FleetCommander:
+    return FleetCommander({airframe.id: airframe}, lambda _a: True)  # type: ignore[dict-item]
+
+
+@pytest.mark.anyio
+async def test_a_mission_is_read_back_item_by_item_and_acknowledged() -> None:
+    held = [
+        MissionItem(MAV_CMD_NAV_WAYPOINT, 65.85, 21.1, 500.0),
+        MissionItem(MAV_CMD_NAV_LOITER_TIME, 65.85, 21.1, 500.0, (60.0, 0.0, 300.0, 0.0)),
+    ]
+    airframe = _Airframe(held)
+    got, steps = await _reading(airframe).download_mission(airframe.id, timeout_s=1, retries=1)
+    assert got.ok
+    assert steps == (Waypoint(65.85, 21.1, 500.0), Loiter(65.85, 21.1, 500.0, 60.0, 300.0))
+    assert [name for name, _ in airframe.sent] == [
+        "mission_request_list", "mission_request_int", "mission_request_int", "mission_ack",
+    ]  # fmt: skip
+
+
+@pytest.mark.anyio
+async def test_a_mission_of_other_commands_is_none_of_ours_and_says_which() -> None:
+    airframe = _Airframe([MissionItem(22, 65.85, 21.1, 500.0)])  # NAV_TAKEOFF
+    got, steps = await _reading(airframe).download_mission(airframe.id, timeout_s=1, retries=0)
+    assert not got.ok
+    assert got.detail == "item 0 is command 22 in frame 0"
+    assert steps == ()
+
+
+@pytest.mark.anyio
+async def test_an_item_never_answered_ends_the_read_back_after_its_retries() -> None:
+    airframe = _Airframe([MissionItem(MAV_CMD_NAV_WAYPOINT, 65.85, 21.1, 500.0)], silent={0})
+    got, _ = await _reading(airframe).download_mission(airframe.id, timeout_s=0.01, retries=2)
+    assert not got.ok
+    assert got.detail == "mission download: 0 of 1 items after 4 requests"

@@ -276,7 +276,11 @@ class TestReceipt:
             "reason": None,
             "event_id": "slb-order-A-1",
             "time": "2026-11-22T12:00:00.000Z",
+            "seq": None,
         }
+        executing = receipt_payload("A-1", "executing", time=t, event_id="e", seq=2)
+        RECEIPT.validate(executing)
+        assert executing["seq"] == 2
         rejected = receipt_payload("A-2", "rejected", time=t, reason="task: " + "x" * 900)
         RECEIPT.validate(rejected)
         assert len(rejected["reason"]) == 512

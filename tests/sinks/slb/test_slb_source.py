@@ -113,6 +113,7 @@ class TestOrders:
             "reason": None,
             "event_id": "slb-order-O-1",
             "time": "2026-11-22T12:00:30.000Z",
+            "seq": None,
         }
         assert peer.orders == {}  # SLB stops offering it
         gets = [r for r in peer.requests if r.method == "GET"]
