@@ -805,6 +805,18 @@ class OrdersProcessor:
             ended = self._ended(airframe, running)
             if ended is not None:
                 break
+            missed = self._window_missed(running)
+            if missed is not None:
+                self._report(
+                    order,
+                    OrderState.FAILED,
+                    airframe,
+                    check="window",
+                    reason=missed,
+                    items=running.items or None,
+                    phase="done",
+                )
+                return
             if running.track_to is not None and not await self._follow(airframe, running):
                 return
             running.changed = anyio.Event()
@@ -852,6 +864,23 @@ class OrdersProcessor:
         self.counts["resumed"] = self.counts.get("resumed", 0) + 1
         self.log.info("order_resumed", order_id=running.order.order_id, airframe=airframe)
         return True
+
+    def _window_missed(self, running: _Running) -> str | None:
+        """Why an order not done by the end of its window failed (None: not ended yet)."""
+        end = running.order.not_after
+        if end is None or end > self._clock():
+            return None
+        progress = running.progress
+        if running.items == 0:
+            missing = "the airframe had not landed (still armed)"
+        elif progress is not None:
+            missing = progress.why_not(self._monotonic())
+        else:
+            missing = "the airframe reported no progress"
+        return (
+            f"the window ended at {_iso(end)} before the order was done: {missing}"
+            " (the airframe flies on with the mission it has)"
+        )
 
     def _ended(self, airframe: str, running: _Running) -> str | None:
         """Why the order is done ("" when it needs no saying), or None while it is not."""

@@ -488,6 +488,29 @@ class TestProcessor:
         assert published[0].reason.startswith("F26E-001 has no active link; waiting for it")
         assert len(commander.uploads) == 1
 
+    async def test_an_order_not_done_by_its_windows_end_fails_saying_what_was_missing(
+        self,
+    ) -> None:
+        commander = Commander()
+
+        def half_way(c: Commander) -> list[Event]:
+            c.progress("reached", 0)  # the waypoint, never the loiter
+            return [telemetry(at=(65.851, 21.101))]
+
+        published = await run_orders(
+            commander,
+            [telemetry(), order(not_after=NOW + timedelta(seconds=1))],
+            after=half_way,
+            until=lambda s: any(x.status is OrderState.FAILED for x in s),
+        )
+        assert states(published) == ["accepted", "executing", "failed"]
+        assert published[-1].check == "window"
+        assert published[-1].reason is not None
+        assert published[-1].reason.startswith(
+            "the window ended at 2026-11-22T12:00:01+00:00 before the order was done:"
+            " the airframe reported item 0 of 1 reached"
+        )
+
     async def test_an_order_whose_window_ended_is_rejected(self) -> None:
         late = order(not_after=NOW - timedelta(minutes=1))
         published = await run_orders(Commander(), [telemetry(), late])
