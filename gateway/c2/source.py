@@ -22,7 +22,14 @@ from pydantic import BaseModel, ConfigDict
 
 from gateway.events import Event, EventKind, OrderStatus
 
-__all__ = ["OrderStatusFeed", "OrderStatusListener", "Source", "SourceClass", "SourceConfig"]
+__all__ = [
+    "OrderStatusFeed",
+    "OrderStatusListener",
+    "OwnAirframesAware",
+    "Source",
+    "SourceClass",
+    "SourceConfig",
+]
 
 
 class SourceConfig(BaseModel):
@@ -76,6 +83,22 @@ class OrderStatusListener(Protocol):
 
     def on_order_status(self, status: OrderStatus) -> None:
         """Take one status (any source's); never blocks, never raises."""
+        ...
+
+
+@runtime_checkable
+class OwnAirframesAware(Protocol):
+    """A source of other nodes' airframe events (``nats``), told this node's own airframe ids.
+
+    The assembly calls ``set_own_airframes`` once, before ``run``: an event from another node
+    that names one of them is refused for good (counted, never on the bus), so no remote
+    message moves, or reports for, an airframe of this node's own fleet.
+    """
+
+    name: str
+
+    def set_own_airframes(self, airframes: frozenset[str]) -> None:
+        """Refuse from now on every remote event about one of ``airframes``."""
         ...
 
 

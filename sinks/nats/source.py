@@ -4,7 +4,8 @@ An aggregating node's ``FSG_<node>_PIC`` stream sources every remote node's dete
 and newest airframe states over the leaf link (``sinks.nats.streams``). One durable pull
 consumer per source reads it: each message is checked (``sinks.nats.subjects``: the subject
 names a configured remote, the body is a valid event of the kind and airframe it names),
-marked with its node of origin (``origin_node``) and published on the bus. It is
+marked with its node of origin (``origin_node``) and published on the bus; one naming an
+airframe of this node's own fleet is refused (``set_own_airframes``). It is
 acknowledged only once the bus has taken it (a detection is then in the spool); a message
 the spool refused is asked again for later. A detection whose event id was already taken is
 acknowledged and dropped: JetStream de-duplicates only inside its window, the consumer side
@@ -30,7 +31,6 @@ import anyio.abc
 import structlog
 from nats.aio.client import Client
 from nats.aio.msg import Msg
-from nats.errors import TimeoutError as NatsTimeoutError
 from nats.js import JetStreamContext
 from nats.js.api import AckPolicy, ConsumerConfig, DeliverPolicy
 from pydantic import Field, field_validator
@@ -131,6 +131,11 @@ class NatsSource:
         self._reason: str | None = None
         self._log_limit = RateLimit(interval_s=10.0)
         self._remotes = frozenset(config.remotes)
+        self._own: frozenset[str] = frozenset()
+
+    def set_own_airframes(self, airframes: frozenset[str]) -> None:
+        """This node's own airframe ids: another node's event about one is refused."""
+        self._own = frozenset(airframes)
 
     def status(self) -> dict[str, object]:
         """Connection, the last failure, counts by outcome and events taken per node."""
@@ -199,8 +204,11 @@ class NatsSource:
                 while True:
                     try:
                         messages = await subscription.fetch(cfg.batch, timeout=1.0)
-                    except NatsTimeoutError:
-                        continue  # nothing waiting: an empty batch, not an error
+                    except TimeoutError:
+                        # Nothing waiting: an empty batch, not an error. nats-py raises its
+                        # own TimeoutError or, from a batch fetch whose deadline ran out
+                        # before the server's answer (a loaded machine), a bare one.
+                        continue
                     for index, message in enumerate(messages):
                         if not await self._take(message):
                             # The bus is full: this one and the rest of the batch again in
@@ -266,6 +274,21 @@ class NatsSource:
             self._counts["bad"] += 1
             if self._log_limit.allow("bad"):
                 log.warning("nats_message_refused", source=self.name, reason=str(exc))
+            await message.ack()
+            return True
+        if event.airframe in self._own:
+            # Another node (or whoever can publish on its subjects) reporting one of this
+            # node's own airframes: it would move that airframe on the map and in the
+            # archive, and sinks key an airframe by its id. Refused for good, never retried.
+            self._counts["own_airframe"] += 1
+            if self._log_limit.allow("own_airframe"):
+                log.warning(
+                    "nats_own_airframe_refused",
+                    source=self.name,
+                    node=event.origin_node,
+                    airframe=event.airframe[:64],
+                    refused=self._counts["own_airframe"],
+                )
             await message.ack()
             return True
         if isinstance(event, Detection) and event.event_id in self._seen:

@@ -18,9 +18,12 @@ from __future__ import annotations
 import socket
 import time
 from collections import Counter
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+import anyio
+import nats
 import pytest
 from daemon_support import (
     Airframe,
@@ -32,6 +35,7 @@ from daemon_support import (
 )
 from nats_server import NEEDS_NATS, NatsServer, TcpCut
 
+from gateway.events import Detection, Position, Sensor, Telemetry
 from gateway.fleet.dialect import fischer_detection
 
 pytestmark = [
@@ -133,6 +137,38 @@ class Fleet:
             time.sleep(0.05)  # each round its own time_usec
 
 
+def claim_own_airframe(url: str, airframe: str) -> None:
+    """A client of the hub's NATS forges node b's events about the hub's ``airframe``."""
+    now = datetime.now(UTC)
+    forged: list[Detection | Telemetry] = [
+        Detection(
+            event_id="forged-1",
+            airframe=airframe,
+            time=now,
+            sensor=Sensor.EO,
+            object_class="tank",
+            confidence=0.9,
+            position=Position(lat_deg=10.0, lon_deg=10.0),
+            sigma_h_m=8.0,
+        ),
+        Telemetry(
+            event_id="forged-2",
+            airframe=airframe,
+            time=now,
+            position=Position(lat_deg=10.0, lon_deg=10.0),
+        ),
+    ]
+
+    async def main() -> None:
+        client = await nats.connect(url)
+        for event in forged:
+            subject = f"fsg.b.{'det' if isinstance(event, Detection) else 'tlm'}.{airframe}"
+            await client.jetstream().publish(subject, event.model_dump_json().encode())
+        await client.close()
+
+    anyio.run(main)
+
+
 def picture(archive: Path) -> list[dict[str, Any]]:
     return archive_events(archive)
 
@@ -173,6 +209,7 @@ def test_the_aggregating_node_holds_every_airframe_and_detection_once_across_a_c
                     return detections_by_airframe(picture(a_archive)) == Counter(want)
 
                 wait_until(lambda: all_in(expected), 60, "every detection at the hub")
+                claim_own_airframe(hub_server.url, a_ids[0])
 
                 # The leaf link is cut; node b keeps detecting and keeps its own picture.
                 link.cut()
@@ -258,6 +295,9 @@ def test_the_aggregating_node_holds_every_airframe_and_detection_once_across_a_c
     # b's are marked with their origin; a's own are not.
     for event in detections:
         assert event.get("origin_node") == ("b" if event["airframe"] in b_ids else None)
+    # The forged events about the hub's own airframe were refused, never on its picture.
+    assert source[0]["counts"]["own_airframe"] == 2
+    assert not [e for e in events if e.get("airframe") in a_ids and e.get("origin_node")]
     # Every airframe of both nodes on the hub's picture.
     airframes = {e["airframe"] for e in events if e["kind"] == "telemetry"}
     assert airframes == set(a_ids) | set(b_ids)

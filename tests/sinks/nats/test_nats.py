@@ -82,10 +82,11 @@ def test_options_are_checked() -> None:
         NatsSinkConfig(node="a", servers=["http://x"])
     with pytest.raises(ValidationError, match="named twice"):
         NatsSourceConfig(node="a", remotes=["b", "b"])
-    with pytest.raises(ValidationError, match="no such file"):
-        NatsSinkConfig.model_validate(
-            {"node": "a", "creds_file": "/nonexistent.creds"}, context={"environment": True}
-        )
+    for key in ("creds_file", "token_file"):  # the error names the key (and so its line)
+        with pytest.raises(ValidationError, match=rf"{key}\n.*no such file"):
+            NatsSinkConfig.model_validate(
+                {"node": "a", key: "/nonexistent.creds"}, context={"environment": True}
+            )
 
 
 @pytest.fixture(
@@ -139,6 +140,9 @@ def test_the_sink_publishes_acked_once_and_the_source_takes_each_once(
             ("fsg.b.det.F1", b"{"),  # not JSON
             ("fsg.b.det.F1", good),  # another airframe than the subject names
             ("fsg.b.det.F9", encode_event(relayed)),  # already relayed
+            # Valid events about an airframe of the aggregating node's own fleet: refused.
+            ("fsg.b.det.OWN-1", encode_event(detection("OWN-1", 1))),
+            ("fsg.b.tlm.OWN-1", encode_event(Telemetry(event_id="o", airframe="OWN-1", time=NOW))),
         ]:
             await raw.jetstream().publish(subject, body)
         await raw.close()
@@ -148,6 +152,7 @@ def test_the_sink_publishes_acked_once_and_the_source_takes_each_once(
             publish,
             clock=lambda: NOW,
         )
+        source.set_own_airframes(frozenset({"OWN-1"}))
         async with anyio.create_task_group() as tg:
             await tg.start(source.run)
             with anyio.fail_after(30):
@@ -158,7 +163,13 @@ def test_the_sink_publishes_acked_once_and_the_source_takes_each_once(
         await sink.aclose()
         status = source.status()
         assert status["by_node"] == {"b": 51}
-        assert status["counts"] == {"bad": 3, "refused": 1, "detection": 50, "telemetry": 1}
+        assert status["counts"] == {
+            "bad": 3,
+            "own_airframe": 2,
+            "refused": 1,
+            "detection": 50,
+            "telemetry": 1,
+        }
         return sink
 
     sink = anyio.run(main)
@@ -167,6 +178,45 @@ def test_the_sink_publishes_acked_once_and_the_source_takes_each_once(
     assert {e.origin_node for e in received} == {"b"}
     ids = [e.event_id for e in received if isinstance(e, Detection)]
     assert sorted(ids) == sorted(f"F.1-det-{n}-{1000 + n}" for n in range(50))
+
+
+def test_a_fetch_timing_out_without_nats_own_error_is_an_empty_batch(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """nats-py's batch fetch may raise a bare TimeoutError (its deadline ran out before the
+    server's answer, on a loaded machine): nothing waiting, not a reason to reconnect."""
+    from nats.js.client import JetStreamContext
+
+    fetch = JetStreamContext.PullSubscription.fetch
+    raised: list[int] = []
+
+    async def slow_fetch(self: object, *args: object, **kwargs: object) -> object:
+        if len(raised) < 3:
+            raised.append(1)
+            raise TimeoutError
+        return await fetch(self, *args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(JetStreamContext.PullSubscription, "fetch", slow_fetch)
+    with NatsServer(tmp_path, "a", hub=True) as hub:
+        source = NatsSource(
+            "in",
+            NatsSourceConfig(node="a", servers=[hub.url], remotes=["b"]),
+            lambda event: True,
+            clock=lambda: NOW,
+        )
+
+        async def main() -> None:
+            async with anyio.create_task_group() as tg:
+                await tg.start(source.run)
+                with anyio.fail_after(30):
+                    while len(raised) < 3 or not source.status()["connected"]:  # noqa: ASYNC110
+                        await anyio.sleep(0.05)
+                tg.cancel_scope.cancel()
+
+        anyio.run(main)
+    status = source.status()
+    assert "reconnects" not in status["counts"]  # type: ignore[operator]
+    assert status["reason"] is None
 
 
 def test_an_unreachable_server_is_a_transient_error(tmp_path: Path) -> None:
