@@ -65,6 +65,16 @@ def test_a_message_is_refused_with_its_reason() -> None:
         ("fsg.b.det.F1", b"x" * 70_000, "too large"),
         (
             "fsg.b.det.F1",
+            event.model_copy(update={"event_id": "i" * 60_000}).model_dump_json().encode(),
+            "longer than 256",
+        ),
+        (
+            f"fsg.b.det.{airframe_token('A' * 300)}",
+            event.model_copy(update={"airframe": "A" * 300}).model_dump_json().encode(),
+            "longer than 256",
+        ),
+        (
+            "fsg.b.det.F1",
             event.model_copy(update={"origin_node": "c"}).model_dump_json().encode(),
             "relayed",
         ),
