@@ -23,7 +23,13 @@ import structlog
 from gateway.c2.plugins import PROCESSOR_GROUP, SOURCE_GROUP, build_sink, load_component
 from gateway.c2.sink import ReleasesOwnAirframes, Sink
 from gateway.c2.sinkrunner import SinkRunner
-from gateway.c2.source import OrderStatusFeed, OrderStatusListener, OwnAirframesAware, Source
+from gateway.c2.source import (
+    LedgerAware,
+    OrderStatusFeed,
+    OrderStatusListener,
+    OwnAirframesAware,
+    Source,
+)
 from gateway.c2.sourcepublish import SourcePublish
 from gateway.clock import Clock, utc_now
 from gateway.config import Config
@@ -196,6 +202,8 @@ class Gateway:
                 self.order_status_feed.add(built)
             if isinstance(built, OwnAirframesAware):
                 built.set_own_airframes(frozenset(airframe_ids))
+            if isinstance(built, LedgerAware):
+                built.set_ledger(self.spool)
         self.health: HealthServer | None = None
         if config.health.enabled:
             self.health = HealthServer(

@@ -8,7 +8,7 @@ aggregate stream, marks each event with its origin and never takes one twice.
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -21,6 +21,7 @@ from pydantic import ValidationError
 
 from gateway.errors import TransientSinkError
 from gateway.events import Detection, Event, Position, Sensor, Telemetry
+from gateway.spool.group import Commit
 from sinks.nats.sink import NatsSink, NatsSinkConfig
 from sinks.nats.source import NatsSource, NatsSourceConfig
 from sinks.nats.subjects import BadMessage, airframe_token, decode_event, encode_event, subject_for
@@ -150,8 +151,7 @@ def test_the_sink_publishes_acked_once_and_the_source_takes_each_once(
             ("fsg.b.det.F1", b"{"),  # not JSON
             ("fsg.b.det.F1", good),  # another airframe than the subject names
             ("fsg.b.det.F9", encode_event(relayed)),  # already relayed
-            # Valid events about an airframe of the aggregating node's own fleet: refused.
-            ("fsg.b.det.OWN-1", encode_event(detection("OWN-1", 1))),
+            # Another node's state of an airframe of the aggregating node's own: refused.
             ("fsg.b.tlm.OWN-1", encode_event(Telemetry(event_id="o", airframe="OWN-1", time=NOW))),
         ]:
             await raw.jetstream().publish(subject, body)
@@ -175,7 +175,7 @@ def test_the_sink_publishes_acked_once_and_the_source_takes_each_once(
         assert status["by_node"] == {"b": 51}
         assert status["counts"] == {
             "bad": 3,
-            "own_airframe": 2,
+            "own_airframe": 1,
             "refused": 1,
             "detection": 50,
             "telemetry": 1,
@@ -227,6 +227,106 @@ def test_a_fetch_timing_out_without_nats_own_error_is_an_empty_batch(
     status = source.status()
     assert "reconnects" not in status["counts"]  # type: ignore[operator]
     assert status["reason"] is None
+
+
+class Ledger:
+    """The spool's part the source uses: a group that commits (or not) on flush, and the
+    detection ids of committed groups."""
+
+    def __init__(self, commits: list[bool]) -> None:
+        self.commits = commits  # the outcome of each flush in turn; then True
+        self.ids: set[str] = set()
+        self._open: Commit | None = None
+        self._new: set[str] = set()
+
+    def group(self) -> Commit:
+        if self._open is None:
+            self._open = Commit()
+        return self._open
+
+    def flush(self) -> bool:
+        group, self._open = self._open, None
+        ok = self.commits.pop(0) if self.commits else True
+        if ok:
+            self.ids |= self._new
+        self._new = set()
+        if group is not None:
+            group.end(ok)
+        return ok
+
+    def seen(self, event_id: str) -> bool:
+        return event_id in self.ids or event_id in self._new
+
+    def remember(self, event_id: str) -> None:
+        self._new.add(event_id)
+
+
+def test_acked_only_once_committed_and_a_replay_after_a_restart_is_dropped(
+    nodes: tuple[NatsServer, NatsServer],
+) -> None:
+    """A batch whose spool group did not commit is asked again (nothing acked before the
+    commit, so a kill -9 then loses nothing); a detection the spool holds already, sent
+    again under another message id to a source started afresh, is a duplicate."""
+    hub, leaf = nodes
+    received: list[Event] = []
+    ledger = Ledger([False])
+
+    def publish(event: Event) -> bool:
+        received.append(event)
+        return True
+
+    def source() -> NatsSource:
+        # A pull request of the first source may outlive it and take a message the server
+        # then holds for ack_wait: keep that short.
+        built = NatsSource(
+            "in",
+            NatsSourceConfig(node="a", servers=[hub.url], remotes=["b"], ack_wait_s=1),
+            publish,
+            clock=lambda: NOW,
+        )
+        built.set_ledger(ledger)
+        return built
+
+    async def consume(built: NatsSource, until: Callable[[], bool]) -> None:
+        async with anyio.create_task_group() as tg:
+            await tg.start(built.run)
+            with anyio.fail_after(30):
+                while not until():  # noqa: ASYNC110 - polling what a callback appends
+                    await anyio.sleep(0.05)
+            await anyio.sleep(0.3)
+            tg.cancel_scope.cancel()
+
+    async def main() -> tuple[dict[str, object], dict[str, object]]:
+        sink = NatsSink("out", NatsSinkConfig(node="b", servers=[leaf.url]))
+        await sink.open()
+        await sink.send([detection("F1", n) for n in range(5)])
+        first = source()
+        await consume(first, lambda: len(ledger.ids) == 5)
+        # The hub restarts (a new source, the spool's ids kept); a replay of an old
+        # detection under a new message id, then a new one.
+        raw = await nats.connect(leaf.url)
+        body = encode_event(detection("F1", 0))
+        await raw.jetstream().publish("fsg.b.det.F1", body, headers={"Nats-Msg-Id": "again"})
+        await raw.close()
+        await sink.send([detection("F1", 5)])
+        await sink.aclose()
+        second = source()
+        await consume(
+            second,
+            lambda: len(ledger.ids) == 6 and "duplicate" in second.status()["counts"],  # type: ignore[operator]
+        )
+        return first.status(), second.status()
+
+    first, second = anyio.run(main)
+    counts = first["counts"]
+    assert isinstance(counts, dict)
+    assert counts["detection"] == 5
+    assert 1 <= counts["not_committed"] <= 5  # the first batch fetched: 1 to 5 messages
+    assert second["counts"] == {"duplicate": 1, "detection": 1}
+    # The first batch published twice (a group that did not commit undoes its events in the
+    # spool), the rest once.
+    assert len(received) == 5 + counts["not_committed"] + 1
+    assert ledger.ids == {f"F1-det-{n}-{1000 + n}" for n in range(6)}
 
 
 def test_an_unreachable_server_is_a_transient_error(tmp_path: Path) -> None:
