@@ -23,7 +23,14 @@ import structlog
 from gateway.c2.plugins import PROCESSOR_GROUP, SOURCE_GROUP, build_sink, load_component
 from gateway.c2.sink import ReleasesOwnAirframes, Sink
 from gateway.c2.sinkrunner import SinkRunner
-from gateway.c2.source import KeepsStatuses, OrderStatusFeed, OrderStatusListener, Source
+from gateway.c2.source import (
+    KeepsStatuses,
+    LedgerAware,
+    OrderStatusFeed,
+    OrderStatusListener,
+    OwnAirframesAware,
+    Source,
+)
 from gateway.c2.sourcepublish import SourcePublish
 from gateway.clock import Clock, utc_now
 from gateway.config import Config
@@ -208,6 +215,10 @@ class Gateway:
                 self.order_status_feed.add(built)
             if isinstance(built, KeepsStatuses) and self.order_book is not None:
                 built.keep_statuses(self.order_book)
+            if isinstance(built, OwnAirframesAware):
+                built.set_own_airframes(frozenset(airframe_ids))
+            if isinstance(built, LedgerAware):
+                built.set_ledger(self.spool)
         self.health: HealthServer | None = None
         if config.health.enabled:
             self.health = HealthServer(

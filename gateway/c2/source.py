@@ -21,11 +21,16 @@ import anyio.abc
 from pydantic import BaseModel, ConfigDict
 
 from gateway.events import Event, EventKind, OrderStatus
+from gateway.spool.group import Commit
 
 __all__ = [
+    "Commit",
+    "DetectionLedger",
     "KeepsStatuses",
+    "LedgerAware",
     "OrderStatusFeed",
     "OrderStatusListener",
+    "OwnAirframesAware",
     "Source",
     "SourceClass",
     "SourceConfig",
@@ -96,12 +101,65 @@ class StatusArchive(Protocol):
 
 
 @runtime_checkable
+class OwnAirframesAware(Protocol):
+    """A source of other nodes' airframe events (``nats``), told this node's own airframe ids.
+
+    The assembly calls ``set_own_airframes`` once, before ``run``: another node's state of one
+    of them is refused for good (counted, never on the bus), so no remote message moves an
+    airframe of this node's own fleet.
+    """
+
+    name: str
+
+    def set_own_airframes(self, airframes: frozenset[str]) -> None:
+        """Refuse from now on every remote state of one of ``airframes``."""
+        ...
+
+
+class DetectionLedger(Protocol):
+    """What a source that acknowledges its peer needs of the spool (``gateway.spool.Spool``):
+    its group commit, and the detection ids taken in (kept across restarts)."""
+
+    def group(self) -> Commit:
+        """The open group commit (opened now if none is); raises if the spool cannot begin."""
+        ...
+
+    def flush(self) -> bool:
+        """Commit the open group now; False if it did not commit."""
+        ...
+
+    def seen(self, event_id: str) -> bool:
+        """True if this detection was taken in already (within the spool's window)."""
+        ...
+
+    def remember(self, event_id: str) -> None:
+        """Record this detection as taken in, in the open group."""
+        ...
+
+
+@runtime_checkable
 class KeepsStatuses(Protocol):
     """A source that answers questions about its orders' statuses from the archive (the
     ``local`` source: ``fischer-gateway order --status ID``)."""
 
     def keep_statuses(self, archive: StatusArchive) -> None:
         """Take the archive (before ``run``)."""
+        ...
+
+
+@runtime_checkable
+class LedgerAware(Protocol):
+    """A source that acknowledges its peer only once what it took is committed (``nats``).
+
+    The assembly calls ``set_ledger`` once, before ``run``, with the spool: the source drops a
+    detection whose id the spool has already taken in (across restarts, like an airframe's
+    re-send) and acknowledges what it published once the group holding it has committed.
+    """
+
+    name: str
+
+    def set_ledger(self, ledger: DetectionLedger) -> None:
+        """Use ``ledger`` from now on."""
         ...
 
 

@@ -100,14 +100,19 @@ class NatsServer(BaseModel):
                 raise ValueError(f"{url!r}: a server URL starts with nats:// or tls://")
         return servers
 
+    @field_validator("creds_file", "token_file")
+    @classmethod
+    def _secret_file(cls, path: Path | None, info: ValidationInfo) -> Path | None:
+        # Checked per key, so the error names creds_file or token_file and its line.
+        environment = isinstance(info.context, dict) and info.context.get("environment")
+        if path is not None and environment and not path.is_file():
+            raise ValueError("no such file")
+        return path
+
     @model_validator(mode="after")
-    def _secrets_readable(self, info: ValidationInfo) -> NatsServer:
+    def _one_secret(self) -> NatsServer:
         if self.creds_file is not None and self.token_file is not None:
             raise ValueError("creds_file and token_file: give one of them, not both")
-        if isinstance(info.context, dict) and info.context.get("environment"):
-            for path in (self.creds_file, self.token_file):
-                if path is not None and not path.is_file():
-                    raise ValueError(f"{path}: no such file")
         return self
 
 

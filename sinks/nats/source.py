@@ -4,14 +4,17 @@ An aggregating node's ``FSG_<node>_PIC`` stream sources every remote node's dete
 and newest airframe states over the leaf link (``sinks.nats.streams``). One durable pull
 consumer per source reads it: each message is checked (``sinks.nats.subjects``: the subject
 names a configured remote, the body is a valid event of the kind and airframe it names),
-marked with its node of origin (``origin_node``) and published on the bus. It is
-acknowledged only once the bus has taken it (a detection is then in the spool); a message
-the spool refused is asked again for later. A detection whose event id was already taken is
-acknowledged and dropped: JetStream de-duplicates only inside its window, the consumer side
-by id. A remote stream not heard from for ``nudge_s`` is nudged (its source taken out of
-the aggregate stream and put back): newer servers otherwise back off retrying a failed
-source for up to two minutes after the link is back. The ``nats`` sink never publishes an
-event with an ``origin_node``, so nothing loops.
+marked with its node of origin (``origin_node``) and published on the bus; another node's
+state of an airframe of this node's own fleet is refused (``set_own_airframes``). It is
+acknowledged only once the spool's group commit holding it has committed (``set_ledger``);
+a message the spool refused, or whose group did not commit, is asked again for later. A
+detection whose event id was already taken is acknowledged and dropped: JetStream
+de-duplicates only inside its window, the consumer side by id (the spool's ids, kept across
+restarts for its ``dedup_window_s``, and the newest ``remember_ids`` in memory).
+A remote stream not heard from for ``nudge_s`` is nudged (its source taken out of the
+aggregate stream and put back): newer servers otherwise back off retrying a failed source
+for up to two minutes after the link is back. The ``nats`` sink never publishes an event
+with an ``origin_node``, so nothing loops.
 
 The source never ends on a NATS failure: it reconnects with a growing pause and shows the
 reason on ``/status``. Bad messages are counted by reason and acknowledged (never
@@ -30,14 +33,13 @@ import anyio.abc
 import structlog
 from nats.aio.client import Client
 from nats.aio.msg import Msg
-from nats.errors import TimeoutError as NatsTimeoutError
 from nats.js import JetStreamContext
 from nats.js.api import AckPolicy, ConsumerConfig, DeliverPolicy
 from pydantic import Field, field_validator
 
-from gateway.c2.source import SourceConfig
+from gateway.c2.source import Commit, DetectionLedger, SourceConfig
 from gateway.clock import Clock
-from gateway.events import Detection, Event
+from gateway.events import Detection, Event, Telemetry
 from gateway.ops.logsetup import RateLimit
 from sinks.nats.connection import NatsServer, connect
 from sinks.nats.streams import aggregate_stream, ensure_stream
@@ -48,6 +50,8 @@ __all__ = ["NatsSource", "NatsSourceConfig"]
 log = structlog.get_logger(__name__)
 
 _RETRY_MAX_S = 10.0
+#: A spool group commits at the end of its loop pass; one not settled by then is a failure.
+_COMMIT_WAIT_S = 30.0
 
 
 class NatsSourceConfig(SourceConfig, NatsServer):
@@ -131,6 +135,16 @@ class NatsSource:
         self._reason: str | None = None
         self._log_limit = RateLimit(interval_s=10.0)
         self._remotes = frozenset(config.remotes)
+        self._own: frozenset[str] = frozenset()
+        self._ledger: DetectionLedger | None = None
+
+    def set_own_airframes(self, airframes: frozenset[str]) -> None:
+        """This node's own airframe ids: another node's state of one is refused."""
+        self._own = frozenset(airframes)
+
+    def set_ledger(self, ledger: DetectionLedger) -> None:
+        """The spool: detection ids taken across restarts, and its group commit to ack after."""
+        self._ledger = ledger
 
     def status(self) -> dict[str, object]:
         """Connection, the last failure, counts by outcome and events taken per node."""
@@ -199,15 +213,12 @@ class NatsSource:
                 while True:
                     try:
                         messages = await subscription.fetch(cfg.batch, timeout=1.0)
-                    except NatsTimeoutError:
-                        continue  # nothing waiting: an empty batch, not an error
-                    for index, message in enumerate(messages):
-                        if not await self._take(message):
-                            # The bus is full: this one and the rest of the batch again in
-                            # a second, in order (not after ack_wait).
-                            for later in messages[index + 1 :]:
-                                await later.nak(delay=1.0)
-                            break
+                    except TimeoutError:
+                        # Nothing waiting: an empty batch, not an error. nats-py raises its
+                        # own TimeoutError or, from a batch fetch whose deadline ran out
+                        # before the server's answer (a loaded machine), a bare one.
+                        continue
+                    await self._take(messages)
         finally:
             self._connected = False
             await _close(nc)
@@ -256,8 +267,56 @@ class NatsSource:
             self._counts["nudges"] += 1
         return last
 
-    async def _take(self, message: Msg) -> bool:
-        """Publish one message's event and ack it; False when the bus refused it (nak)."""
+    async def _take(self, messages: list[Msg]) -> None:
+        """Publish a batch's events, then ack each once the spool group holding it committed.
+
+        A bad message, another node's event about one of our airframes and a detection taken
+        already are acked at once. When the bus refuses one (a full spool), it and the rest
+        of the batch are asked again in a second, in order (not after ack_wait); when the
+        group does not commit, what it held is asked again too.
+        """
+        done: list[Msg] = []
+        held: list[tuple[Msg, Detection | Telemetry]] = []
+        later: list[Msg] = []
+        group: Commit | None = None
+        ids: set[str] = set()  # this batch's detections: a repeat inside it is a duplicate
+        for index, message in enumerate(messages):
+            event = self._check(message, ids)
+            if event is None:
+                done.append(message)
+                continue
+            if group is None and self._ledger is not None:
+                group = self._ledger.group()
+            if not self._publish(event):
+                self._counts["refused"] += 1
+                later = messages[index:]
+                break
+            if isinstance(event, Detection):
+                ids.add(event.event_id)
+                if self._ledger is not None:
+                    self._ledger.remember(event.event_id)
+            held.append((message, event))
+        committed = await self._committed(group)
+        for message in done:
+            await message.ack()
+        for message, event in held:
+            if not committed:
+                await message.nak(delay=1.0)
+                continue
+            if isinstance(event, Detection):
+                self._remember(event.event_id)
+            self._counts["detection" if isinstance(event, Detection) else "telemetry"] += 1
+            self._by_node[event.origin_node or ""] += 1
+            await message.ack()
+        if held and not committed:
+            self._counts["not_committed"] += len(held)
+            if self._log_limit.allow("commit"):
+                log.error("nats_batch_not_committed", source=self.name, count=len(held))
+        for message in later:
+            await message.nak(delay=1.0)
+
+    def _check(self, message: Msg, batch_ids: set[str]) -> Detection | Telemetry | None:
+        """The event to publish, or None (counted) for one to ack and drop."""
         try:
             event = decode_event(message.subject, message.data)
             if event.origin_node not in self._remotes:
@@ -266,22 +325,49 @@ class NatsSource:
             self._counts["bad"] += 1
             if self._log_limit.allow("bad"):
                 log.warning("nats_message_refused", source=self.name, reason=str(exc))
-            await message.ack()
-            return True
-        if isinstance(event, Detection) and event.event_id in self._seen:
+            return None
+        if isinstance(event, Telemetry) and event.airframe in self._own:
+            # Another node (or whoever can publish on its subjects) reporting the state of
+            # one of this node's own airframes: it would move that airframe on the map and in
+            # the archive (sinks key an airframe by its id). Its state comes from its own
+            # links only: refused for good, never retried. (A detection of it is taken,
+            # once: one this node took in itself has the same id, which the spool holds.)
+            self._counts["own_airframe"] += 1
+            if self._log_limit.allow("own_airframe"):
+                log.warning(
+                    "nats_own_airframe_refused",
+                    source=self.name,
+                    node=event.origin_node,
+                    airframe=event.airframe[:64],
+                    refused=self._counts["own_airframe"],
+                )
+            return None
+        if isinstance(event, Detection) and (
+            event.event_id in self._seen
+            or event.event_id in batch_ids
+            or (self._ledger is not None and self._ledger.seen(event.event_id))
+        ):
             self._counts["duplicate"] += 1
-            await message.ack()
+            return None
+        return event
+
+    async def _committed(self, group: Commit | None) -> bool:
+        """Whether ``group`` committed (True without one: nothing to wait for)."""
+        if group is None or self._ledger is None:
             return True
-        if not self._publish(event):
-            self._counts["refused"] += 1
-            await message.nak(delay=1.0)
-            return False
-        if isinstance(event, Detection):
-            self._remember(event.event_id)
-        self._counts["detection" if isinstance(event, Detection) else "telemetry"] += 1
-        self._by_node[event.origin_node or ""] += 1
-        await message.ack()
-        return True
+        settled = anyio.Event()
+        outcome: list[bool] = []
+
+        def done(committed: bool) -> None:
+            outcome.append(committed)
+            settled.set()
+
+        group.when_done(done)
+        if not group.scheduled:
+            self._ledger.flush()  # no loop pass to end it: now
+        with anyio.move_on_after(_COMMIT_WAIT_S):
+            await settled.wait()
+        return outcome == [True]
 
     def _remember(self, event_id: str) -> None:
         self._seen[event_id] = None

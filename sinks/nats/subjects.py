@@ -19,6 +19,7 @@ from gateway.events import Detection, Event, EventKind, Telemetry, event_adapter
 __all__ = [
     "KIND_TOKENS",
     "MAX_BODY_BYTES",
+    "MAX_ID_CHARS",
     "MAX_TOKEN",
     "NODE_PATTERN",
     "BadMessage",
@@ -37,6 +38,9 @@ _TOKEN_KINDS = {token: kind for kind, token in KIND_TOKENS.items()}
 MAX_TOKEN = 96
 #: A body larger than this is refused on the way in (an event is well under 4 KiB).
 MAX_BODY_BYTES = 64 * 1024
+#: An event id or airframe id longer than this is refused on the way in: a node's own are
+#: under 128 characters, and the source remembers the ids it took (``remember_ids`` of them).
+MAX_ID_CHARS = 256
 _PLAIN = re.compile(rb"[A-Za-z0-9-]")
 _NODE = re.compile(NODE_PATTERN)
 
@@ -89,8 +93,9 @@ def decode_event(subject: str, body: bytes) -> Detection | Telemetry:
     """The event a message carries, marked with its node of origin.
 
     ``BadMessage`` for an oversize body, invalid JSON or event, a kind the subject does not
-    name, an airframe the subject does not name, or a body that already names an origin (a
-    node never sends on another node's events).
+    name, an event or airframe id longer than ``MAX_ID_CHARS``, an airframe the subject does
+    not name, or a body that already names an origin (a node never sends on another node's
+    events).
     """
     node, kind = node_of(subject)
     if len(body) > MAX_BODY_BYTES:
@@ -101,6 +106,8 @@ def decode_event(subject: str, body: bytes) -> Detection | Telemetry:
         raise BadMessage(f"subject {subject[:120]!r}: not a valid event ({exc})") from None
     if event.kind is not kind or not isinstance(event, Detection | Telemetry):
         raise BadMessage(f"subject {subject[:120]!r}: carries a {event.kind.value} event")
+    if len(event.event_id) > MAX_ID_CHARS or len(event.airframe) > MAX_ID_CHARS:
+        raise BadMessage(f"subject {subject[:120]!r}: an id is longer than {MAX_ID_CHARS}")
     if airframe_token(event.airframe) != subject.split(".")[3]:
         raise BadMessage(f"subject {subject[:120]!r}: event of airframe {event.airframe[:64]!r}")
     if event.origin_node is not None:

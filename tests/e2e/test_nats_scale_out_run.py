@@ -15,12 +15,16 @@ detections and started again on its spool: what it had taken in reaches the hub,
 
 from __future__ import annotations
 
+import json
 import socket
 import time
 from collections import Counter
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+import anyio
+import nats
 import pytest
 from daemon_support import (
     Airframe,
@@ -32,6 +36,7 @@ from daemon_support import (
 )
 from nats_server import NEEDS_NATS, NatsServer, TcpCut
 
+from gateway.events import Position, Telemetry
 from gateway.fleet.dialect import fischer_detection
 
 pytestmark = [
@@ -133,6 +138,38 @@ class Fleet:
             time.sleep(0.05)  # each round its own time_usec
 
 
+def claim_own_airframe(url: str, airframe: str) -> None:
+    """A client of the hub's NATS forges node b's state of the hub's ``airframe``."""
+    forged = Telemetry(
+        event_id="forged",
+        airframe=airframe,
+        time=datetime.now(UTC),
+        position=Position(lat_deg=10.0, lon_deg=10.0),
+    )
+
+    async def main() -> None:
+        client = await nats.connect(url)
+        await client.jetstream().publish(f"fsg.b.tlm.{airframe}", forged.model_dump_json().encode())
+        await client.close()
+
+    anyio.run(main)
+
+
+def replay(url: str, event: dict[str, Any]) -> None:
+    """A client of the hub's NATS sends ``event`` of node b again under a new message id."""
+    body = {k: v for k, v in event.items() if k != "origin_node" and v is not None}
+    subject = f"fsg.b.det.{event['airframe'].replace('.', '_2E')}"
+
+    async def main() -> None:
+        client = await nats.connect(url)
+        await client.jetstream().publish(
+            subject, json.dumps(body).encode(), headers={"Nats-Msg-Id": "replayed"}
+        )
+        await client.close()
+
+    anyio.run(main)
+
+
 def picture(archive: Path) -> list[dict[str, Any]]:
     return archive_events(archive)
 
@@ -173,6 +210,7 @@ def test_the_aggregating_node_holds_every_airframe_and_detection_once_across_a_c
                     return detections_by_airframe(picture(a_archive)) == Counter(want)
 
                 wait_until(lambda: all_in(expected), 60, "every detection at the hub")
+                claim_own_airframe(hub_server.url, a_ids[0])
 
                 # The leaf link is cut; node b keeps detecting and keeps its own picture.
                 link.cut()
@@ -248,6 +286,23 @@ def test_the_aggregating_node_holds_every_airframe_and_detection_once_across_a_c
                 time.sleep(1.0)  # anything doubled would arrive now
                 events = picture(a_archive)
                 source = hub.status()["sources"]
+            # The hub restarts; an old detection of b's is sent again under a new message
+            # id (past the stream's de-duplication), then forged news of a hub airframe
+            # that shows when the source got past it: the spool still knows the old id.
+            old = next(e for e in events if e["kind"] == "detection" and e.get("origin_node"))
+            with running(a_config) as hub:
+                replay(hub_server.url, old)
+                claim_own_airframe(hub_server.url, a_ids[0])
+                wait_until(
+                    lambda: hub.status()["sources"][0]["counts"].get("own_airframe") == 1,
+                    30,
+                    "the restarted hub past the replay",
+                )
+                restarted = hub.status()["sources"][0]["counts"]
+            assert restarted.get("duplicate") == 1, restarted
+            assert "detection" not in restarted
+            replayed = [e for e in picture(a_archive) if e.get("event_id") == old["event_id"]]
+            assert len(replayed) == 1
             b_fleet.sock.close()
             a_fleet.sock.close()
     # Every detection once: by id, and no id twice.
@@ -258,6 +313,9 @@ def test_the_aggregating_node_holds_every_airframe_and_detection_once_across_a_c
     # b's are marked with their origin; a's own are not.
     for event in detections:
         assert event.get("origin_node") == ("b" if event["airframe"] in b_ids else None)
+    # The forged state of the hub's own airframe was refused, never on its picture.
+    assert source[0]["counts"]["own_airframe"] == 1
+    assert not [e for e in events if e.get("airframe") in a_ids and e.get("origin_node")]
     # Every airframe of both nodes on the hub's picture.
     airframes = {e["airframe"] for e in events if e["kind"] == "telemetry"}
     assert airframes == set(a_ids) | set(b_ids)

@@ -8,7 +8,7 @@ aggregate stream, marks each event with its origin and never takes one twice.
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -21,6 +21,7 @@ from pydantic import ValidationError
 
 from gateway.errors import TransientSinkError
 from gateway.events import Detection, Event, Position, Sensor, Telemetry
+from gateway.spool.group import Commit
 from sinks.nats.sink import NatsSink, NatsSinkConfig
 from sinks.nats.source import NatsSource, NatsSourceConfig
 from sinks.nats.subjects import BadMessage, airframe_token, decode_event, encode_event, subject_for
@@ -65,6 +66,16 @@ def test_a_message_is_refused_with_its_reason() -> None:
         ("fsg.b.det.F1", b"x" * 70_000, "too large"),
         (
             "fsg.b.det.F1",
+            event.model_copy(update={"event_id": "i" * 60_000}).model_dump_json().encode(),
+            "longer than 256",
+        ),
+        (
+            f"fsg.b.det.{airframe_token('A' * 300)}",
+            event.model_copy(update={"airframe": "A" * 300}).model_dump_json().encode(),
+            "longer than 256",
+        ),
+        (
+            "fsg.b.det.F1",
             event.model_copy(update={"origin_node": "c"}).model_dump_json().encode(),
             "relayed",
         ),
@@ -82,10 +93,11 @@ def test_options_are_checked() -> None:
         NatsSinkConfig(node="a", servers=["http://x"])
     with pytest.raises(ValidationError, match="named twice"):
         NatsSourceConfig(node="a", remotes=["b", "b"])
-    with pytest.raises(ValidationError, match="no such file"):
-        NatsSinkConfig.model_validate(
-            {"node": "a", "creds_file": "/nonexistent.creds"}, context={"environment": True}
-        )
+    for key in ("creds_file", "token_file"):  # the error names the key (and so its line)
+        with pytest.raises(ValidationError, match=rf"{key}\n.*no such file"):
+            NatsSinkConfig.model_validate(
+                {"node": "a", key: "/nonexistent.creds"}, context={"environment": True}
+            )
 
 
 @pytest.fixture(
@@ -139,6 +151,8 @@ def test_the_sink_publishes_acked_once_and_the_source_takes_each_once(
             ("fsg.b.det.F1", b"{"),  # not JSON
             ("fsg.b.det.F1", good),  # another airframe than the subject names
             ("fsg.b.det.F9", encode_event(relayed)),  # already relayed
+            # Another node's state of an airframe of the aggregating node's own: refused.
+            ("fsg.b.tlm.OWN-1", encode_event(Telemetry(event_id="o", airframe="OWN-1", time=NOW))),
         ]:
             await raw.jetstream().publish(subject, body)
         await raw.close()
@@ -148,6 +162,7 @@ def test_the_sink_publishes_acked_once_and_the_source_takes_each_once(
             publish,
             clock=lambda: NOW,
         )
+        source.set_own_airframes(frozenset({"OWN-1"}))
         async with anyio.create_task_group() as tg:
             await tg.start(source.run)
             with anyio.fail_after(30):
@@ -158,7 +173,13 @@ def test_the_sink_publishes_acked_once_and_the_source_takes_each_once(
         await sink.aclose()
         status = source.status()
         assert status["by_node"] == {"b": 51}
-        assert status["counts"] == {"bad": 3, "refused": 1, "detection": 50, "telemetry": 1}
+        assert status["counts"] == {
+            "bad": 3,
+            "own_airframe": 1,
+            "refused": 1,
+            "detection": 50,
+            "telemetry": 1,
+        }
         return sink
 
     sink = anyio.run(main)
@@ -167,6 +188,145 @@ def test_the_sink_publishes_acked_once_and_the_source_takes_each_once(
     assert {e.origin_node for e in received} == {"b"}
     ids = [e.event_id for e in received if isinstance(e, Detection)]
     assert sorted(ids) == sorted(f"F.1-det-{n}-{1000 + n}" for n in range(50))
+
+
+def test_a_fetch_timing_out_without_nats_own_error_is_an_empty_batch(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """nats-py's batch fetch may raise a bare TimeoutError (its deadline ran out before the
+    server's answer, on a loaded machine): nothing waiting, not a reason to reconnect."""
+    from nats.js.client import JetStreamContext
+
+    fetch = JetStreamContext.PullSubscription.fetch
+    raised: list[int] = []
+
+    async def slow_fetch(self: object, *args: object, **kwargs: object) -> object:
+        if len(raised) < 3:
+            raised.append(1)
+            raise TimeoutError
+        return await fetch(self, *args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(JetStreamContext.PullSubscription, "fetch", slow_fetch)
+    with NatsServer(tmp_path, "a", hub=True) as hub:
+        source = NatsSource(
+            "in",
+            NatsSourceConfig(node="a", servers=[hub.url], remotes=["b"]),
+            lambda event: True,
+            clock=lambda: NOW,
+        )
+
+        async def main() -> None:
+            async with anyio.create_task_group() as tg:
+                await tg.start(source.run)
+                with anyio.fail_after(30):
+                    while len(raised) < 3 or not source.status()["connected"]:  # noqa: ASYNC110
+                        await anyio.sleep(0.05)
+                tg.cancel_scope.cancel()
+
+        anyio.run(main)
+    status = source.status()
+    assert "reconnects" not in status["counts"]  # type: ignore[operator]
+    assert status["reason"] is None
+
+
+class Ledger:
+    """The spool's part the source uses: a group that commits (or not) on flush, and the
+    detection ids of committed groups."""
+
+    def __init__(self, commits: list[bool]) -> None:
+        self.commits = commits  # the outcome of each flush in turn; then True
+        self.ids: set[str] = set()
+        self._open: Commit | None = None
+        self._new: set[str] = set()
+
+    def group(self) -> Commit:
+        if self._open is None:
+            self._open = Commit()
+        return self._open
+
+    def flush(self) -> bool:
+        group, self._open = self._open, None
+        ok = self.commits.pop(0) if self.commits else True
+        if ok:
+            self.ids |= self._new
+        self._new = set()
+        if group is not None:
+            group.end(ok)
+        return ok
+
+    def seen(self, event_id: str) -> bool:
+        return event_id in self.ids or event_id in self._new
+
+    def remember(self, event_id: str) -> None:
+        self._new.add(event_id)
+
+
+def test_acked_only_once_committed_and_a_replay_after_a_restart_is_dropped(
+    nodes: tuple[NatsServer, NatsServer],
+) -> None:
+    """A batch whose spool group did not commit is asked again (nothing acked before the
+    commit, so a kill -9 then loses nothing); a detection the spool holds already, sent
+    again under another message id to a source started afresh, is a duplicate."""
+    hub, leaf = nodes
+    received: list[Event] = []
+    ledger = Ledger([False])
+
+    def publish(event: Event) -> bool:
+        received.append(event)
+        return True
+
+    def source() -> NatsSource:
+        # A pull request of the first source may outlive it and take a message the server
+        # then holds for ack_wait: keep that short.
+        built = NatsSource(
+            "in",
+            NatsSourceConfig(node="a", servers=[hub.url], remotes=["b"], ack_wait_s=1),
+            publish,
+            clock=lambda: NOW,
+        )
+        built.set_ledger(ledger)
+        return built
+
+    async def consume(built: NatsSource, until: Callable[[], bool]) -> None:
+        async with anyio.create_task_group() as tg:
+            await tg.start(built.run)
+            with anyio.fail_after(30):
+                while not until():  # noqa: ASYNC110 - polling what a callback appends
+                    await anyio.sleep(0.05)
+            await anyio.sleep(0.3)
+            tg.cancel_scope.cancel()
+
+    async def main() -> tuple[dict[str, object], dict[str, object]]:
+        sink = NatsSink("out", NatsSinkConfig(node="b", servers=[leaf.url]))
+        await sink.open()
+        await sink.send([detection("F1", n) for n in range(5)])
+        first = source()
+        await consume(first, lambda: len(ledger.ids) == 5)
+        # The hub restarts (a new source, the spool's ids kept); a replay of an old
+        # detection under a new message id, then a new one.
+        raw = await nats.connect(leaf.url)
+        body = encode_event(detection("F1", 0))
+        await raw.jetstream().publish("fsg.b.det.F1", body, headers={"Nats-Msg-Id": "again"})
+        await raw.close()
+        await sink.send([detection("F1", 5)])
+        await sink.aclose()
+        second = source()
+        await consume(
+            second,
+            lambda: len(ledger.ids) == 6 and "duplicate" in second.status()["counts"],  # type: ignore[operator]
+        )
+        return first.status(), second.status()
+
+    first, second = anyio.run(main)
+    counts = first["counts"]
+    assert isinstance(counts, dict)
+    assert counts["detection"] == 5
+    assert 1 <= counts["not_committed"] <= 5  # the first batch fetched: 1 to 5 messages
+    assert second["counts"] == {"duplicate": 1, "detection": 1}
+    # The first batch published twice (a group that did not commit undoes its events in the
+    # spool), the rest once.
+    assert len(received) == 5 + counts["not_committed"] + 1
+    assert ledger.ids == {f"F1-det-{n}-{1000 + n}" for n in range(6)}
 
 
 def test_an_unreachable_server_is_a_transient_error(tmp_path: Path) -> None:
