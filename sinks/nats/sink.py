@@ -98,6 +98,18 @@ class NatsSink:
         """detection and telemetry (or the subset configured)."""
         return self.config.kinds
 
+    def environment_warnings(self) -> list[str]:
+        """What ``check-config`` should say of this node's use of NATS."""
+        cfg = self.config
+        if cfg.tls is None and cfg.creds_file is None and cfg.token_file is None:
+            return [
+                "connects to its NATS server with no credentials (tls, creds_file or"
+                " token_file): unless that server limits who may publish fsg."
+                f"{cfg.node}.>, any of its clients can publish detections as this node"
+                " (docs/scale-out.md, who may publish what)"
+            ]
+        return []
+
     def counts(self) -> Mapping[str, int]:
         """published, duplicate (already stored), relayed_skipped (another node's), failed."""
         return dict(self._counts)

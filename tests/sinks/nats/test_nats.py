@@ -100,6 +100,19 @@ def test_options_are_checked() -> None:
             )
 
 
+def test_check_config_warns_of_a_node_that_publishes_without_credentials(
+    tmp_path: Path,
+) -> None:
+    open_sink = NatsSink("to-hub", NatsSinkConfig(node="b"))
+    (warning,) = open_sink.environment_warnings()
+    assert "no credentials" in warning
+    assert "fsg.b.>" in warning
+    token = tmp_path / "token"
+    token.write_text("secret")
+    closed = NatsSink("to-hub", NatsSinkConfig(node="b", token_file=token))
+    assert closed.environment_warnings() == []
+
+
 @pytest.fixture(
     params=[
         pytest.param(None, id="current"),
