@@ -325,3 +325,29 @@ def test_the_mgrs_readout_answers_and_refuses_nonsense() -> None:
                     assert (await client.get("/api/mgrs?" + query)).status_code == 400
 
     anyio.run(main)
+
+
+def test_an_ipv6_literal_in_brackets_is_listened_on_without_them(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # "[::1]" passes the loopback rule as "::1" does; the listener must get the bare address
+    # (getaddrinfo knows no brackets) and the URL one pair of brackets. Bound on 127.0.0.1
+    # here: the tests stay in 127.0.0.0/8.
+    import sinks.map.server as server
+
+    asked: list[str] = []
+    bind = server.listen
+
+    def listen(host: str, port: int) -> Any:
+        asked.append(host)
+        return bind("127.0.0.1", port)
+
+    monkeypatch.setattr(server, "listen", listen)
+
+    async def main() -> None:
+        async with serving(host="[::1]") as sink:
+            assert asked == ["::1"]
+            assert sink.url is not None
+            assert sink.url.startswith("http://[::1]:")
+
+    anyio.run(main)
