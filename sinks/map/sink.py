@@ -95,7 +95,7 @@ class MapSink:
         self._tiles = self._open_tiles()
         host = self.config.host.strip("[]")  # an IPv6 literal may be written as in a URL
         try:
-            self._socket = listen(host, self.config.port)
+            self._socket = listen(host, self.config.port, self.config.stall_s)
         except OSError as exc:
             raise TransientSinkError(
                 f"sink {self.name}: cannot listen on {self.config.host}:{self.config.port}: "
