@@ -1,8 +1,9 @@
-"""Debian tools some tests need (espeak-ng, ffmpeg): skip without them, unless CI promised them.
+"""Debian tools some tests need (espeak-ng, ffmpeg, chromium): skip without them, unless CI
+promised them.
 
-``.ci/run`` installs the tools and, when that worked, lists them in ``FG_REQUIRED_TOOLS``; a
-tool listed there but missing is then a failure, never a quiet skip, so CI really runs the
-tests that need it.
+``.ci/run`` installs each tool on its own and lists it in ``FG_REQUIRED_TOOLS``; a tool listed
+there but missing (its install failed) is then a failure, never a quiet skip, so CI really runs
+the tests that need it.
 """
 
 from __future__ import annotations

@@ -131,7 +131,13 @@ def install_loop_exception_handler(loop: asyncio.AbstractEventLoop | None = None
 
 def _log_loop_error(loop: asyncio.AbstractEventLoop, context: dict[str, Any]) -> None:
     exc = context.get("exception")
-    fields: dict[str, Any] = {"message": context.get("message", "")}
+    message = str(context.get("message", ""))
+    suppressed = _loop_errors.allow((message, type(exc).__name__))
+    if suppressed is None:
+        return
+    fields: dict[str, Any] = {"message": message}
+    if suppressed:
+        fields["suppressed"] = suppressed  # like ones not logged since the last record
     for key in ("handle", "task", "future", "callback"):
         if key in context:
             fields[key] = repr(context[key])[:200]
@@ -157,3 +163,30 @@ class RateLimit:
             return False
         self._last[key] = now
         return True
+
+
+class _CountingLimit:
+    """``RateLimit`` that also counts what it holds back, for the next record to say."""
+
+    __slots__ = ("_held", "_limit")
+
+    def __init__(self, interval_s: float) -> None:
+        self._limit = RateLimit(interval_s)
+        self._held: dict[Hashable, int] = {}
+
+    def allow(self, key: Hashable) -> int | None:
+        """How many were held back since the last record for ``key`` (a record may be
+        written now), or None (hold this one back too)."""
+        if not self._limit.allow(key):
+            if key in self._held or len(self._held) < _MAX_HELD_KEYS:
+                self._held[key] = self._held.get(key, 0) + 1
+            return None
+        return self._held.pop(key, 0)
+
+
+#: Keys whose held-back records are counted (the keys are the code's, few; a bound anyway).
+_MAX_HELD_KEYS = 256
+#: One ``asyncio_error`` record per message and exception type per this many seconds: a peer
+#: can cause these (a connection a library's callback fails to close), one per connection.
+LOOP_ERROR_INTERVAL_S = 30.0
+_loop_errors = _CountingLimit(LOOP_ERROR_INTERVAL_S)

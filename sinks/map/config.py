@@ -144,6 +144,13 @@ class MapSinkConfig(SinkConfig):
     keepalive_s: float = Field(
         default=15.0, gt=0, le=300, description="A comment line on idle streams this often (s)."
     )
+    stall_s: float = Field(
+        default=60.0,
+        ge=1,
+        le=3600,
+        description="A connection whose client has taken nothing sent to it for this long is "
+        "aborted (s; Linux's TCP_USER_TIMEOUT).",
+    )
     max_airframes: int = Field(
         default=500, ge=1, le=10_000, description="Airframes kept; the oldest go first."
     )

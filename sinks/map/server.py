@@ -32,14 +32,23 @@ IDLE_S = 5.0
 _BACKLOG = 64
 
 
-def listen(host: str, port: int) -> socket.socket:
-    """A TCP socket bound to ``host``:``port`` and listening; ``OSError`` if it cannot."""
+def listen(host: str, port: int, stall_s: float | None = None) -> socket.socket:
+    """A TCP socket bound to ``host``:``port`` and listening; ``OSError`` if it cannot.
+
+    With ``stall_s``, a connection whose client has taken nothing sent to it for that many
+    seconds (its receive window stays shut, or nothing is acknowledged) is aborted by the
+    kernel: ``TCP_USER_TIMEOUT``, which the accepted connections inherit (Linux). A stream
+    whose client stopped reading is otherwise stuck in its write for good, holding one of
+    ``max_connections`` places.
+    """
     family = socket.AF_INET6 if ":" in host else socket.AF_INET
     infos = socket.getaddrinfo(host, port, family=0, type=socket.SOCK_STREAM)
     family, _, _, _, address = infos[0] if infos else (family, 0, 0, "", (host, port))
     sock = socket.socket(family, socket.SOCK_STREAM)
     try:
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        if stall_s is not None and hasattr(socket, "TCP_USER_TIMEOUT"):
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_USER_TIMEOUT, round(stall_s * 1000))
         sock.bind(address)
         sock.listen(_BACKLOG)
         sock.setblocking(False)

@@ -93,8 +93,9 @@ class MapSink:
         if self.config.tls is not None:
             _check_tls(self.config.tls, self.name)
         self._tiles = self._open_tiles()
+        host = self.config.host.strip("[]")  # an IPv6 literal may be written as in a URL
         try:
-            self._socket = listen(self.config.host, self.config.port)
+            self._socket = listen(host, self.config.port, self.config.stall_s)
         except OSError as exc:
             raise TransientSinkError(
                 f"sink {self.name}: cannot listen on {self.config.host}:{self.config.port}: "
@@ -103,7 +104,6 @@ class MapSink:
             ) from exc
         port = self._socket.getsockname()[1]
         scheme = "https" if self.config.tls is not None else "http"
-        host = self.config.host
         shown = f"[{host}]" if ":" in host else host
         self.url = f"{scheme}://{shown}:{port}/"
         self.hub = Hub(queue_max=self.config.queue_max, seq=self.hub.seq)  # seq goes on

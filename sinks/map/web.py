@@ -55,6 +55,8 @@ STATIC = Path(__file__).with_name("static")
 #: A stream's write gathers what is queued up to about this size.
 _CHUNK_BYTES = 64 * 1024
 _MAX_AT_CHARS = 40
+#: A tile address's numbers: zoom at most 24, so x and y below 2**24 (8 digits).
+_MAX_TILE_DIGITS = 9
 TOKEN_COOKIE = "fg_map_token"  # noqa: S105 - the cookie's name, not a secret
 
 Scope = MutableMapping[str, Any]
@@ -120,6 +122,23 @@ def _at(text: str) -> datetime | str:
     if at.year < 2000:
         return "at: before 2000"
     return at.astimezone(UTC)
+
+
+def _tile_address(params: dict[str, Any]) -> tuple[int, int, int] | None:
+    """The three integers of ``/tiles/{z}/{x}/{y}``; None unless each is a few ASCII digits.
+
+    Parsed here rather than by Starlette's ``int`` convertor, which turns an address of
+    thousands of digits into a 500 (Python's limit on converting long digit strings).
+    """
+    numbers = []
+    for key in ("z", "x", "y"):
+        text = params.get(key)
+        if not isinstance(text, str) or not text.isascii() or not text.isdigit():
+            return None
+        if len(text) > _MAX_TILE_DIGITS:
+            return None
+        numbers.append(int(text))
+    return numbers[0], numbers[1], numbers[2]
 
 
 def _layers(request: Request) -> frozenset[str] | Response:
@@ -229,9 +248,10 @@ def build_app(
 
     async def tile(request: Request) -> Response:
         tiles = state.tiles
-        z, x, y = (request.path_params[k] for k in ("z", "x", "y"))
-        if tiles is None or not tiles.valid(z, x, y):
+        address = _tile_address(request.path_params)
+        if tiles is None or address is None or not tiles.valid(*address):
             return Response(status_code=404)
+        z, x, y = address
         found = await anyio.to_thread.run_sync(tiles.tile, z, x, y)
         if found is None:
             return Response(status_code=404)
@@ -294,7 +314,7 @@ def build_app(
             Route("/api/mgrs", mgrs),
             Route("/api/info", info),
             Route("/api/archive", archive),
-            Route("/tiles/{z:int}/{x:int}/{y:int}", tile),
+            Route("/tiles/{z}/{x}/{y}", tile),
             Route("/favicon.ico", lambda request: Response(status_code=204)),
             Mount("/static", StaticFiles(directory=STATIC), name="static"),
         ],

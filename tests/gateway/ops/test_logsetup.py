@@ -147,3 +147,31 @@ def test_asyncio_loop_errors_become_one_json_record(tmp_path: Path) -> None:
     assert record["event"] == "asyncio_error"
     assert record["exception"][0]["exc_value"] == "flush failed"
     assert "callback" in record["handle"]
+
+
+def test_a_repeated_loop_error_is_one_record_per_interval(tmp_path: Path) -> None:
+    """A peer can make a library's callback fail once per connection: not a line each."""
+    lines = run_logging(
+        """
+        import asyncio
+        def callback():
+            raise TimeoutError(110, "Connection timed out")
+        def other():
+            raise RuntimeError("flush failed")
+        async def main():
+            install_loop_exception_handler()
+            done = asyncio.Event()
+            loop = asyncio.get_running_loop()
+            for _ in range(50):
+                loop.call_soon(callback)
+            loop.call_soon(other)
+            loop.call_soon(done.set)
+            await done.wait()
+        asyncio.run(main())
+        stream.flush()
+        """,
+        tmp_path,
+    )
+    records = [json.loads(line[3:]) for line in lines]
+    assert [r["exception"][0]["exc_type"] for r in records] == ["TimeoutError", "RuntimeError"]
+    assert all(r["event"] == "asyncio_error" for r in records)

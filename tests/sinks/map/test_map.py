@@ -325,3 +325,74 @@ def test_the_mgrs_readout_answers_and_refuses_nonsense() -> None:
                     assert (await client.get("/api/mgrs?" + query)).status_code == 400
 
     anyio.run(main)
+
+
+def test_an_ipv6_literal_in_brackets_is_listened_on_without_them(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # "[::1]" passes the loopback rule as "::1" does; the listener must get the bare address
+    # (getaddrinfo knows no brackets) and the URL one pair of brackets. Bound on 127.0.0.1
+    # here: the tests stay in 127.0.0.0/8.
+    import sinks.map.server as server
+
+    asked: list[str] = []
+    bind = server.listen
+
+    def listen(host: str, port: int, stall_s: float | None = None) -> Any:
+        asked.append(host)
+        return bind("127.0.0.1", port, stall_s)
+
+    monkeypatch.setattr(server, "listen", listen)
+
+    async def main() -> None:
+        async with serving(host="[::1]") as sink:
+            assert asked == ["::1"]
+            assert sink.url is not None
+            assert sink.url.startswith("http://[::1]:")
+
+    anyio.run(main)
+
+
+def test_streams_whose_clients_stopped_reading_give_their_places_back() -> None:
+    # A client that never reads fills its receive window; the hub cuts its subscription off
+    # but the response stays blocked in the write. The kernel aborts such a connection after
+    # stall_s (TCP_USER_TIMEOUT, inherited from the listener), which frees its place under
+    # max_connections: clients that stop reading cannot hold the map's every place.
+    import socket
+
+    if not hasattr(socket, "TCP_USER_TIMEOUT"):
+        pytest.skip("TCP_USER_TIMEOUT is Linux's")
+
+    async def main() -> None:
+        async with serving(max_connections=2, queue_max=64, stall_s=1) as sink:
+            assert sink.url is not None
+            port = int(sink.url.rsplit(":", 1)[1].strip("/"))
+            stalled = []
+            for _ in range(2):
+                conn = socket.socket()
+                conn.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 2048)
+                conn.connect(("127.0.0.1", port))
+                conn.sendall(b"GET /api/stream HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+                stalled.append(conn)
+            try:
+                async with httpx.AsyncClient(base_url=sink.url, timeout=10) as client:
+                    await anyio.sleep(0.2)
+                    assert (await client.get("/api/info")).status_code == 503
+                    # Changes until the hub has cut both off: their writes are stuck by then.
+                    i = 0
+                    with anyio.fail_after(60):
+                        while sink.status()["streams"] > 0:
+                            await sink.send([track(f"T-{n % 50}", n) for n in range(i, i + 10)])
+                            i += 10
+                            await anyio.sleep(0.01)
+                    status = 503
+                    with anyio.fail_after(60):  # generous: the abort comes after stall_s
+                        while status == 503:
+                            await anyio.sleep(0.2)
+                            status = (await client.get("/api/info")).status_code
+                    assert status == 200
+            finally:
+                for conn in stalled:
+                    conn.close()
+
+    anyio.run(main)

@@ -99,6 +99,20 @@ def test_the_listener_serves_the_tiles_and_the_page_learns_of_them(tmp_path: Pat
             assert answer.content == png(colour(1, 1, 0))
             for bad in ("/tiles/2/0/0", "/tiles/1/2/0", "/tiles/1/0", "/tiles/a/0/0"):
                 assert (await c.get(bad)).status_code == 404, bad
+            # Hostile addresses: thousands of digits (past Python's int conversion limit),
+            # signs, other digits than ASCII, a file name, a traversal. All 404, none a 500.
+            hostile = (
+                "/tiles/1/" + "9" * 5000 + "/0",
+                "/tiles/" + "1" * 40 + "/0/0",
+                "/tiles/1/+1/0",
+                "/tiles/1/-0/0",
+                "/tiles/1/\u0661/0",
+                "/tiles/1/1/0.png",
+                "/tiles/1/%2e%2e/0",
+            )
+            for bad in hostile:
+                answer = await c.get(bad)
+                assert answer.status_code == 404, (bad[:40], answer.status_code)
             assert sink.status()["tiles"] == "mbtiles"
 
     anyio.run(main)
