@@ -94,6 +94,7 @@ def test_the_wheel_ships_config_unit_docs_contract_and_example(tmp_path: Path) -
         "sinks/slb/schemas/slb-order.schema.json",
         "sinks/sweccis/schemas/sweccis-fas.xsd",
         "sinks/sweccis/schemas/sweccis-fas-2.xsd",
+        "sinks/map/schemas/stream.schema.json",
     } <= names
 
 
