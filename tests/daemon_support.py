@@ -254,7 +254,25 @@ routes:
     return config, archive
 
 
-def archive_events(path: Path) -> list[dict[str, Any]]:
+def archive_events(path: Path, *, torn: bool = False) -> list[dict[str, Any]]:
+    """The events of a jsonl archive the daemon may be writing at this moment.
+
+    A last line with no newline yet is being written and is left out. With ``torn``, lines
+    that do not parse are left out too: a daemon killed mid-line leaves its partial line, which
+    the jsonl sink ends with a newline when it opens the file again.
+    """
     if not path.exists():
         return []
-    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    text = path.read_text()
+    if not text.endswith("\n"):
+        text = text[: text.rfind("\n") + 1]
+    events = []
+    for line in text.splitlines():
+        if not line.strip():
+            continue
+        try:
+            events.append(json.loads(line))
+        except json.JSONDecodeError:
+            if not torn:
+                raise
+    return events

@@ -74,7 +74,7 @@ def order_cli(sock: Path, *args: str) -> tuple[int, list[dict[str, Any]], str]:
 
 
 def statuses(archive: Path) -> list[dict[str, Any]]:
-    return [e for e in archive_events(archive) if e["kind"] == "order_status"]
+    return [e for e in archive_events(archive, torn=True) if e["kind"] == "order_status"]
 
 
 def has(archive: Path, status: str) -> bool:
@@ -106,7 +106,7 @@ def test_an_order_continues_after_kill_9_mid_upload_and_mid_execution(tmp_path: 
         wait_until(
             lambda: any(
                 e["kind"] == "telemetry" and e["endurance_remaining_min"]
-                for e in archive_events(archive)
+                for e in archive_events(archive, torn=True)
             ),
             30.0,
             "the simulated airframe's telemetry",
