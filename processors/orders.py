@@ -514,12 +514,18 @@ class OrdersProcessor:
         if isinstance(chosen, Refusal):
             if self._may_wait(order, chosen):
                 return
+            reason = chosen.reason
+            if chosen.check == "link":  # not held: the waiting list is full
+                reason += (
+                    f"; not held to wait for it: {self.config.max_waiting} orders already"
+                    " wait for a link (max_waiting)"
+                )
             self._report(
                 order,
                 OrderState.REJECTED,
                 airframe,
                 check=chosen.check,
-                reason=chosen.reason,
+                reason=reason,
                 phase="done",
             )
             return

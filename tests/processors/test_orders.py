@@ -469,6 +469,25 @@ class TestProcessor:
         assert published[1].reason.startswith("F26E-001 has no active link; waited ")
         assert "until the window's end at 2026-11-22T12:00:01+00:00" in published[1].reason
 
+    async def test_an_order_beyond_max_waiting_is_rejected_saying_the_list_is_full(
+        self,
+    ) -> None:
+        published = await run_orders(
+            Commander(linked=False),
+            [telemetry(), order("O-1"), order("O-2")],
+            options={"max_waiting": 1},
+            until=lambda s: len(s) >= 2,
+        )
+        assert [(s.order_id, s.status.value) for s in published] == [
+            ("O-1", "waiting"),
+            ("O-2", "rejected"),
+        ]
+        assert published[1].check == "link"
+        assert published[1].reason == (
+            "F26E-001 has no active link; not held to wait for it: 1 orders already wait for"
+            " a link (max_waiting)"
+        )
+
     async def test_an_order_before_the_airframe_is_heard_is_flown_once_it_is(self) -> None:
         commander = Commander(linked=False)
 
