@@ -900,6 +900,16 @@ class OrdersProcessor:
                 running.plan = planned
                 running.replanned_s = now_s
                 self.counts["track_replanned"] = self.counts.get("track_replanned", 0) + 1
+                # At most once every track_replan_s per order: the operator's trace of it.
+                self.log.info(
+                    "order_replanned",
+                    order_id=running.order.order_id,
+                    airframe=airframe,
+                    track_id=running.track_id,
+                    lat_deg=round(to.lat_deg, 6),
+                    lon_deg=round(to.lon_deg, 6),
+                    moved_m=round(moved_m, 1),
+                )
                 kept = self._kept(running.order)
                 kept.items, kept.reached = planned.items, -1
                 self._save(kept)

@@ -17,6 +17,7 @@ from typing import Any, Literal
 import anyio
 import numpy as np
 import pytest
+import structlog.testing
 
 from gateway.domain.mission import (
     Loiter,
@@ -657,16 +658,19 @@ class TestProcessor:
         def move(c: Commander) -> list[Event]:
             return [moved, telemetry()]
 
-        published = await run_orders(
-            commander,
-            [telemetry(), first, follow],
-            options={"track_replan_s": 0.05},
-            after=move,
-            until=lambda s: len(commander.uploads) >= 2,
-        )
+        with structlog.testing.capture_logs() as logs:
+            published = await run_orders(
+                commander,
+                [telemetry(), first, follow],
+                options={"track_replan_s": 0.05},
+                after=move,
+                until=lambda s: len(commander.uploads) >= 2,
+            )
         assert states(published) == ["accepted", "executing"]
         second = commander.uploads[1][1][-1]
         assert (second.lat_deg, second.lon_deg) == (65.86, 21.14)
+        (replanned,) = [line for line in logs if line["event"] == "order_replanned"]
+        assert (replanned["track_id"], replanned["lat_deg"]) == ("T-7", 65.86)
         published = await run_orders(
             Commander(),
             [telemetry(), first, follow, lost],
