@@ -78,7 +78,7 @@ def add_order_parser(sub: Any) -> None:
     where.add_argument("--point", nargs=2, type=_number, metavar=("LAT", "LON"))
     where.add_argument("--mgrs", help="an MGRS reference, 1/10/100 m")
     where.add_argument("--polygon", nargs="+", type=_corner, metavar="LAT,LON")
-    order.add_argument("--alt-msl-m", type=_number, help="commanded altitude (with --point)")
+    order.add_argument("--alt-msl-m", type=_number, help="commanded altitude (with --point only)")
     order.add_argument("--airframe", help="the airframe tasked; default: any suitable")
     order.add_argument("--order-id", help="default: op-<random>")
     order.add_argument("--issuer", default="local operator")
@@ -137,6 +137,15 @@ def order_command(args: argparse.Namespace, out: TextIO, err: TextIO) -> int:
         return _status_of(args, out, err)
     if args.task is None or (args.point, args.mgrs, args.polygon) == (None, None, None):
         print("order: --task and one of --point, --mgrs, --polygon are required", file=err)
+        return EXIT_UNREACHABLE
+    if args.alt_msl_m is not None and args.point is None:
+        # The order format carries an altitude on a point only: dropping it unsaid would fly
+        # the area or grid reference at the airframe's current altitude.
+        print(
+            "order: --alt-msl-m is taken with --point only; an --mgrs or --polygon order is "
+            "flown at the airframe's current altitude",
+            file=err,
+        )
         return EXIT_UNREACHABLE
     document = _document(args)
     try:

@@ -514,12 +514,18 @@ class OrdersProcessor:
         if isinstance(chosen, Refusal):
             if self._may_wait(order, chosen):
                 return
+            reason = chosen.reason
+            if chosen.check == "link":  # not held: the waiting list is full
+                reason += (
+                    f"; not held to wait for it: {self.config.max_waiting} orders already"
+                    " wait for a link (max_waiting)"
+                )
             self._report(
                 order,
                 OrderState.REJECTED,
                 airframe,
                 check=chosen.check,
-                reason=chosen.reason,
+                reason=reason,
                 phase="done",
             )
             return
@@ -923,6 +929,16 @@ class OrdersProcessor:
                 running.plan = planned
                 running.replanned_s = now_s
                 self.counts["track_replanned"] = self.counts.get("track_replanned", 0) + 1
+                # At most once every track_replan_s per order: the operator's trace of it.
+                self.log.info(
+                    "order_replanned",
+                    order_id=running.order.order_id,
+                    airframe=airframe,
+                    track_id=running.track_id,
+                    lat_deg=round(to.lat_deg, 6),
+                    lon_deg=round(to.lon_deg, 6),
+                    moved_m=round(moved_m, 1),
+                )
                 kept = self._kept(running.order)
                 kept.items, kept.reached = planned.items, -1
                 self._save(kept)

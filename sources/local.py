@@ -266,7 +266,14 @@ class LocalOrderSource:
                 # its connection now, not at the order's next status, which may never come.
                 tg.start_soon(_until_hangup, stream, tg.cancel_scope)
                 async for status in receive:
-                    await _say(stream, _line(status))
+                    try:
+                        await _say(stream, _line(status))
+                    except (anyio.BrokenResourceError, anyio.ClosedResourceError):
+                        # Hung up before the hang-up was seen: inside the task group this
+                        # would leave as an exception group, past _serve, ending the source.
+                        self.counts["client_gone"] += 1
+                        tg.cancel_scope.cancel()
+                        break
                     if status.status in _FINAL:
                         tg.cancel_scope.cancel()
                         break

@@ -137,8 +137,16 @@ class FleetCommander:
         return airframe in self._sessions
 
     def is_linked(self, airframe: str) -> bool:
-        """True if ``airframe`` has an active link."""
-        return airframe in self._sessions and self._linked(airframe)
+        """True if ``airframe`` has an active link and its modes are known: its flight
+        controller's HEARTBEAT was heard since the gateway started (which autopilot, plane or
+        copter), or its config names an autopilot whose numbers need neither (``px4``,
+        ``mavlink``). Position and battery state can come before the first HEARTBEAT (after a
+        restart, or as the link comes up): an order started then would get the fallback's
+        mode numbers (PX4's to an ArduPilot: refused)."""
+        session = self._sessions.get(airframe)
+        if session is None or not self._linked(airframe):
+            return False
+        return airframe in self._heard or session.config.autopilot in ("px4", "mavlink")
 
     def home(self, airframe: str) -> tuple[float, float] | None:
         """The home (lat, lon) the airframe last reported, if any."""

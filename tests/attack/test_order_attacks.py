@@ -525,3 +525,99 @@ processors:
         )
         assert done.returncode == 2
         assert expected in done.stdout.decode() + done.stderr.decode()
+
+
+def test_clients_gone_as_their_status_comes_end_only_their_connections(tmp_path: Path) -> None:
+    """Clients that read ``received`` and hang up at once, as the processor's ``waiting``
+    comes (the airframe is not heard): writing it fails before the hang-up is seen. Each
+    such client ends only its own connection; the source never fails (it did, and its
+    socket vanished while it restarted), and the statuses are kept for ``--status``."""
+    link = free_udp_port()
+    sock = tmp_path / "orders.sock"
+    with running(write_config(tmp_path, link, sock)) as daemon:
+        wait_until(sock.exists, 10.0, "the socket")
+        for n in range(100):
+            with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as raw:
+                raw.settimeout(10)
+                raw.connect(str(sock))
+                order = {
+                    "order_id": f"HANGUP-{n}",
+                    "issued": "2026-11-22T12:00:00Z",
+                    "airframe": "F26E-001",
+                    "task": "observe_point",
+                    "location": {"point": {"lat_deg": 65.84, "lon_deg": 21.01}},
+                }
+                raw.sendall(json.dumps(order).encode() + b"\n")
+                assert b'"received"' in raw.recv(65536)
+        code, lines = order_cli(
+            sock, "--task", "observe_point", "--point", "65.84", "21.01", "--airframe",
+            "F26E-001", "--order-id", "AFTER-1",
+        )  # fmt: skip
+        assert code == 3, lines  # waiting: the source still serves
+        code, lines = order_cli(sock, "--status", "HANGUP-99")
+        assert code == 0, lines
+        assert [line["status"] for line in lines] == ["waiting"]
+        assert daemon.events("source_failed") == []
+        assert '"client_gone"' in json.dumps(daemon.status())
+
+
+class SlowToIdentify(HostileAirframe):
+    """An ArduPlane whose position and battery state come before its first HEARTBEAT (as
+    after a restart of the node, or as the link comes up), and which answers honestly."""
+
+    def __init__(self, gateway_port: int) -> None:
+        super().__init__(gateway_port)
+        self.bogus_progress = False
+        self.identified = threading.Event()
+        self.uplink_before_heartbeat: list[str] = []
+
+    def _telemetry(self) -> None:
+        if self.identified.is_set():  # ArduPilot (3), fixed wing (1), in GUIDED (15)
+            self.send(mav.MAVLink_heartbeat_message(1, 3, 128 | 1, 15, 4, 3))
+        self.send(
+            mav.MAVLink_global_position_int_message(
+                0, 658_300_000, 210_000_000, 500_000, 400_000, 0, 0, 0, 0
+            )
+        )
+        self.send(mav.MAVLink_sys_status_message(0, 0, 0, 500, 16000, 1000, 80, 0, 0, 0, 0, 0, 0))
+
+    def _answer(self, msg: Any) -> None:
+        if not self.identified.is_set():
+            self.uplink_before_heartbeat.append(msg.get_type())
+        super()._answer(msg)
+
+
+def test_an_airframe_is_tasked_with_the_modes_its_heartbeat_names_not_before_it(
+    tmp_path: Path,
+) -> None:
+    """An order waiting for an ArduPlane (no ``autopilot`` in the config; the processor's
+    fallback is PX4): its position and battery state come first, and the order waits on
+    until its HEARTBEAT; then it is started with ArduPlane's AUTO (10), never PX4's numbers,
+    which an ArduPilot refuses."""
+    link = free_udp_port()
+    sock = tmp_path / "orders.sock"
+    with running(write_config(tmp_path, link, sock)) as daemon:
+        wait_until(sock.exists, 10.0, "the socket")
+        code, lines = order_cli(
+            sock, "--task", "observe_point", "--point", "65.84", "21.01", "--airframe",
+            "F26E-001", "--order-id", "IDENT-1",
+        )  # fmt: skip
+        assert code == 3, lines
+        with SlowToIdentify(link) as airframe:
+            wait_until(
+                lambda: daemon.status()["airframes"][0].get("active_link") is not None,
+                30.0,
+                "the airframe linked",
+            )
+            # Heard, with a position and a battery state, for a while: nothing is sent yet.
+            time.sleep(1.0)  # some five telemetry rounds pass; the order must still wait
+            assert airframe.uplink == []
+            airframe.identified.set()
+            wait_until(
+                lambda: any(m.get_type() == "COMMAND_LONG" for m in airframe.uplink),
+                20.0,
+                "the start command",
+            )
+        assert airframe.uplink_before_heartbeat == []
+        starts = [m for m in airframe.uplink if m.get_type() == "COMMAND_LONG"]
+        assert {(m.command, m.param1, m.param2) for m in starts} == {(176, 1.0, 10.0)}

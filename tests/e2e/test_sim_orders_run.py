@@ -123,8 +123,13 @@ def fly(tmp_path: Path, autopilot: str, extra: str, on_task_s: float) -> Flown:
     sock = tmp_path / "orders.sock"
     config, archive = write_config(tmp_path, link, sock, extra, on_task_s)
     with running(config), simulator(link, autopilot):
+        # Its battery state and its HEARTBEAT (which names the autopilot: until then an
+        # airframe not configured with one is not tasked, and the order would wait first).
         wait_until(
-            lambda: any(e["endurance_remaining_min"] for e in telemetry(archive)),
+            lambda: (
+                any(e["endurance_remaining_min"] for e in telemetry(archive))
+                and any(e["autopilot"] is not None for e in telemetry(archive))
+            ),
             30.0,
             "the simulated airframe's telemetry",
         )

@@ -17,6 +17,7 @@ from typing import Any, Literal
 import anyio
 import numpy as np
 import pytest
+import structlog.testing
 
 from gateway.domain.mission import (
     Loiter,
@@ -469,6 +470,25 @@ class TestProcessor:
         assert published[1].reason.startswith("F26E-001 has no active link; waited ")
         assert "until the window's end at 2026-11-22T12:00:01+00:00" in published[1].reason
 
+    async def test_an_order_beyond_max_waiting_is_rejected_saying_the_list_is_full(
+        self,
+    ) -> None:
+        published = await run_orders(
+            Commander(linked=False),
+            [telemetry(), order("O-1"), order("O-2")],
+            options={"max_waiting": 1},
+            until=lambda s: len(s) >= 2,
+        )
+        assert [(s.order_id, s.status.value) for s in published] == [
+            ("O-1", "waiting"),
+            ("O-2", "rejected"),
+        ]
+        assert published[1].check == "link"
+        assert published[1].reason == (
+            "F26E-001 has no active link; not held to wait for it: 1 orders already wait for"
+            " a link (max_waiting)"
+        )
+
     async def test_an_order_before_the_airframe_is_heard_is_flown_once_it_is(self) -> None:
         commander = Commander(linked=False)
 
@@ -661,16 +681,19 @@ class TestProcessor:
         def move(c: Commander) -> list[Event]:
             return [moved, telemetry()]
 
-        published = await run_orders(
-            commander,
-            [telemetry(), first, follow],
-            options={"track_replan_s": 0.05},
-            after=move,
-            until=lambda s: len(commander.uploads) >= 2,
-        )
+        with structlog.testing.capture_logs() as logs:
+            published = await run_orders(
+                commander,
+                [telemetry(), first, follow],
+                options={"track_replan_s": 0.05},
+                after=move,
+                until=lambda s: len(commander.uploads) >= 2,
+            )
         assert states(published) == ["accepted", "executing"]
         second = commander.uploads[1][1][-1]
         assert (second.lat_deg, second.lon_deg) == (65.86, 21.14)
+        (replanned,) = [line for line in logs if line["event"] == "order_replanned"]
+        assert (replanned["track_id"], replanned["lat_deg"]) == ("T-7", 65.86)
         published = await run_orders(
             Commander(),
             [telemetry(), first, follow, lost],

@@ -263,3 +263,54 @@ def test_the_command_asks_for_the_statuses_of_an_order(tmp_path: Path) -> None:
     done = subprocess.run(command, capture_output=True, timeout=30, check=False)
     assert done.returncode == 2
     assert "--task and one of --point, --mgrs, --polygon are required" in done.stderr.decode()
+
+
+@pytest.mark.anyio
+async def test_a_client_gone_before_its_next_status_ends_only_its_connection(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A client that reads ``received`` and hangs up just as the next status comes: writing
+    that status fails (EPIPE) before the hang-up is noticed. Only that connection ends,
+    counted ``client_gone``; the source goes on serving (it failed, and its socket went
+    away while it restarted, before)."""
+    import sources.local as local
+
+    async def never_noticed(_stream: object, _scope: object) -> None:
+        await anyio.sleep_forever()  # the hang-up lost the race to the status
+
+    monkeypatch.setattr(local, "_until_hangup", never_noticed)
+    published: list[FiveLineOrder] = []
+
+    def publish(event: Event) -> bool:
+        assert isinstance(event, FiveLineOrder)
+        published.append(event)
+        return True
+
+    config = LocalOrderSourceConfig(socket=tmp_path / "o.sock")
+    source = LocalOrderSource("operator", config, publish)
+
+    def accepted(order: FiveLineOrder) -> OrderStatus:
+        return OrderStatus(
+            event_id=f"{order.event_id}-accepted",
+            order_event_id=order.event_id,
+            order_id=order.order_id,
+            source="operator",
+            time=order.time,
+            status=OrderState.ACCEPTED,
+        )
+
+    with anyio.fail_after(10):
+        async with anyio.create_task_group() as tg:
+            await tg.start(source.run)
+            async with await anyio.connect_unix(config.socket) as stream:
+                await stream.send(json.dumps(ORDER).encode() + b"\n")
+                assert json.loads(await stream.receive())["status"] == "received"
+            source.on_order_status(accepted(published[0]))
+            await anyio.wait_all_tasks_blocked()
+            assert source.counts["client_gone"] == 1
+            second = {**ORDER, "order_id": "OP-10"}
+            async with await anyio.connect_unix(config.socket) as stream:
+                await stream.send(json.dumps(second).encode() + b"\n")
+                assert json.loads(await stream.receive())["status"] == "received"
+            tg.cancel_scope.cancel()
+    assert [order.order_id for order in published] == ["OP-9", "OP-10"]

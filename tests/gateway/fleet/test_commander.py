@@ -221,6 +221,25 @@ async def test_the_autopilot_comes_from_the_config_then_the_heartbeat_then_the_c
     assert await plane.intents("px4") == PLANE
 
 
+def test_an_airframe_is_tasked_only_once_its_flight_controller_was_heard() -> None:
+    """Its position and battery state can come before its first HEARTBEAT (after a restart
+    of the gateway, or when the link comes up): until the HEARTBEAT the autopilot, hence the
+    mode numbers, are unknown, so the airframe is not yet linked for tasking; a ground
+    station's HEARTBEAT under its sysid does not count."""
+    heard = _Heard({})
+    assert not heard.is_linked("F26E-001")
+    heard.hear(8, 6)  # MAV_AUTOPILOT_INVALID: a ground station
+    assert not heard.is_linked("F26E-001")
+    heard.hear(3, 1)  # ArduPlane
+    assert heard.is_linked("F26E-001")
+    assert heard.autopilot("F26E-001", "px4") == ("ardupilot", "plane")
+    # Configured ArduPilot still needs the HEARTBEAT (plane or copter numbers); PX4's and
+    # plain MAVLink's numbers need neither.
+    assert not _Heard({"autopilot": "ardupilot"}).is_linked("F26E-001")
+    assert _Heard({"autopilot": "px4"}).is_linked("F26E-001")
+    assert _Heard({"autopilot": "mavlink"}).is_linked("F26E-001")
+
+
 def test_mode_commands_is_the_older_name_of_autopilot() -> None:
     from gateway.configfile import load_model_text
     from gateway.errors import ConfigError
