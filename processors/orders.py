@@ -23,7 +23,9 @@ command. The processor asks for these as intents (``upload_mission``, ``start_mi
 ``return_to_base``) and passes its ``mode_commands`` option on with them. Completion is the
 airframe's MISSION_ITEM_REACHED of the last item *and* its position there, with time on
 task at a final loiter (``processors._orderdone``); MISSION_CURRENT does not count. A
-return to base completes when the airframe reports itself disarmed.
+return to base completes when the airframe reports itself disarmed, or has held within
+``loiter_radius_m + acceptance_radius_m`` of home for ``home_hold_s`` (a fixed wing on RTL
+circles home armed).
 One order per airframe at a time: a newer accepted order supersedes the running one, which
 is reported ``failed`` saying so. A ``track_target`` order naming the ``track_id`` of a live
 fused track flies to that track's newest position and follows it: the orbit is planned,
@@ -152,6 +154,14 @@ class OrdersConfig(ProcessorConfig):
     max_waiting: int = Field(
         default=1000, ge=1, le=100_000, description="Orders waiting for a link at once, at most."
     )
+    home_hold_s: float = Field(
+        default=60.0,
+        gt=0,
+        le=86400,
+        description="How long an airframe that returned home but does not disarm (a fixed "
+        "wing circles home) must stay within loiter_radius_m + acceptance_radius_m of home "
+        "for return_to_base to complete.",
+    )
     acceptance_radius_m: float = Field(
         default=50.0,
         gt=0,
@@ -268,6 +278,8 @@ class _Running:
     #: After a restart: "upload" (start the upload over) or "check" (read the mission back).
     resumed: str | None = None
     reached: int = -1
+    #: For a return to base: since when (monotonic s) the airframe has been near home.
+    home_since: float | None = None
 
     @property
     def items(self) -> int:
@@ -878,7 +890,10 @@ class OrdersProcessor:
             return None
         progress = running.progress
         if running.items == 0:
-            missing = "the airframe had not landed (still armed)"
+            missing = (
+                "the airframe had neither landed (still armed) nor held near home for"
+                f" {self.config.home_hold_s:g} s"
+            )
         elif progress is not None:
             missing = progress.why_not(self._monotonic())
         else:
@@ -892,7 +907,15 @@ class OrdersProcessor:
         """Why the order is done ("" when it needs no saying), or None while it is not."""
         if running.items == 0:
             telemetry = self._telemetry.get(airframe)
-            return "" if telemetry is not None and telemetry.is_armed is False else None
+            if telemetry is not None and telemetry.is_armed is False:
+                return ""
+            since = running.home_since
+            if since is not None and self._monotonic() - since >= self.config.home_hold_s:
+                return (
+                    f"home reached: within {self._home_radius_m():.0f} m of it for"
+                    f" {self.config.home_hold_s:g} s, still armed"
+                )
+            return None
         if running.track_id is not None:
             if running.track_lost:
                 return f"track {running.track_id} was lost"
@@ -1010,11 +1033,28 @@ class OrdersProcessor:
             where = telemetry.position
             if running.progress is not None and where is not None:
                 running.progress.position(where.lat_deg, where.lon_deg, self._monotonic())
+            if running.items == 0 and where is not None:
+                self._near_home(telemetry.airframe, running, where.lat_deg, where.lon_deg)
             running.changed.set()
         if self._waiting:
             self._retry_waiting(telemetry.airframe)
         if telemetry.airframe in self._resuming:
             self._start_resumed(telemetry.airframe)
+
+    def _home_radius_m(self) -> float:
+        return self.config.loiter_radius_m + self.config.acceptance_radius_m
+
+    def _near_home(self, airframe: str, running: _Running, lat_deg: float, lon_deg: float) -> None:
+        """Follow a returning airframe's time near its home (never while home is unknown)."""
+        home = None if self._commander is None else self._commander.home(airframe)
+        if home is None:
+            running.home_since = None
+            return
+        distance_m, _ = distance_bearing(lat_deg, lon_deg, home[0], home[1])
+        if distance_m > self._home_radius_m():
+            running.home_since = None
+        elif running.home_since is None:
+            running.home_since = self._monotonic()
 
     def _on_mission(self, airframe: str, what: Literal["current", "reached"], seq: int) -> None:
         running = self._running.get(airframe)

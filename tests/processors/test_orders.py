@@ -611,6 +611,29 @@ class TestProcessor:
         assert commander.uploads == []
         assert commander.commands == [("F26E-001", "return", None, "px4")]
 
+    async def test_return_to_base_completes_once_held_near_home_armed(self) -> None:
+        """A fixed wing on RTL circles home armed: holding near home for home_hold_s is done."""
+        published = await run_orders(
+            Commander(),
+            [telemetry(at=(65.9, 21.3)), order(task=OrderTask.RETURN_TO_BASE)],
+            options={"home_hold_s": 0.2},
+            after=lambda c: [telemetry(at=(65.8305, 21.0005))],  # ~60 m from home
+            until=lambda s: any(x.status is OrderState.COMPLETED for x in s),
+        )
+        assert states(published) == ["accepted", "executing", "completed"]
+        assert published[-1].reason == "home reached: within 350 m of it for 0.2 s, still armed"
+
+    async def test_return_to_base_far_from_home_is_not_done(self) -> None:
+        deadline = time.monotonic() + 1.0  # ten times home_hold_s
+        published = await run_orders(
+            Commander(),
+            [telemetry(at=(65.9, 21.3)), order(task=OrderTask.RETURN_TO_BASE)],
+            options={"home_hold_s": 0.1},
+            after=lambda c: [telemetry(at=(65.9, 21.3))],  # still 16 km out
+            until=lambda s: time.monotonic() > deadline,
+        )
+        assert states(published) == ["accepted", "executing"]
+
     async def test_the_same_order_twice_is_answered_once(self) -> None:
         published = await run_orders(
             Commander(linked=False),
