@@ -345,6 +345,10 @@ class Autopilot:
         self._leg = _Leg()
         if changed and mode == "mission":
             self.outbox.append(self.mission_current())
+        if changed and mode == "rtl":
+            # Where it is going, as an autopilot publishes its home when it heads there: a
+            # ground station learns the home it had not asked for.
+            self.outbox.append(self.home_position())
         return int(mav.MAV_RESULT_ACCEPTED)
 
     # -- flying ---------------------------------------------------------------------------------
