@@ -12,7 +12,6 @@ The endpoints refuse hostile ``at`` values and tile addresses with a clear answe
 from __future__ import annotations
 
 import json
-import shutil
 import socket
 import time
 import urllib.error
@@ -25,23 +24,14 @@ from urllib.parse import quote
 
 import pytest
 from daemon_support import Airframe, Daemon, archive_events, free_udp_port, wait_until
+from map_browser import map_page
 from tile_support import write_mbtiles
-from tools import need, required
 
 pytestmark = pytest.mark.timeout(120)
 
 TILE_COLOUR = (214, 64, 170)
 THEN = {"airframe": (59.39, 18.27), "blue": (59.345, 18.21)}
 NOW = {"airframe": (59.42, 18.32), "blue": (59.36, 18.26)}
-CHROMIUM_FLAGS = [
-    "--headless",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-    "--no-first-run",
-]
 
 
 def cot_unit(lat: float, lon: float) -> bytes:
@@ -165,106 +155,72 @@ def test_the_slider_shows_the_picture_as_it_was_over_the_nodes_own_tiles(
     at = then + timedelta(seconds=2)  # the slider picks it to the second
     assert at + timedelta(seconds=1) < later, (then, later)
 
-    need("chromium")
-    if required("chromium"):
-        import playwright.sync_api as sync_api
-    else:
-        sync_api = pytest.importorskip("playwright.sync_api", reason="playwright (test extra)")
-    origin = node.url.rstrip("/")
-    requested: list[str] = []
-    foreign: list[str] = []
-
-    def only_the_node(route: Any) -> None:
-        requested.append(route.request.url)
-        if route.request.url.startswith(origin + "/"):
-            route.continue_()
-        else:
-            foreign.append(route.request.url)
-            route.abort()
-
-    with sync_api.sync_playwright() as playwright:
-        browser = playwright.chromium.launch(
-            executable_path=shutil.which("chromium"), headless=True, args=CHROMIUM_FLAGS
+    with map_page(node.url) as shown:
+        page, errors, foreign, requested = shown.page, shown.errors, shown.foreign, shown.requested
+        page.wait_for_function(
+            "() => fgMap.position('airframe', 'UAV-1') && fgMap.position('blue', 'PLT-9')"
         )
-        try:
-            page = browser.new_page(viewport={"width": 1280, "height": 800})
-            page.route("**/*", only_the_node)
-            errors: list[str] = []
-            page.on("pageerror", lambda exc: errors.append(str(exc)))
-            page.goto(node.url)
-            page.wait_for_function("() => window.fgMap && window.fgMap.state.snapshots >= 1")
-            page.wait_for_function(
-                "() => fgMap.position('airframe', 'UAV-1') && fgMap.position('blue', 'PLT-9')"
-            )
 
-            # The base map is the node's tiles: drawn where nothing else is, no world-atlas.
-            page.wait_for_function("() => fgMap.state.baseKind === 'tiles'")
-            page.wait_for_function(
-                """() => Array.from(document.querySelectorAll('img.leaflet-tile-loaded'))
-                      .filter(t => t.src.includes('/tiles/') && t.naturalWidth === 256)
-                      .length > 0"""
-            )
-            under = page.evaluate(
-                """() => { const m = document.getElementById('map').getBoundingClientRect();
-                  const x = m.left + 4, y = m.bottom - 30;
-                  return Array.from(document.querySelectorAll('img.leaflet-tile-loaded'))
-                    .filter(t => { const r = t.getBoundingClientRect();
-                      return r.left <= x && x < r.right && r.top <= y && y < r.bottom; })
-                    .map(t => t.src); }"""
-            )
-            assert any("/tiles/" in src for src in under), under
-            assert "Test tiles, not Lantmäteriet" in page.inner_text("#map")
-            assert not any("world-atlas" in url for url in requested)
+        # The base map is the node's tiles: drawn where nothing else is, no world-atlas.
+        page.wait_for_function("() => fgMap.state.baseKind === 'tiles'")
+        page.wait_for_function(
+            """() => Array.from(document.querySelectorAll('img.leaflet-tile-loaded'))
+                  .filter(t => t.src.includes('/tiles/') && t.naturalWidth === 256)
+                  .length > 0"""
+        )
+        under = page.evaluate(
+            """() => { const m = document.getElementById('map').getBoundingClientRect();
+              const x = m.left + 4, y = m.bottom - 30;
+              return Array.from(document.querySelectorAll('img.leaflet-tile-loaded'))
+                .filter(t => { const r = t.getBoundingClientRect();
+                  return r.left <= x && x < r.right && r.top <= y && y < r.bottom; })
+                .map(t => t.src); }"""
+        )
+        assert any("/tiles/" in src for src in under), under
+        assert "Test tiles, not Lantmäteriet" in page.inner_text("#map")
+        assert not any("world-atlas" in url for url in requested)
 
-            live = {
-                layer: page.evaluate(f"fgMap.position('{layer}', '{ident}')")
-                for layer, ident in (("airframe", "UAV-1"), ("blue", "PLT-9"))
-            }
-            for layer, (lat, lon) in NOW.items():
-                assert (live[layer]["lat"], live[layer]["lon"]) == (lat, lon)
+        live = {
+            layer: page.evaluate(f"fgMap.position('{layer}', '{ident}')")
+            for layer, ident in (("airframe", "UAV-1"), ("blue", "PLT-9"))
+        }
+        for layer, (lat, lon) in NOW.items():
+            assert (live[layer]["lat"], live[layer]["lon"]) == (lat, lon)
 
-            size = page.evaluate("fgMap.map.getSize()")
-            size = {"width": size["x"], "height": size["y"]}
-            # The operator drags the slider back to an instant between the two reports.
-            page.wait_for_selector("#time", state="visible")
-            value = page.evaluate("iso => fgMap.sliderValueFor(iso)", at.isoformat())
-            page.wait_for_function(
-                "v => Number(document.getElementById('time').max) > v", arg=value
+        size = page.evaluate("fgMap.map.getSize()")
+        size = {"width": size["x"], "height": size["y"]}
+        # The operator drags the slider back to an instant between the two reports.
+        page.wait_for_selector("#time", state="visible")
+        value = page.evaluate("iso => fgMap.sliderValueFor(iso)", at.isoformat())
+        page.wait_for_function("v => Number(document.getElementById('time').max) > v", arg=value)
+        page.locator("#time").fill(str(value))
+        page.wait_for_function("() => fgMap.state.mode === 'replay' && fgMap.state.replays >= 1")
+        page.wait_for_function("() => fgMap.position('airframe', 'UAV-1') !== null")
+        past = {
+            layer: page.evaluate(f"fgMap.position('{layer}', '{ident}')")
+            for layer, ident in (("airframe", "UAV-1"), ("blue", "PLT-9"))
+        }
+        for layer, (lat, lon) in THEN.items():
+            assert (past[layer]["lat"], past[layer]["lon"]) == (lat, lon), layer
+            moved = abs(past[layer]["x"] - live[layer]["x"]) + abs(
+                past[layer]["y"] - live[layer]["y"]
             )
-            page.locator("#time").fill(str(value))
-            page.wait_for_function(
-                "() => fgMap.state.mode === 'replay' && fgMap.state.replays >= 1"
-            )
-            page.wait_for_function("() => fgMap.position('airframe', 'UAV-1') !== null")
-            past = {
-                layer: page.evaluate(f"fgMap.position('{layer}', '{ident}')")
-                for layer, ident in (("airframe", "UAV-1"), ("blue", "PLT-9"))
-            }
-            for layer, (lat, lon) in THEN.items():
-                assert (past[layer]["lat"], past[layer]["lon"]) == (lat, lon), layer
-                moved = abs(past[layer]["x"] - live[layer]["x"]) + abs(
-                    past[layer]["y"] - live[layer]["y"]
-                )
-                assert moved >= 10, (layer, past[layer], live[layer])
-                assert 0 <= past[layer]["x"] <= size["width"], past[layer]  # in sight
-                assert 0 <= past[layer]["y"] <= size["height"], past[layer]
-            assert page.inner_text("#link") == "archive"
-            replay_at = datetime.fromisoformat(page.evaluate("fgMap.state.replayAt"))
-            assert abs((replay_at - at).total_seconds()) <= 1.5
-            page.screenshot(path=str(tmp_path / "map-replay.png"))
+            assert moved >= 10, (layer, past[layer], live[layer])
+            assert 0 <= past[layer]["x"] <= size["width"], past[layer]  # in sight
+            assert 0 <= past[layer]["y"] <= size["height"], past[layer]
+        assert page.inner_text("#link") == "archive"
+        replay_at = datetime.fromisoformat(page.evaluate("fgMap.state.replayAt"))
+        assert abs((replay_at - at).total_seconds()) <= 1.5
+        page.screenshot(path=str(tmp_path / "map-replay.png"))
 
-            # "Live" returns to the live picture.
-            page.click("#live")
-            page.wait_for_function(
-                "() => fgMap.state.mode === 'live' && fgMap.state.snapshots >= 2"
-            )
-            back = page.evaluate("fgMap.position('airframe', 'UAV-1')")
-            assert (back["lat"], back["lon"]) == NOW["airframe"]
-            page.wait_for_function("() => document.getElementById('link').textContent === 'live'")
-            assert errors == []
-            assert foreign == []
-        finally:
-            browser.close()
+        # "Live" returns to the live picture.
+        page.click("#live")
+        page.wait_for_function("() => fgMap.state.mode === 'live' && fgMap.state.snapshots >= 2")
+        back = page.evaluate("fgMap.position('airframe', 'UAV-1')")
+        assert (back["lat"], back["lon"]) == NOW["airframe"]
+        page.wait_for_function("() => document.getElementById('link').textContent === 'live'")
+        assert errors == []
+        assert foreign == []
 
 
 def test_hostile_times_and_tile_addresses_get_a_clear_refusal(node: Node) -> None:

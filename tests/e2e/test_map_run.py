@@ -37,7 +37,7 @@ from urllib.parse import urlsplit
 
 import pytest
 from daemon_support import Daemon, archive_events, free_udp_port, wait_until
-from tools import need, required
+from map_browser import map_page
 
 from gateway.sim.scenario import load_scenario
 from sinks.map.picture import entity_count
@@ -46,15 +46,6 @@ pytestmark = pytest.mark.timeout(150)
 
 SPEED = 6.0
 SYMBOL_LAYERS = ("airframe", "track", "blue", "cue")
-CHROMIUM_FLAGS = [
-    "--headless",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-    "--no-first-run",
-]
 
 
 def write_config(tmp_path: Path, link: int, cot: int) -> Path:
@@ -172,92 +163,66 @@ def picture(url: str) -> dict[str, Any]:
 def test_the_page_draws_the_picture_moves_a_track_and_shows_a_cue(
     node: Node, tmp_path: Path
 ) -> None:
-    need("chromium")
-    if required("chromium"):  # CI promised the browser test: no skip for a missing driver
-        import playwright.sync_api as sync_api
-    else:
-        sync_api = pytest.importorskip("playwright.sync_api", reason="playwright (test extra)")
-    origin = node.url.rstrip("/")
-    foreign: list[str] = []
+    with map_page(node.url) as shown:
+        page, errors, foreign = shown.page, shown.errors, shown.foreign
+        page.wait_for_function("() => window.fgMap.state.baseMap === true")
+        assert page.evaluate("fgMap.state.baseKind") == "world-atlas"
 
-    def only_the_node(route: Any) -> None:
-        if route.request.url.startswith(origin + "/"):
-            route.continue_()
-        else:
-            foreign.append(route.request.url)
-            route.abort()
-
-    with sync_api.sync_playwright() as playwright:
-        browser = playwright.chromium.launch(
-            executable_path=shutil.which("chromium"), headless=True, args=CHROMIUM_FLAGS
+        # A track's symbol moves when the track does.
+        page.wait_for_function("() => window.fgMap.ids('track').length > 0", timeout=60_000)
+        track_id = page.evaluate("window.fgMap.ids('track')[0]")
+        before = page.evaluate("id => window.fgMap.position('track', id)", track_id)
+        page.wait_for_function(
+            """([id, x, y]) => {
+                const p = window.fgMap.position('track', id);
+                return p === null || Math.hypot(p.x - x, p.y - y) >= 2;
+            }""",
+            arg=[track_id, before["x"], before["y"]],
+            timeout=60_000,
         )
-        try:
-            page = browser.new_page(viewport={"width": 1280, "height": 800})
-            page.route("**/*", only_the_node)
-            errors: list[str] = []
-            page.on("pageerror", lambda exc: errors.append(str(exc)))
-            page.goto(node.url)
-            page.wait_for_function("() => window.fgMap && window.fgMap.state.snapshots >= 1")
-            page.wait_for_function("() => window.fgMap.state.baseMap === true")
-            assert page.evaluate("fgMap.state.baseKind") == "world-atlas"
+        after = page.evaluate("id => window.fgMap.position('track', id)", track_id)
+        if after is not None:  # else it was lost or merged meanwhile: removed, not stuck
+            assert (after["lat"], after["lon"]) != (before["lat"], before["lon"])
 
-            # A track's symbol moves when the track does.
-            page.wait_for_function("() => window.fgMap.ids('track').length > 0", timeout=60_000)
-            track_id = page.evaluate("window.fgMap.ids('track')[0]")
-            before = page.evaluate("id => window.fgMap.position('track', id)", track_id)
-            page.wait_for_function(
-                """([id, x, y]) => {
-                    const p = window.fgMap.position('track', id);
-                    return p === null || Math.hypot(p.x - x, p.y - y) >= 2;
-                }""",
-                arg=[track_id, before["x"], before["y"]],
-                timeout=60_000,
+        # A GUTE II cue appears, with its battery's symbol.
+        page.wait_for_selector(".fg-layer-cue", timeout=60_000)
+        assert "GUTE-1" in page.inner_text("#cues")
+
+        # The symbols drawn are the picture's entities, compared at one seq.
+        matched = None
+        for _ in range(200):
+            drawn = page.evaluate(
+                "({seq: window.fgMap.state.seq, symbols: window.fgMap.symbols()})"
             )
-            after = page.evaluate("id => window.fgMap.position('track', id)", track_id)
-            if after is not None:  # else it was lost or merged meanwhile: removed, not stuck
-                assert (after["lat"], after["lon"]) != (before["lat"], before["lon"])
+            current = picture(node.url)
+            if current["seq"] == drawn["seq"]:
+                matched = (drawn["symbols"], entity_count(current["layers"], SYMBOL_LAYERS))
+                break
+            time.sleep(0.05)
+        assert matched is not None, "the page never caught up with the picture"
+        assert matched[0] == matched[1]
+        assert matched[0] > 0
 
-            # A GUTE II cue appears, with its battery's symbol.
-            page.wait_for_selector(".fg-layer-cue", timeout=60_000)
-            assert "GUTE-1" in page.inner_text("#cues")
+        # A symbol's tooltip is its entity, as text.
+        page.hover(".fg-layer-airframe", force=True)
+        tooltip = page.wait_for_selector(".leaflet-tooltip")
+        assert tooltip is not None
+        assert "battery" in tooltip.inner_text()
 
-            # The symbols drawn are the picture's entities, compared at one seq.
-            matched = None
-            for _ in range(200):
-                drawn = page.evaluate(
-                    "({seq: window.fgMap.state.seq, symbols: window.fgMap.symbols()})"
-                )
-                current = picture(node.url)
-                if current["seq"] == drawn["seq"]:
-                    matched = (drawn["symbols"], entity_count(current["layers"], SYMBOL_LAYERS))
-                    break
-                time.sleep(0.05)
-            assert matched is not None, "the page never caught up with the picture"
-            assert matched[0] == matched[1]
-            assert matched[0] > 0
+        page.mouse.move(640, 400)
+        page.wait_for_function(
+            "() => document.getElementById('mgrs').textContent.startsWith('MGRS 3')"
+        )
+        page.screenshot(path=str(tmp_path / "map.png"))
+        keep = os.environ.get("FG_MAP_SCREENSHOT")
+        if keep:
+            shutil.copyfile(tmp_path / "map.png", keep)
 
-            # A symbol's tooltip is its entity, as text.
-            page.hover(".fg-layer-airframe", force=True)
-            tooltip = page.wait_for_selector(".leaflet-tooltip")
-            assert tooltip is not None
-            assert "battery" in tooltip.inner_text()
-
-            page.mouse.move(640, 400)
-            page.wait_for_function(
-                "() => document.getElementById('mgrs').textContent.startsWith('MGRS 3')"
-            )
-            page.screenshot(path=str(tmp_path / "map.png"))
-            keep = os.environ.get("FG_MAP_SCREENSHOT")
-            if keep:
-                shutil.copyfile(tmp_path / "map.png", keep)
-
-            # The time slider: a second after the first cue, the cued track was where the
-            # archive says it was then, and the cue stood.
-            go_back_in_time(page, node)
-            assert errors == []
-            assert foreign == []
-        finally:
-            browser.close()
+        # The time slider: a second after the first cue, the cued track was where the
+        # archive says it was then, and the cue stood.
+        go_back_in_time(page, node)
+        assert errors == []
+        assert foreign == []
 
 
 def go_back_in_time(page: Any, node: Node) -> None:
