@@ -33,6 +33,7 @@ OPTIONS: dict[str, Any] = {
     "nffi": lambda tmp: {"path": str(tmp / "contract.nffi.xml")},
     "klv": lambda tmp: {"udp": {"host": "127.0.0.1", "port": 9}},
     "ra180": lambda tmp: {"udp": {"host": "127.0.0.1", "port": 9}},
+    "map": lambda tmp: {"port": 0},  # a free port on loopback, not the default 8780
 }
 
 
