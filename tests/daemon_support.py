@@ -12,6 +12,7 @@ import hashlib
 import http.client
 import json
 import os
+import random
 import resource
 import signal
 import socket
@@ -40,16 +41,38 @@ def utc_now() -> datetime:
     return datetime.now(UTC)
 
 
+#: Ports handed out below the kernel's ephemeral range (32768-60999 on Linux): a port the
+#: kernel picked by ``bind(0)`` is given again to the next process that sends without binding
+#: (any client on the machine), which can take it between this test choosing it and the daemon
+#: binding it. The kernel never picks these on its own, so only a process that names them can.
+_PORT_RANGE = (20_000, 32_000)
+_handed_out: set[int] = set()
+_rng = random.Random(os.getpid() ^ time.monotonic_ns())
+
+
+def _free_port(kind: int) -> int:
+    for _ in range(1_000):
+        port = _rng.randrange(*_PORT_RANGE)
+        if port in _handed_out:
+            continue
+        with socket.socket(socket.AF_INET, kind) as sock:
+            try:
+                sock.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+        _handed_out.add(port)
+        return port
+    raise RuntimeError(f"no free port in {_PORT_RANGE}")
+
+
 def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
+    """A UDP port on 127.0.0.1 that nothing holds now and no other test here was given."""
+    return _free_port(socket.SOCK_DGRAM)
 
 
 def free_tcp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
+    """A TCP port on 127.0.0.1 that nothing holds now and no other test here was given."""
+    return _free_port(socket.SOCK_STREAM)
 
 
 def write_key(path: Path, key: bytes) -> Path:

@@ -31,6 +31,7 @@ from pathlib import Path
 from types import TracebackType
 
 import pytest
+from daemon_support import free_tcp_port
 from tools import required
 
 __all__ = [
@@ -73,9 +74,7 @@ NEEDS_DEBIAN_NATS = pytest.mark.skipif(
 
 
 def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
+    return free_tcp_port()
 
 
 class NatsServer:

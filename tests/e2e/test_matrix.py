@@ -40,6 +40,7 @@ import mgrs
 import pytest
 import trustme
 from anyio.streams.tls import TLSListener
+from daemon_support import free_tcp_port, free_udp_port
 from geographiclib.geodesic import Geodesic
 from gute_peer import GutePeer
 from lxml import etree
@@ -65,9 +66,7 @@ SLB_ORDER = {
 
 
 def free_port(kind: int) -> int:
-    with socket.socket(socket.AF_INET, kind) as probe:
-        probe.bind(("127.0.0.1", 0))
-        return int(probe.getsockname()[1])
+    return free_udp_port() if kind == socket.SOCK_DGRAM else free_tcp_port()
 
 
 def control(kind: str, detail: str) -> bytes:

@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import math
-import socket
 from contextlib import aclosing
 
 import anyio
 import pytest
+from daemon_support import free_udp_port
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
 from gateway.app import Gateway
@@ -17,12 +17,6 @@ from gateway.testing import eventually
 
 mavsdk = pytest.importorskip("mavsdk.asyncio")
 telemetry_plugin = pytest.importorskip("mavsdk.asyncio.plugins.telemetry")
-
-
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 @pytest.mark.parametrize("anyio_backend", [("asyncio", {})], ids=["asyncio"])

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import hashlib
-import socket
 import time
 from datetime import UTC, datetime
 from pathlib import Path
@@ -11,6 +10,7 @@ from typing import Any
 
 import anyio
 import pytest
+from daemon_support import free_udp_port
 from pymavlink.dialects.v20 import ardupilotmega as mav
 from structlog.testing import capture_logs
 
@@ -25,12 +25,6 @@ from gateway.fleet.security.signing import mavlink_timestamp_now
 from gateway.fleet.security.tunnel import DayKeys, Sealer, TunnelOpener, derive_day_key
 from gateway.sim.airframe import SimulatedAirframe
 from gateway.testing import MemorySink, eventually
-
-
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 def write_key(path: Path, data: bytes, mode: int = 0o600) -> Path:
