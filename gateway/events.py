@@ -32,6 +32,8 @@ from pydantic import (
 )
 
 __all__ = [
+    "ALT_MAX_M",
+    "ALT_MIN_M",
     "BOOT_ID",
     "DURABLE_KINDS",
     "EXTENSION_DATA_MAX_BYTES",
@@ -71,6 +73,7 @@ __all__ = [
     "event_adapter",
     "event_id",
     "latest_key",
+    "plausible_alt",
 ]
 
 BOOT_ID = secrets.token_hex(4)
@@ -153,6 +156,18 @@ DURABLE_KINDS: frozenset[EventKind] = frozenset(EventKind) - LATEST_WINS_KINDS
 _FROZEN = ConfigDict(frozen=True, extra="forbid", use_attribute_docstrings=True)
 
 
+#: The altitudes (metres, MSL or HAE) a position may hold: below the lowest dry land and the
+#: deepest a sensor reports from, to the edge of space. Outside is a corrupt or hostile value
+#: (a float's 3e38 from a link), never a place: sources refuse it, the normaliser drops it.
+ALT_MIN_M = -12_000.0
+ALT_MAX_M = 100_000.0
+
+
+def plausible_alt(value: float) -> float | None:
+    """``value`` if it is a finite altitude within ``ALT_MIN_M``..``ALT_MAX_M``, else None."""
+    return value if ALT_MIN_M <= value <= ALT_MAX_M else None  # NaN compares False
+
+
 class Position(BaseModel):
     """A WGS 84 position. Altitudes are metres; any of them may be unknown."""
 
@@ -162,12 +177,12 @@ class Position(BaseModel):
     """Latitude, degrees north (WGS 84)."""
     lon_deg: float = Field(ge=-180.0, le=180.0)
     """Longitude, degrees east (WGS 84)."""
-    alt_msl_m: float | None = None
+    alt_msl_m: float | None = Field(default=None, ge=ALT_MIN_M, le=ALT_MAX_M)
     """Altitude above mean sea level, metres; None when unknown."""
-    alt_hae_m: float | None = None
+    alt_hae_m: float | None = Field(default=None, ge=ALT_MIN_M, le=ALT_MAX_M)
     """Height above the WGS 84 ellipsoid, metres; None when unknown (telemetry sets it once GPS
     has given the geoid separation)."""
-    alt_rel_home_m: float | None = None
+    alt_rel_home_m: float | None = Field(default=None, ge=-ALT_MAX_M, le=ALT_MAX_M)
     """Altitude above the airframe's home, metres; None when unknown."""
 
 

@@ -22,6 +22,7 @@ from gateway.clock import Clock
 from gateway.domain.energy import EnergyProfile, EwMode, endurance_remaining_min
 from gateway.domain.terrain import TerrainModel, agl_from_msl, agl_sigma
 from gateway.events import (
+    ALT_MAX_M,
     BOOT_ID,
     Attitude,
     Detection,
@@ -31,6 +32,7 @@ from gateway.events import (
     Velocity,
     checked,
     event_id,
+    plausible_alt,
 )
 from gateway.fleet.dialect import CLASS_NAMES, SENSOR_NAMES
 from gateway.fleet.mavlink import MavMessage
@@ -197,14 +199,17 @@ class AirframeState:
         if msg.lat == 0 and msg.lon == 0:
             f["position"] = None
         else:
-            alt_msl_m = msg.alt / 1000.0
+            alt_msl_m = plausible_alt(msg.alt / 1000.0)
             sep = self._geoid_sep_m
+            rel = msg.relative_alt / 1000.0
             f["position"] = Position(
                 lat_deg=msg.lat / 1e7,
                 lon_deg=msg.lon / 1e7,
                 alt_msl_m=alt_msl_m,
-                alt_hae_m=None if sep is None else alt_msl_m + sep,
-                alt_rel_home_m=msg.relative_alt / 1000.0,
+                alt_hae_m=None
+                if sep is None or alt_msl_m is None
+                else plausible_alt(alt_msl_m + sep),
+                alt_rel_home_m=rel if -ALT_MAX_M <= rel <= ALT_MAX_M else None,
             )
         f["velocity"] = Velocity(
             north_mps=msg.vx / 100.0, east_mps=msg.vy / 100.0, down_mps=msg.vz / 100.0
@@ -299,7 +304,7 @@ def detection_from(airframe: str, msg: MavMessage, now: datetime) -> Detection |
         position=Position(
             lat_deg=lat,
             lon_deg=lon,
-            alt_msl_m=msg.alt_msl if math.isfinite(msg.alt_msl) else None,
+            alt_msl_m=plausible_alt(msg.alt_msl),
         ),
         sigma_h_m=float(sigma),
     )

@@ -30,7 +30,14 @@ from gateway.domain.lookat import (
     relative_pointing,
 )
 from gateway.domain.terrain import TerrainModel
-from gateway.events import BOOT_ID, Attitude, Position, VideoFrameMetadata, event_id
+from gateway.events import (
+    BOOT_ID,
+    Attitude,
+    Position,
+    VideoFrameMetadata,
+    event_id,
+    plausible_alt,
+)
 from gateway.fleet.mavlink import MavMessage
 from gateway.fleet.normalise import AirframeState
 
@@ -138,7 +145,11 @@ class CameraView:
         if cam is not None:
             lat, lon = _degrees_e7(int(cam.lat_camera)), _degrees_e7(int(cam.lon_camera))
             if lat is not None and lon is not None and -90 <= lat <= 90 and -180 <= lon <= 180:
-                alt = None if int(cam.alt_camera) == _INT32_MAX else cam.alt_camera / 1000.0
+                alt = (
+                    None
+                    if int(cam.alt_camera) == _INT32_MAX
+                    else plausible_alt(cam.alt_camera / 1000.0)
+                )
                 sensor = Position(lat_deg=lat, lon_deg=lon, alt_msl_m=alt)
         if sensor is None:
             return None
@@ -205,7 +216,11 @@ class CameraView:
         if cam is not None:
             lat, lon = _degrees_e7(int(cam.lat_image)), _degrees_e7(int(cam.lon_image))
             if lat is not None and lon is not None and -90 <= lat <= 90 and -180 <= lon <= 180:
-                alt = None if int(cam.alt_image) == _INT32_MAX else cam.alt_image / 1000.0
+                alt = (
+                    None
+                    if int(cam.alt_image) == _INT32_MAX
+                    else plausible_alt(cam.alt_image / 1000.0)
+                )
                 fields["frame_centre"] = Position(lat_deg=lat, lon_deg=lon, alt_msl_m=alt)
                 fields["frame_centre_source"] = "camera"
                 if alt is not None and sensor.alt_msl_m is not None:

@@ -43,7 +43,7 @@ from gateway.c2.newest import NewestTimes
 from gateway.c2.source import SourceConfig
 from gateway.clock import utc_now
 from gateway.domain.peertext import safe_text
-from gateway.events import BlueForce, Event, Position, Provenance, event_id
+from gateway.events import BlueForce, Event, Position, Provenance, event_id, plausible_alt
 from gateway.ops.logsetup import RateLimit
 from gateway.transports.udp import is_multicast
 from sinks.cot.stream import CotStreamServer
@@ -292,7 +292,7 @@ def _blue_force(cot: ParsedCot, source_name: str) -> BlueForce:
         position=Position(
             lat_deg=cot.lat,
             lon_deg=cot.lon,
-            alt_hae_m=None if is_unknown(cot.hae) else cot.hae,
+            alt_hae_m=None if is_unknown(cot.hae) else plausible_alt(cot.hae),
         ),
         source="cot",
         source_name=source_name,

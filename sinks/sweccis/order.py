@@ -19,7 +19,15 @@ from typing import TypeVar
 from pydantic import ValidationError
 
 from gateway.domain.geodesy import MgrsError, from_mgrs
-from gateway.events import FiveLineOrder, OrderArea, OrderPriority, OrderTask, Position
+from gateway.events import (
+    ALT_MAX_M,
+    ALT_MIN_M,
+    FiveLineOrder,
+    OrderArea,
+    OrderPriority,
+    OrderTask,
+    Position,
+)
 from sinks.sweccis.fasxml import Node
 
 __all__ = ["EVENT_ID_PREFIX", "decode_order"]
@@ -45,7 +53,7 @@ _FIELDS = {
 }
 _Choice = TypeVar("_Choice", OrderTask, OrderPriority)
 _POINT = frozenset({"latDeg", "lonDeg", "altMslM", "altHaeM"})
-_ALT = (-100_000.0, 1_000_000.0)
+_ALT = (ALT_MIN_M, ALT_MAX_M)
 
 
 def _one(node: Node, kids: dict[str, list[Node]], name: str) -> Node:

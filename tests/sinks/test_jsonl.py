@@ -19,6 +19,8 @@ from structlog.testing import capture_logs
 
 from gateway.errors import TransientSinkError
 from gateway.events import (
+    ALT_MAX_M,
+    ALT_MIN_M,
     BlueForce,
     Detection,
     Event,
@@ -497,8 +499,8 @@ maybe_finite = st.none() | finite
             Position,
             lat_deg=st.floats(-90, 90),
             lon_deg=st.floats(-180, 180),
-            alt_msl_m=maybe_finite,
-            alt_hae_m=maybe_finite,
+            alt_msl_m=st.none() | st.floats(ALT_MIN_M, ALT_MAX_M),
+            alt_hae_m=st.none() | st.floats(ALT_MIN_M, ALT_MAX_M),
         ),
         alt_agl_m=maybe_finite,
         heading_deg=maybe_finite,

@@ -9,12 +9,13 @@ from types import ModuleType
 import anyio
 import pytest
 from ack_peer import generate_dialect
+from pydantic import ValidationError
 from pymavlink.dialects.v20 import ardupilotmega as apm
 from test_ingest import make_ingest
 
 from gateway.app import Gateway
 from gateway.config import Config
-from gateway.events import Detection, Event
+from gateway.events import Detection, Event, Position
 from gateway.fleet.dialect import (
     FISCHER_DETECTION_ACK_CRC_EXTRA,
     FISCHER_DETECTION_ACK_RESULT_DUPLICATE,
@@ -106,6 +107,24 @@ def test_detection_becomes_a_durable_event() -> None:
     assert detection.confidence == pytest.approx(0.91)
     assert detection.position.lat_deg == pytest.approx(65.8352)
     assert detection.time == datetime(2026, 11, 22, 11, 59, 58, tzinfo=UTC)
+
+
+@pytest.mark.parametrize("alt", [3e38, -3e38, float("nan"), float("inf"), 150_000.0, -20_000.0])
+def test_an_impossible_altitude_is_unknown_not_a_place(alt: float) -> None:
+    """A link's float may hold anything: the detection keeps its place, not a 3e38 m height."""
+    ingest, events, _ = make_ingest(1)
+    args = (ARGS[0], ARGS[1], ARGS[2], ARGS[3], alt, *ARGS[5:])
+    ingest.on_data("l", "p", fischer_detection(*args).pack(apm.MAVLink(None, 1, 1)))
+    (detection,) = [e for e in events if isinstance(e, Detection)]
+    assert detection.position.alt_msl_m is None
+    assert detection.position.lat_deg == pytest.approx(65.8352)
+
+
+def test_an_altitude_out_of_range_is_refused_by_name() -> None:
+    with pytest.raises(ValidationError, match="alt_msl_m"):
+        Position(lat_deg=60.0, lon_deg=18.0, alt_msl_m=3e38)
+    with pytest.raises(ValidationError, match="alt_hae_m"):
+        Position(lat_deg=60.0, lon_deg=18.0, alt_hae_m=float("nan"))
 
 
 def test_impossible_detection_is_rejected_and_counted() -> None:

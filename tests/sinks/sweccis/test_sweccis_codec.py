@@ -20,6 +20,8 @@ from sweccis_peer import order_document
 from gateway.contract import sample_events
 from gateway.domain.geodesy import from_mgrs
 from gateway.events import (
+    ALT_MAX_M,
+    ALT_MIN_M,
     Attitude,
     Detection,
     EventKind,
@@ -352,7 +354,7 @@ def event_strategies(*, sane: bool) -> st.SearchStrategy[Any]:
         chars = st.characters(codec="utf-8")
         number = st.floats(allow_nan=True, allow_infinity=True)
         ids = st.text(st.characters(min_codepoint=1, max_codepoint=0x10FFFF), max_size=30)
-        alt = st.floats(-2e6, 2e6)
+        alt = st.floats(ALT_MIN_M, ALT_MAX_M)  # a Position holds no other
         fix, sats, modes = st.integers(-1, 12), st.integers(-1, 300), st.integers(-1, 2**33)
         ew = st.sampled_from(["permissive", "active", "heavy", "off"])
     texts = st.text(chars, max_size=64 if sane else 80)
