@@ -44,6 +44,7 @@ from gateway.flow.processors import ProcessorRunner
 from gateway.flow.tasking import TaskingProcessor
 from gateway.ops.health import HealthServer
 from gateway.ops.instruments import Instruments
+from gateway.ops.origins import RemoteOrigins
 from gateway.ops.pluginstatus import read_status
 from gateway.ops.sdnotify import SystemdNotifier
 from gateway.ops.supervise import Supervised, supervise
@@ -203,10 +204,13 @@ class Gateway:
         )
         self.sources: list[Source] = []
         self._source_publish: list[SourcePublish] = []
+        #: Other nodes' events the sources put on the bus, per node and airframe (/status).
+        self.remote = RemoteOrigins(clock=clock)
+        remote_publish = self.remote.wrap(self.bus.publish)
         for source_entry in config.sources:
             component = load_component(SOURCE_GROUP, source_entry.type)
             options = component.model.model_validate(source_entry.options)
-            publish = SourcePublish(source_entry.name, pinned, own, self.bus.publish)
+            publish = SourcePublish(source_entry.name, pinned, own, remote_publish)
             self._source_publish.append(publish)
             self.sources.append(component.factory(source_entry.name, options, publish, clock=clock))
         self._source_records = [Supervised(s.name) for s in self.sources]
@@ -416,6 +420,7 @@ class Gateway:
                 )
             ],
             "unknown_sysids": fleet["unknown_sysids"],
+            "remote": self.remote.status(),
             "sinks": [runner.status() for runner in self.runners.values()],
             "spool": {
                 # failing: writes do not commit now; recovered_with_loss: this start could

@@ -42,6 +42,7 @@ __all__ = [
     "EXTENSION_TYPE_PATTERN",
     "LATEST_WINS_KINDS",
     "MAX_DECLARED_EXTENSIONS",
+    "MAX_TRACK_NODES",
     "Attitude",
     "BlueForce",
     "BlueSourceCount",
@@ -154,6 +155,11 @@ LATEST_WINS_KINDS: frozenset[EventKind] = frozenset(
 DURABLE_KINDS: frozenset[EventKind] = frozenset(EventKind) - LATEST_WINS_KINDS
 
 _FROZEN = ConfigDict(frozen=True, extra="forbid", use_attribute_docstrings=True)
+
+#: A track names at most this many other nodes whose detections contributed to it.
+MAX_TRACK_NODES = 16
+#: A gateway node's name in ``origin_node`` (the ``nats`` subject token of the node).
+_NODE_NAME = r"^[A-Za-z0-9_-]{1,32}$"
 
 
 #: The altitudes (metres, MSL or HAE) a position may hold: below the lowest dry land and the
@@ -290,7 +296,7 @@ class Telemetry(BaseModel):
     """HEARTBEAT ``system_status`` (MAVLink MAV_STATE)."""
     active_link: str | None = None
     """The label of the link the gateway uses for this airframe now; None when none is up."""
-    origin_node: str | None = Field(default=None, pattern=r"^[A-Za-z0-9_-]{1,32}$")
+    origin_node: str | None = Field(default=None, pattern=_NODE_NAME)
     """The gateway node this event came from when another node sent it (the ``nats`` source);
     None for this node's own. A node never sends on an event that carries one."""
 
@@ -350,7 +356,7 @@ class Detection(BaseModel):
     """Where the object is (latitude, longitude; altitude above MSL when given)."""
     sigma_h_m: float = Field(ge=0.0)
     """One-sigma horizontal position error, metres (ingest refuses one above 10 km)."""
-    origin_node: str | None = Field(default=None, pattern=r"^[A-Za-z0-9_-]{1,32}$")
+    origin_node: str | None = Field(default=None, pattern=_NODE_NAME)
     """The gateway node this event came from when another node sent it (the ``nats`` source);
     None for this node's own. A node never sends on an event that carries one."""
     late_by_s: float | None = Field(default=None, ge=0.0)
@@ -411,6 +417,11 @@ class Track(BaseModel):
     """How many detections contributed over the track's life."""
     airframes: tuple[str, ...] = ()
     """The airframes whose detections contributed, sorted."""
+    origin_nodes: tuple[Annotated[str, Field(pattern=_NODE_NAME)], ...] = Field(
+        default=(), max_length=MAX_TRACK_NODES
+    )
+    """The other gateway nodes whose detections contributed (their ``origin_node``), sorted, at
+    most 16 (the first 16 heard); empty when every detection was this node's own."""
     sensors: tuple[Sensor, ...] = ()
     """The sensors whose detections contributed, sorted."""
     first_seen: AwareDatetime

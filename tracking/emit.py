@@ -89,6 +89,7 @@ def track_event(
         detection_ids=tuple(state.detection_ids),
         detection_count=state.detection_count,
         airframes=_sorted(state.airframes),
+        origin_nodes=_sorted(state.nodes),
         sensors=_sorted(state.sensors),
         first_seen=state.first_seen,
         last_seen=state.last_seen,

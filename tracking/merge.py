@@ -60,6 +60,7 @@ def fold(
     old.detection_ids.extend(young.detection_ids)
     old.detection_count += young.detection_count
     old.airframes |= young.airframes
+    old.add_nodes(young.nodes)
     old.sensors |= young.sensors
     old.seen_by |= young.seen_by
     old.hits += young.hits

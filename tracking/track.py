@@ -24,7 +24,7 @@ from datetime import datetime
 from typing import Literal
 
 from gateway.domain.evidence import MassFunction, combine
-from gateway.events import Sensor
+from gateway.events import MAX_TRACK_NODES, Sensor
 from gateway.flow.localplane import displace, offset_m
 from tracking.kalman import POSITION, Estimate, Innovation
 
@@ -82,6 +82,9 @@ class TrackState:
     detection_ids: deque[str] = field(default_factory=lambda: deque(maxlen=32))
     detection_count: int = 0
     airframes: set[str] = field(default_factory=set)
+    #: The other nodes whose detections contributed (``Detection.origin_node``), the first
+    #: ``MAX_TRACK_NODES`` heard (``add_nodes``).
+    nodes: set[str] = field(default_factory=set)
     sensors: set[Sensor] = field(default_factory=set)
     sequence: int = 0
     emitted_s: float = -math.inf
@@ -95,6 +98,13 @@ class TrackState:
     #: What receivers were last shown: (lat, lon, v_east, v_north, UNIX time), from which they
     #: dead-reckon until the next event (``Tracker`` publishes early when that drifts).
     shown: tuple[float, float, float, float, float] | None = None
+
+    def add_nodes(self, nodes: set[str] | frozenset[str]) -> None:
+        """Take other nodes as contributors, up to ``MAX_TRACK_NODES`` in all."""
+        for node in sorted(nodes - self.nodes):
+            if len(self.nodes) >= MAX_TRACK_NODES:
+                return
+            self.nodes.add(node)
 
     def predicted(self, at_s: float, q: float) -> Estimate:
         """The filter carried to ``at_s`` (never backwards)."""

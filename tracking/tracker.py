@@ -399,6 +399,8 @@ class Tracker:
             state.subtypes[name] = d.subtype
         state.detection_ids.append(d.event_id)
         state.detection_count += 1
+        if d.origin_node is not None and d.origin_node not in state.nodes:
+            state.add_nodes({d.origin_node})
         if source not in state.seen_by:
             state.airframes.add(d.airframe)
             state.sensors.add(d.sensor)

@@ -221,6 +221,8 @@ def _telemetry(event: Telemetry, opts: CotOptions, own: Symbol) -> CotEvent | No
         remarks.append(f"AGL {event.alt_agl_m:.0f} m")
     if event.endurance_remaining_min is not None:
         remarks.append(f"endurance {event.endurance_remaining_min:.0f} min")
+    if event.origin_node is not None:
+        remarks.append(f"from node {event.origin_node}")
     return CotEvent(
         uid=own_uid(opts.uid_prefix, event.airframe),
         type=own.cot_type,
@@ -257,6 +259,8 @@ def _detection(event: Detection, opts: CotOptions, own_types: Mapping[str, str])
     hae, _ = _hae(event.position, opts.geoid)
     what = event.object_class + (f" {event.subtype}" if event.subtype else "")
     remarks = f"{event.sensor.value.upper()} detection: {what}, confidence {event.confidence:.2f}"
+    if event.origin_node is not None:
+        remarks += f"; from node {event.origin_node}"
     return CotEvent(
         uid=_uid(opts.uid_prefix, "det-", event.event_id),
         type=symbol.cot_type,
@@ -284,6 +288,8 @@ def _track(event: Track, opts: CotOptions, own_types: Mapping[str, str]) -> CotE
         f"{len(event.detection_ids)} detections, "
         f"CEP50 {event.cep50_m:.0f} m, CEP90 {event.cep90_m:.0f} m"
     )
+    if event.origin_nodes:
+        remarks += f"; detections from nodes {', '.join(event.origin_nodes)}"
     course = speed = None
     if event.velocity is not None:
         north, east = event.velocity.north_mps, event.velocity.east_mps

@@ -5,7 +5,8 @@ each a JSON-ready dict (docs/map.md §4): ``{"op": "upsert", "layer", "id", "dat
 entity's whole current state, or ``{"op": "remove", "layer", "id", "reason"}``. The layers:
 
 - ``airframe``: our airframes, from ``Telemetry`` (position, battery, endurance, active link)
-  and ``LinkState`` (each link's health);
+  and ``LinkState`` (each link's health), and other nodes' airframes (``origin_node``: the
+  node their state came from);
 - ``track``: fused tracks while they live, with a short bounded history of positions; a
   ``lost`` or ``merged`` track is removed;
 - ``blue``: friendly units (``BlueForce``);
@@ -73,6 +74,7 @@ _NO_TELEMETRY: dict[str, Any] = {
     "active_link": None,
     "armed": None,
     "links": {},
+    "origin_node": None,
 }
 
 
@@ -207,6 +209,7 @@ class Picture:
             "active_link": event.active_link,
             "armed": event.is_armed,
             "links": {} if old is None else old["links"],
+            "origin_node": event.origin_node,
         }
         return self._upsert("airframe", event.airframe, data)
 
@@ -255,6 +258,7 @@ class Picture:
             "course_deg": _round(event.course_deg),
             "speed_mps": _round(event.speed_mps),
             "airframes": list(event.airframes),
+            "origin_nodes": list(event.origin_nodes),
             "sensors": [s.value for s in event.sensors],
             "detection_count": event.detection_count,
             "history": [list(p) for p in history],
@@ -382,6 +386,7 @@ class Picture:
             "subtype": event.subtype,
             "confidence": round(event.confidence, 3),
             "sigma_h_m": _round(event.sigma_h_m),
+            "origin_node": event.origin_node,
         }
         return self._upsert("detection", event.event_id, data)
 

@@ -11,15 +11,24 @@ cut and ends in a hash of the whole id.
 from __future__ import annotations
 
 import hashlib
+import math
 import re
+from datetime import datetime, timedelta
 
+from pydantic import BaseModel
+
+from gateway.clock import utc_now
 from gateway.errors import GatewayError
 from gateway.events import Detection, Event, EventKind, Telemetry, event_adapter
 
 __all__ = [
     "KIND_TOKENS",
+    "MAX_AHEAD_S",
     "MAX_BODY_BYTES",
     "MAX_ID_CHARS",
+    "MAX_ITEMS",
+    "MAX_SIGMA_M",
+    "MAX_TEXT_CHARS",
     "MAX_TOKEN",
     "NODE_PATTERN",
     "BadMessage",
@@ -41,6 +50,19 @@ MAX_BODY_BYTES = 64 * 1024
 #: An event id or airframe id longer than this is refused on the way in: a node's own are
 #: under 128 characters, and the source remembers the ids it took (``remember_ids`` of them).
 MAX_ID_CHARS = 256
+#: Any other text of a remote event (a class, a subtype, a link label, ...) is refused longer
+#: than this: it reaches CoT remarks, the map and every C2 sink.
+MAX_TEXT_CHARS = 256
+#: A list of a remote event is refused longer than this.
+MAX_ITEMS = 64
+#: A remote detection's ``sigma_h_m`` is refused above this, as the ingest refuses one.
+MAX_SIGMA_M = 10_000.0
+#: A remote event dated more than this ahead of this node's clock is refused: it would keep
+#: its track from ever ageing out (the ingest does not believe an airframe a minute ahead;
+#: nodes' clocks may differ a little more).
+MAX_AHEAD_S = 300.0
+#: Integers beyond this are refused (no field of an event needs more than 64 bits).
+_MAX_INT = 2**63
 _PLAIN = re.compile(rb"[A-Za-z0-9-]")
 _NODE = re.compile(NODE_PATTERN)
 
@@ -93,9 +115,10 @@ def decode_event(subject: str, body: bytes) -> Detection | Telemetry:
     """The event a message carries, marked with its node of origin.
 
     ``BadMessage`` for an oversize body, invalid JSON or event, a kind the subject does not
-    name, an event or airframe id longer than ``MAX_ID_CHARS``, an airframe the subject does
-    not name, or a body that already names an origin (a node never sends on another node's
-    events).
+    name, an event or airframe id longer than ``MAX_ID_CHARS``, a value out of bounds
+    (``unbounded``; a detection's ``sigma_h_m`` above ``MAX_SIGMA_M``), an airframe the
+    subject does not name, or a body that already names an origin (a node never sends on
+    another node's events).
     """
     node, kind = node_of(subject)
     if len(body) > MAX_BODY_BYTES:
@@ -108,8 +131,56 @@ def decode_event(subject: str, body: bytes) -> Detection | Telemetry:
         raise BadMessage(f"subject {subject[:120]!r}: carries a {event.kind.value} event")
     if len(event.event_id) > MAX_ID_CHARS or len(event.airframe) > MAX_ID_CHARS:
         raise BadMessage(f"subject {subject[:120]!r}: an id is longer than {MAX_ID_CHARS}")
+    problem = unbounded(event, utc_now() + timedelta(seconds=MAX_AHEAD_S))
+    if problem is not None:
+        raise BadMessage(f"subject {subject[:120]!r}: {problem}")
+    if isinstance(event, Detection) and event.sigma_h_m > MAX_SIGMA_M:
+        raise BadMessage(f"subject {subject[:120]!r}: sigma_h_m above {MAX_SIGMA_M:.0f} m")
     if airframe_token(event.airframe) != subject.split(".")[3]:
         raise BadMessage(f"subject {subject[:120]!r}: event of airframe {event.airframe[:64]!r}")
     if event.origin_node is not None:
         raise BadMessage(f"subject {subject[:120]!r}: event relayed from {event.origin_node!r}")
     return event.model_copy(update={"origin_node": node})
+
+
+def unbounded(value: object, latest: datetime, where: str = "event") -> str | None:
+    """What of ``value`` (an event, walked through) is out of bounds, in words; None if nothing.
+
+    Text longer than ``MAX_TEXT_CHARS``, a list longer than ``MAX_ITEMS``, a number that is
+    not finite (JSON's ``NaN``, ``Infinity``, or ``1e400``) or an integer beyond 64 bits, a
+    time after ``latest``. The model checked every field's type and its own ranges.
+    """
+    if isinstance(value, str):
+        if len(value) > MAX_TEXT_CHARS:
+            return f"{where} is longer than {MAX_TEXT_CHARS} characters"
+    elif isinstance(value, float):
+        if not math.isfinite(value):
+            return f"{where} is not a finite number"
+    elif isinstance(value, bool) or value is None:
+        pass
+    elif isinstance(value, int):
+        if not -_MAX_INT <= value < _MAX_INT:
+            return f"{where} is out of range"
+    elif isinstance(value, datetime):
+        if value > latest:
+            return f"{where} is more than {MAX_AHEAD_S:.0f} s ahead of this node's clock"
+    elif isinstance(value, BaseModel):
+        for name, item in value.__dict__.items():
+            problem = unbounded(item, latest, name)
+            if problem is not None:
+                return problem
+    elif isinstance(value, tuple | list):
+        if len(value) > MAX_ITEMS:
+            return f"{where} holds more than {MAX_ITEMS} items"
+        for item in value:
+            problem = unbounded(item, latest, where)
+            if problem is not None:
+                return problem
+    elif isinstance(value, dict):
+        if len(value) > MAX_ITEMS:
+            return f"{where} holds more than {MAX_ITEMS} items"
+        for key, item in value.items():
+            problem = unbounded(key, latest, where) or unbounded(item, latest, f"{where}.{key}")
+            if problem is not None:
+                return problem
+    return None

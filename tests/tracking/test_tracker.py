@@ -36,6 +36,7 @@ def detection(
     confidence: float = 0.8,
     sigma_m: float = 10.0,
     alt_msl_m: float | None = 300.0,
+    origin_node: str | None = None,
 ) -> Detection:
     lat, lon = displace(LAT, LON, east_m, north_m)
     return Detection(
@@ -47,6 +48,7 @@ def detection(
         confidence=confidence,
         position=Position(lat_deg=lat, lon_deg=lon, alt_msl_m=alt_msl_m),
         sigma_h_m=sigma_m,
+        origin_node=origin_node,
     )
 
 
@@ -273,6 +275,33 @@ class TestClassEvidence:
         assert set(DEFAULT_CLASSES) == set(CLASS_NAMES.values())
 
 
+class TestOriginNodes:
+    """A track names the other nodes whose detections it holds (bounded), never this one."""
+
+    def test_detections_of_two_other_nodes_and_our_own_name_the_two_nodes(self) -> None:
+        tracker = Tracker(TrackerSettings(confirm_hits=1, update_interval_s=0.0))
+        (created,) = tracker.update_frame([detection(t_s=0.0)])
+        assert created.origin_nodes == ()
+        tracker.update_frame([detection(t_s=1.0, airframe="B", origin_node="c", east_m=1.0)])
+        updates = tracker.update_frame(
+            [detection(t_s=2.0, airframe="C", origin_node="b", east_m=2.0)]
+        )
+        assert updates[-1].track_id == created.track_id
+        assert updates[-1].origin_nodes == ("b", "c")
+        assert updates[-1].airframes == ("A", "B", "C")
+
+    def test_at_most_sixteen_nodes_the_first_heard(self) -> None:
+        tracker = Tracker(TrackerSettings(confirm_hits=1, update_interval_s=0.0))
+        events: list[Track] = []
+        for n in range(24):  # node n24 .. n01: heard in reverse order of their names
+            node = f"n{24 - n:02d}"
+            events += tracker.update_frame(
+                [detection(t_s=float(n), airframe=f"X{n}", origin_node=node, east_m=n * 0.5)]
+            )
+        assert len({e.track_id for e in events}) == 1
+        assert events[-1].origin_nodes == tuple(f"n{k:02d}" for k in range(9, 25))
+
+
 class TestMerge:
     """A second track of one object is folded into the first and published as merged."""
 
@@ -283,7 +312,7 @@ class TestMerge:
             events += tracker.update_frame([detection(t_s=i, object_class="tank", sigma_m=5.0)])
             events += tracker.update_frame(
                 [detection(t_s=i + 0.5, airframe="B", sensor=Sensor.IR, object_class="tank",
-                           sigma_m=5.0, east_m=max(0.0, 60.0 - 3.0 * i))]
+                           sigma_m=5.0, east_m=max(0.0, 60.0 - 3.0 * i), origin_node="b")]
             )  # fmt: skip
         created = [e for e in events if e.status == "created"]
         assert len(created) == 2
@@ -297,6 +326,8 @@ class TestMerge:
         after = [e for e in events if e.track_id == first.track_id and e.time > merged.time]
         assert after
         assert set(after[-1].airframes) == {"A", "B"}
+        assert after[-1].origin_nodes == ("b",)  # B's node came with the folded track
+        assert first.origin_nodes == ()
 
     def test_two_objects_side_by_side_are_never_merged(self) -> None:
         tracker = Tracker(TrackerSettings(update_interval_s=0.0))

@@ -149,14 +149,16 @@
       case "airframe": {
         const links = Object.entries(e.links || {}).map(
           ([name, l]) => name + (l.up ? " up" : " down") + (l.active ? " (active)" : "") + " loss " + fmt(l.loss_pct, "%", 0));
-        return [e.id, "battery " + fmt(e.battery_pct, " %", 0) + ", endurance " + fmt(e.endurance_min, " min", 0),
+        return [e.id, e.origin_node ? "from node " + e.origin_node : null,
+          "battery " + fmt(e.battery_pct, " %", 0) + ", endurance " + fmt(e.endurance_min, " min", 0),
           "link " + (e.active_link || "?"), ...links];
       }
       case "track":
         return [e.id + " " + e.object_class + (e.subtype ? " (" + e.subtype + ")" : ""),
           e.hostility + ", confidence " + fmt(e.confidence * 100, " %", 0),
           "CEP50 " + fmt(e.cep50_m, " m", 0) + ", CEP90 " + fmt(e.cep90_m, " m", 0),
-          "course " + fmt(e.course_deg, "°", 0) + ", speed " + fmt(e.speed_mps, " m/s", 1), "SIDC " + e.sidc];
+          "course " + fmt(e.course_deg, "°", 0) + ", speed " + fmt(e.speed_mps, " m/s", 1), "SIDC " + e.sidc,
+          (e.origin_nodes || []).length ? "detections from nodes " + e.origin_nodes.join(", ") : null];
       case "blue":
         return [e.callsign || e.id, "source " + e.source + " (" + e.provenance + ")"];
       case "cue":
@@ -166,7 +168,8 @@
       case "order":
         return ["order " + e.order_id + " (" + e.source + ")", (e.task || "?") + ": " + e.status, e.reason];
       case "detection":
-        return [e.object_class + " by " + e.airframe + " (" + e.sensor + ")", "confidence " + fmt(e.confidence * 100, " %", 0)];
+        return [e.object_class + " by " + e.airframe + " (" + e.sensor + ")", "confidence " + fmt(e.confidence * 100, " %", 0),
+          e.origin_node ? "from node " + e.origin_node : null];
       default:
         return [e.id];
     }

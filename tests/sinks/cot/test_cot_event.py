@@ -15,6 +15,7 @@ from hypothesis import strategies as st
 from gateway.domain.geoid import GeoidGrid, bundled_geoid
 from gateway.domain.symbols import cot_type_from_sidc, object_symbol, own_symbol
 from gateway.events import (
+    MAX_TRACK_NODES,
     BlueForce,
     Detection,
     LinkState,
@@ -25,8 +26,9 @@ from gateway.events import (
     Velocity,
 )
 from gateway.testing import fuzz_examples
-from sinks.cot.codec import to_xml
+from sinks.cot.codec import to_proto, to_xml
 from sinks.cot.event import CotOptions, StaleTimes, build, xml_attribute, xml_safe
+from sinks.cot.proto import mesh_frame
 from sinks.cot.validate import UNKNOWN
 
 T0 = datetime(2026, 11, 22, 10, 15, 30, 250000, tzinfo=UTC)
@@ -420,3 +422,47 @@ class TestBlueForce:
 )
 def test_an_attribute_value_is_quoted_as_quoteattr_of_xml_safe_quotes_it(text: str) -> None:
     assert xml_attribute(text) == quoteattr(xml_safe(text))
+
+
+class TestOrigin:
+    """Another node's airframe, detection or fused track says its node in the remarks, as an
+    independent decoder (lxml on the XML, takproto on the TAK protobuf) reads them."""
+
+    @staticmethod
+    def remarks(event: Telemetry | Detection | Track) -> list[str]:
+        takproto = pytest.importorskip("takproto")
+        etree = pytest.importorskip("lxml.etree")
+        built = build(event, options())
+        assert built is not None
+        xml = etree.fromstring(to_xml(built))
+        proto = takproto.parse_proto(bytearray(mesh_frame(to_proto(built)))).cotEvent
+        detail = etree.fromstring(f"<detail>{proto.detail.xmlDetail}</detail>")
+        found = [xml.findtext("detail/remarks"), detail.findtext("remarks")]
+        assert found[0] == found[1]
+        return found[:1]
+
+    def test_remote_telemetry_and_detection_name_their_node(self) -> None:
+        (telemetry,) = self.remarks(TELEMETRY.model_copy(update={"origin_node": "brigade-2"}))
+        assert telemetry == "link sdr, from node brigade-2"
+        (detection,) = self.remarks(DETECTION.model_copy(update={"origin_node": "b"}))
+        assert detection == "IR detection: tank T-72, confidence 0.91; from node b"
+
+    def test_own_events_name_no_node(self) -> None:
+        assert self.remarks(TELEMETRY) == ["link sdr"]
+        assert "node" not in self.remarks(DETECTION)[0]
+        assert "node" not in self.remarks(TRACK)[0]
+
+    def test_a_fused_track_names_every_contributing_node(self) -> None:
+        (remarks,) = self.remarks(TRACK.model_copy(update={"origin_nodes": ("b", "c_2")}))
+        assert remarks.endswith("CEP90 36 m; detections from nodes b, c_2")
+
+    def test_remarks_stay_short_with_the_most_nodes_and_longest_names(self) -> None:
+        nodes = tuple(f"{n:02d}" + "n" * 30 for n in range(MAX_TRACK_NODES))
+        track = Track.model_validate({**TRACK.model_dump(), "origin_nodes": nodes})
+        (remarks,) = self.remarks(track)
+        assert remarks.endswith(", ".join(nodes))
+        assert len(remarks) < 800
+        with pytest.raises(ValueError, match="at most 16"):
+            Track.model_validate({**TRACK.model_dump(), "origin_nodes": (*nodes, "x")})
+        with pytest.raises(ValueError, match="pattern"):
+            DETECTION.model_validate({**DETECTION.model_dump(), "origin_node": "b<x>"})

@@ -111,3 +111,24 @@ def test_what_a_program_reads_from_the_node_holds_to_the_schema() -> None:
                     assert {c["layer"] for _, c in changes} == {"cue", "order"}
 
     anyio.run(main)
+
+
+def test_another_nodes_airframe_detection_and_fused_track_carry_their_nodes() -> None:
+    picture = Picture(Limits())
+    first = sample_events(frozenset({EventKind.TELEMETRY, EventKind.DETECTION, EventKind.TRACK}))
+    remote: list[Event] = []
+    for event in first:
+        if isinstance(event, Track):
+            remote.append(event.model_copy(update={"origin_nodes": ("b", "c")}))
+        else:
+            remote.append(event.model_copy(update={"origin_node": "b"}))
+    changes = [c for event in remote for c in picture.apply(event)]
+    check = validator("change")
+    shown: dict[str, object] = {}
+    for seq, change in enumerate(changes, start=1):
+        check.validate({"seq": seq, **change})
+        data = change["data"]
+        shown[change["layer"]] = data.get("origin_nodes", data.get("origin_node"))
+    assert shown == {"airframe": "b", "detection": "b", "track": ["b", "c"]}
+    bad = {**changes[0], "seq": 1, "data": {**changes[0]["data"], "origin_node": "<b>"}}
+    assert not check.is_valid(bad)
