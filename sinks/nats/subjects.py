@@ -15,7 +15,7 @@ import math
 import re
 from datetime import datetime, timedelta
 
-from pydantic import BaseModel
+from pydantic import BaseModel, ValidationError
 
 from gateway.clock import utc_now
 from gateway.errors import GatewayError
@@ -125,6 +125,8 @@ def decode_event(subject: str, body: bytes) -> Detection | Telemetry:
         raise BadMessage(f"subject {subject[:120]!r}: body of {len(body)} bytes is too large")
     try:
         event = event_adapter.validate_json(body)
+    except ValidationError as exc:
+        raise BadMessage(f"subject {subject[:120]!r}: not a valid event ({_first(exc)})") from None
     except ValueError as exc:
         raise BadMessage(f"subject {subject[:120]!r}: not a valid event ({exc})") from None
     if event.kind is not kind or not isinstance(event, Detection | Telemetry):
@@ -184,3 +186,14 @@ def unbounded(value: object, latest: datetime, where: str = "event") -> str | No
             if problem is not None:
                 return problem
     return None
+
+
+def _first(exc: ValidationError) -> str:
+    """The first problem of ``exc`` in one short line: where it is and what is wrong (no input)."""
+    errors = exc.errors(include_url=False, include_input=False)
+    if not errors:
+        return "invalid"
+    # The union's tag is the first part of a location: the field path follows it.
+    where = ".".join(str(part) for part in errors[0]["loc"][1:])[:120]
+    more = f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""
+    return f"{where or 'body'}: {errors[0]['msg'][:120]}{more}"
