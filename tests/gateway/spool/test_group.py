@@ -44,7 +44,7 @@ def on_disk(path: Path) -> tuple[int, int]:
     db = sqlite3.connect(path)
     try:
         events = db.execute("SELECT count(*) FROM events").fetchone()[0]
-        owed = db.execute("SELECT count(*) FROM pending").fetchone()[0]
+        owed = sum(bin(m).count("1") for (m,) in db.execute("SELECT owed FROM events"))
     finally:
         db.close()
     return int(events), int(owed)
