@@ -205,10 +205,13 @@ class Spool:
             else:
                 self._db = self._connect(target, sync, exclusive=exclusive)
             self._open_schema(migrate=exclusive)
-        except sqlite3.Error as exc:
-            raise SpoolError(f"{target}: {exc}") from exc
-        except OSError as exc:  # a damaged spool that cannot be moved aside
-            raise SpoolError(f"{target}: cannot move the damaged spool aside: {exc}") from exc
+        except BaseException as exc:
+            self._abandon()  # the file and its lock are free for the next attempt
+            if isinstance(exc, sqlite3.Error):
+                raise SpoolError(f"{target}: {exc}") from exc
+            if isinstance(exc, OSError):  # a damaged spool that cannot be moved aside
+                raise SpoolError(f"{target}: cannot move the damaged spool aside: {exc}") from exc
+            raise
         db = self._db
         self._where = target
         self._scopes = 0  # open batch() scopes
@@ -266,6 +269,16 @@ class Spool:
             db.close()
             raise
         return db
+
+    def _abandon(self) -> None:
+        """Close what a failed ``__init__`` opened."""
+        db = getattr(self, "_db", None)
+        if db is not None:
+            with contextlib.suppress(sqlite3.Error):
+                db.close()
+        if self._lock is not None:
+            self._lock.close()
+            self._lock = None
 
     def _open_schema(self, *, migrate: bool) -> None:
         """Create the tables of a new spool, migrate one of schema 1, refuse any other."""
