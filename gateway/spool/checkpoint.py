@@ -52,12 +52,16 @@ _LOG_INTERVAL_S = 60.0
 
 
 class Checkpointer:
-    """PASSIVE checkpoints of one spool file from a worker thread, and the blocking fallback."""
+    """PASSIVE checkpoints of one spool file from a worker thread, and the blocking fallback.
+
+    ``blocking`` gives the blocking checkpoint to make on the caller's thread (None once the
+    spool is gone: a ``weakref.WeakMethod``, so the worker does not keep its spool alive).
+    """
 
     def __init__(
         self,
         path: Path,
-        blocking: Callable[[], None],
+        blocking: Callable[[], Callable[[], None] | None],
         *,
         interval_s: float = 0.5,
         soft_bytes: int = WAL_SOFT_BYTES,
@@ -93,10 +97,14 @@ class Checkpointer:
             )
             self._thread.start()
 
-    def stop(self) -> None:
-        """Stop the worker and wait for its checkpoint in progress, if any, to end."""
+    def halt(self) -> None:
+        """Tell the worker to stop, without waiting for it."""
         self._stopping = True
         self._wake.set()
+
+    def stop(self) -> None:
+        """Stop the worker and wait for its checkpoint in progress, if any, to end."""
+        self.halt()
         if self._thread is not None:
             self._thread.join()
             self._thread = None
@@ -130,8 +138,11 @@ class Checkpointer:
                 note="the worker's checkpoints did not keep the WAL small: one blocking "
                 "checkpoint on the event loop",
             )
+        checkpoint = self._blocking()
+        if checkpoint is None:  # the spool is gone
+            return False
         try:
-            self._blocking()
+            checkpoint()
         except sqlite3.Error as exc:
             self.failures += 1
             if self._log.allow(("failed", failure_reason(exc))):

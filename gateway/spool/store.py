@@ -49,6 +49,7 @@ import functools
 import os
 import sqlite3
 import time
+import weakref
 from collections import Counter
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
@@ -238,7 +239,9 @@ class Spool:
         #: The checkpoints of the gateway's own spool file (None for memory or the command).
         self.checkpointer: Checkpointer | None = None
         if path is not None and exclusive:
-            self.checkpointer = Checkpointer(path, self._checkpoint_now)
+            # The worker holds the spool weakly: one dropped unclosed stops its worker.
+            self.checkpointer = Checkpointer(path, weakref.WeakMethod(self._checkpoint_now))
+            weakref.finalize(self, self.checkpointer.halt)
             self.checkpointer.start()
         if exclusive:
             while True:  # at start, all of it: ids past the window are of no use
@@ -366,17 +369,21 @@ class Spool:
         if mask is None:
             mask = 0
             for sink in key:
-                mask |= 1 << self._bit(sink)
+                mask |= 1 << self._bit(sink, key)
             self._masks[key] = mask
         return mask
 
-    def _bit(self, sink: str) -> int:
+    def _bit(self, sink: str, keep: tuple[str, ...]) -> int:
         bit = self._bits.get(sink)
         if bit is not None:
             return bit
         free = set(range(MAX_SINKS)) - set(self._bits.values())
         if not free:  # a sink owed nothing (no longer configured) gives its bit up
-            idle = sorted((b, n) for n, b in self._bits.items() if self._pending.get(n, 0) <= 0)
+            idle = sorted(
+                (b, n)
+                for n, b in self._bits.items()
+                if self._pending.get(n, 0) <= 0 and n not in keep
+            )
             if not idle:
                 raise SpoolError(
                     f"spool {self._where}: events are owed to {MAX_SINKS} sinks already; "
@@ -563,6 +570,7 @@ class Spool:
             self.commits.failed(cause)
         with contextlib.suppress(sqlite3.Error):
             self._db.execute("ROLLBACK")
+            self._load_bits()  # a sink given a bit in it has none
         return (
             cause if isinstance(cause, sqlite3.Error) else sqlite3.OperationalError("rolled back")
         )
@@ -638,6 +646,7 @@ class Spool:
             self.commits.failed(exc)
             with contextlib.suppress(sqlite3.Error):
                 self._db.execute("ROLLBACK")
+                self._load_bits()
             raise
         self.commits.succeeded()
         if self.checkpointer is not None:

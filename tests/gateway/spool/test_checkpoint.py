@@ -6,6 +6,7 @@ commit of the loop's) and that the log stays bounded when the worker does not ke
 
 from __future__ import annotations
 
+import gc
 import os
 import sqlite3
 import threading
@@ -70,15 +71,22 @@ def test_the_worker_checkpoints_and_the_log_starts_over(tmp_path: Path) -> None:
     spool = Spool(path)
     checkpointer = spool.checkpointer
     assert checkpointer is not None
-    commit_events(spool, 0, 300)
-    deadline = time.monotonic() + 60  # a bound on waiting, not on the machine's speed
-    while not (checkpointer.passive and checkpointer.last[0] == checkpointer.last[1] > 0):
-        assert time.monotonic() < deadline, "the worker made no complete checkpoint"
-        time.sleep(0.05)
-    commit_events(spool, 300, 5)
-    assert wal_frames(path) < 300  # the next commit after a complete checkpoint rewinds the log
-    assert checkpointer.blocking == 0
-    spool.close()
+    try:
+        commit_events(spool, 0, 300)
+        # Two more checkpoints of the worker's: the second began after the last commit.
+        wanted = checkpointer.passive + 2
+        deadline = time.monotonic() + 60  # a bound on waiting, not on the machine's speed
+        while checkpointer.passive < wanted:
+            assert time.monotonic() < deadline, "the worker made no checkpoint"
+            checkpointer._wake.set()
+            time.sleep(0.05)
+        frames, copied = checkpointer.last
+        assert frames == copied > 0  # every frame copied into the database
+        commit_events(spool, 300, 5)
+        assert wal_frames(path) < 300  # the commit after a complete checkpoint rewinds the log
+        assert checkpointer.blocking == 0
+    finally:
+        spool.close()
     assert checkpoint_threads() == []
     reopened = Spool(path)
     assert reopened.pending_count("a") == 305
@@ -91,7 +99,7 @@ def test_past_its_hard_limit_the_log_is_checkpointed_by_the_commit(tmp_path: Pat
     assert spool.checkpointer is not None
     spool.checkpointer.stop()  # a worker that does not keep up
     hard = 512 << 10
-    spool.checkpointer = Checkpointer(path, spool._checkpoint_now, hard_bytes=hard)
+    spool.checkpointer = Checkpointer(path, lambda: spool._checkpoint_now, hard_bytes=hard)
     biggest = 0
     for first in range(0, 1200, 100):
         commit_events(spool, first, 100)
@@ -103,3 +111,17 @@ def test_past_its_hard_limit_the_log_is_checkpointed_by_the_commit(tmp_path: Pat
     reopened = Spool(path)
     assert reopened.pending_count("b") == 1200
     reopened.close()
+
+
+def test_a_spool_dropped_unclosed_stops_its_worker(tmp_path: Path) -> None:
+    spool = Spool(tmp_path / "spool.db")
+    assert spool.checkpointer is not None
+    thread = spool.checkpointer._thread
+    assert thread is not None
+    assert spool._lock is not None
+    spool._lock.close()  # what close() would have freed; the rest is left to the collector
+    spool._db.close()
+    del spool
+    gc.collect()
+    thread.join(timeout=60)  # a bound on waiting, not on the machine's speed
+    assert not thread.is_alive()
