@@ -10,11 +10,15 @@ commits (a p99 of delivery). The gateway's own spool connection therefore runs w
   ``interval_s``, and sooner once ``NUDGE_COMMITS`` commits were made since the last one.
   PASSIVE takes no lock that a commit waits for: the loop's commits go on meanwhile, and
   SQLite's C code runs without Python's GIL;
-- the WAL file is kept near ``soft_bytes`` (the spool's connection sets it as
-  ``journal_size_limit``: SQLite cuts the file back when the log starts over after a
-  checkpoint), and if it grows past ``hard_bytes`` all the same
-  (the worker starved, or failing), the commit that finds it so makes a blocking checkpoint
-  (TRUNCATE) on the loop's connection: a bounded log, at the cost of one stall.
+- the log starts over from its beginning at the first write after a checkpoint that copied
+  all of it, and the file is then cut back to ``soft_bytes`` (the spool's connection sets it
+  as ``journal_size_limit``). Between bursts of commits the worker catches up and that is
+  what happens. Under commits without a pause it does not: the worker copies what was there
+  when it began, and the next commits are in the log before it ends, so the log grows. Past
+  ``hard_bytes`` the commit that finds it so makes a blocking checkpoint (TRUNCATE) on the
+  loop's connection. By then the worker has copied all but the newest pages, so the stall
+  is the tail and one fsync, once per ``hard_bytes`` written (SQLite's automatic checkpoint
+  copied 1,000 pages and made its fsync every 4 MiB, in a commit).
 
 Durability is the spool's (``gateway.spool.store``): a commit is durable against kill -9 when
 it returns, whether its pages are still in the log or already copied; a checkpoint only
@@ -27,6 +31,7 @@ from __future__ import annotations
 import os
 import sqlite3
 import threading
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -74,6 +79,9 @@ class Checkpointer:
         self.hard_bytes = hard_bytes
         self._blocking = blocking
         self._wake = threading.Event()
+        #: Held by whoever checkpoints: the loop's blocking checkpoint waits for the worker's
+        #: in progress instead of finding SQLite busy and trying again 64 commits later.
+        self._checkpointing = threading.Lock()
         self._stopping = False
         self._thread: threading.Thread | None = None
         self._since = 0  # commits since the worker was last woken
@@ -81,8 +89,9 @@ class Checkpointer:
         #: PASSIVE checkpoints made by the worker, and those SQLite found busy.
         self.passive = 0
         self.busy = 0
-        #: Blocking checkpoints made on the loop (the WAL past ``hard_bytes``).
+        #: Blocking checkpoints made on the loop (the WAL past ``hard_bytes``), and the longest.
         self.blocking = 0
+        self.longest_blocking_s = 0.0
         #: Checkpoints that failed (the worker's, with an error).
         self.failures = 0
         #: Frames in the log and frames copied, at the worker's last checkpoint.
@@ -128,25 +137,31 @@ class Checkpointer:
             return False
         if size < self.hard_bytes:
             return False
-        self.blocking += 1
-        if self._log.allow("blocking"):
-            log.warning(
-                "spool_checkpoint_blocking",
-                wal_bytes=size,
-                hard_bytes=self.hard_bytes,
-                passive=self.passive,
-                note="the worker's checkpoints did not keep the WAL small: one blocking "
-                "checkpoint on the event loop",
-            )
         checkpoint = self._blocking()
         if checkpoint is None:  # the spool is gone
             return False
+        self.blocking += 1
+        started = time.perf_counter()
         try:
-            checkpoint()
+            with self._checkpointing:
+                checkpoint()
         except sqlite3.Error as exc:
             self.failures += 1
             if self._log.allow(("failed", failure_reason(exc))):
                 log.error("spool_checkpoint_failed", error=str(exc)[:300], blocking=True)
+            return True
+        seconds = time.perf_counter() - started
+        self.longest_blocking_s = max(self.longest_blocking_s, seconds)
+        if self._log.allow("blocking"):
+            log.info(
+                "spool_checkpoint_blocking",
+                wal_bytes=size,
+                hard_bytes=self.hard_bytes,
+                seconds=round(seconds, 4),
+                blocking_total=self.blocking,
+                note="commits without a pause: the WAL was checkpointed and emptied on the "
+                "event loop (logged at most once a minute)",
+            )
         return True
 
     def _run(self) -> None:
@@ -173,7 +188,8 @@ class Checkpointer:
 
     def _checkpoint(self, db: sqlite3.Connection) -> None:
         try:
-            busy, frames, copied = db.execute("PRAGMA wal_checkpoint(PASSIVE)").fetchone()
+            with self._checkpointing:
+                busy, frames, copied = db.execute("PRAGMA wal_checkpoint(PASSIVE)").fetchone()
         except sqlite3.Error as exc:
             self.failures += 1
             if self._log.allow(("failed", failure_reason(exc))):
