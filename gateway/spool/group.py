@@ -10,9 +10,10 @@ confirmations and dead letters alone, that no one waits on, lingers a little lon
 (``gateway.spool.store.SETTLE_LINGER_S``) so the runners of one publish whose sinks answer in
 different passes share its commit; an append or a listener joining it ends the linger.
 
-A group also holds the rows it has yet to write: the events appended in the pass and their
-owed rows are inserted together (one ``executemany`` each) before the next other statement or
-the commit, and the events whose last sink confirmed them are deleted once, at the commit.
+A group also holds the rows it has yet to write: the events appended in the pass, each with
+the bits of the sinks it is owed to, are inserted together (one ``executemany``) before the
+next other statement or the commit, and the events whose last sink confirmed them are
+deleted once, at the commit.
 The record kept here is what undoing a group that did not commit takes: the ``seq`` of each
 event appended in it (never to be sent) and the change it made to each sink's owed count.
 """
@@ -42,17 +43,14 @@ class Commit:
         "lingering",
         "on_hurry",
         "owed",
-        "pending",
         "scheduled",
     )
 
     def __init__(self) -> None:
         #: ``seq`` and sinks of each event appended in this group.
         self.appended: list[tuple[int, tuple[str, ...]]] = []
-        #: ``events`` rows appended and not written yet.
-        self.events: list[tuple[int, str, str, bytes, float]] = []
-        #: ``pending`` rows (sink, seq) appended and not written yet.
-        self.pending: list[tuple[str, int]] = []
+        #: ``events`` rows appended and not written yet (their last field: the owed bits).
+        self.events: list[tuple[int, str, str, bytes, float, int]] = []
         #: ``seq`` of events confirmed by a sink in this group: deleted at the commit if no
         #: other sink is owed them.
         self.confirmed: set[int] = set()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import gc
 import sqlite3
 import time
 from datetime import UTC, datetime
@@ -44,7 +45,7 @@ def on_disk(path: Path) -> tuple[int, int]:
     db = sqlite3.connect(path)
     try:
         events = db.execute("SELECT count(*) FROM events").fetchone()[0]
-        owed = db.execute("SELECT count(*) FROM pending").fetchone()[0]
+        owed = sum(bin(m).count("1") for (m,) in db.execute("SELECT owed FROM events"))
     finally:
         db.close()
     return int(events), int(owed)
@@ -276,18 +277,21 @@ async def test_an_event_or_a_listener_ends_the_linger(tmp_path: Path, joins: str
 
 
 @pytest.mark.anyio
+@pytest.mark.parametrize(("sinks", "bound"), [(2, 4.0), (5, 2.6)])
 async def test_spooling_costs_a_small_multiple_of_plain_sqlite_batched_the_same_way(
-    tmp_path: Path,
+    tmp_path: Path, sinks: int, bound: float
 ) -> None:
-    """The CPU-time ratio of ``bench/delivery.py`` (two sinks), guarded loosely: about 0.5 on
-    a 2-core machine, 0.15 when each append committed on its own."""
+    """The CPU-time ratio of ``bench/delivery.py``, guarded loosely: spooling for two sinks
+    costs about 1.5 times plain sqlite3 on a 2-core machine (6.5 when each append committed
+    on its own), for five about 1.9 (3 with an owed row per sink and event, schema 1)."""
     spool = Spool(tmp_path / "spool.db")
     inst = Instruments()
+    names = tuple("abcde"[:sinks])
     runners = {
         name: SinkRunner(SinkEntry(name=name, type="memory"), MemorySink(name), inst, spool=spool)
-        for name in ("a", "b")
+        for name in names
     }
-    bus = Bus([RouteConfig(sinks=("a", "b"))], runners, inst, spool=spool)
+    bus = Bus([RouteConfig(sinks=names)], runners, inst, spool=spool)
     db = sqlite3.connect(tmp_path / "plain.db", isolation_level=None)
     db.execute("PRAGMA journal_mode=WAL")
     db.execute("PRAGMA synchronous=NORMAL")
@@ -295,20 +299,27 @@ async def test_spooling_costs_a_small_multiple_of_plain_sqlite_batched_the_same_
     spooled = [detection(n) for n in range(3000)]
     plain = [detection(n) for n in range(3000)]
     spool_cpu = plain_cpu = 0.0
-    for i in range(0, len(spooled), 100):  # a burst per loop pass, interleaved
-        t0 = time.process_time()
-        for event in spooled[i : i + 100]:
-            bus.publish(event)
-        spool.flush()
-        t1 = time.process_time()
-        db.execute("BEGIN")
-        for event in plain[i : i + 100]:
-            body = event.model_dump_json().encode()
-            db.execute("INSERT INTO events (event_id, body) VALUES (?, ?)", (event.event_id, body))
-        db.execute("COMMIT")
-        spool_cpu += t1 - t0
-        plain_cpu += time.process_time() - t1
-        await asyncio.sleep(0)
+    gc.collect()
+    gc.freeze()  # a full collection of the events above would fall on one side at random
+    try:
+        for i in range(0, len(spooled), 100):  # a burst per loop pass, interleaved
+            t0 = time.process_time()
+            for event in spooled[i : i + 100]:
+                bus.publish(event)
+            spool.flush()
+            t1 = time.process_time()
+            db.execute("BEGIN")
+            for event in plain[i : i + 100]:
+                body = event.model_dump_json().encode()
+                db.execute(
+                    "INSERT INTO events (event_id, body) VALUES (?, ?)", (event.event_id, body)
+                )
+            db.execute("COMMIT")
+            spool_cpu += t1 - t0
+            plain_cpu += time.process_time() - t1
+            await asyncio.sleep(0)
+    finally:
+        gc.unfreeze()
     db.close()
     spool.close()
-    assert spool_cpu <= 4 * plain_cpu
+    assert spool_cpu <= bound * plain_cpu

@@ -4,20 +4,23 @@ from __future__ import annotations
 
 import os
 import signal
+import sqlite3
 import subprocess
 import sys
 import textwrap
 import time
 from datetime import UTC, datetime
 from pathlib import Path
+from typing import Any
 
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from spool_v1 import write_v1
 
 from gateway.errors import SpoolError
 from gateway.events import Detection, Position, Sensor
-from gateway.spool.store import Spool
+from gateway.spool.store import MAX_SINKS, Spool
 
 T0 = datetime(2026, 11, 23, 12, 0, tzinfo=UTC)
 
@@ -289,3 +292,107 @@ def test_what_is_owed_matches_a_model(ops: list[tuple[str, frozenset[str], int]]
     live = {seq for seqs in model.values() for seq in seqs}
     rows = {r[0] for r in spool._db.execute("SELECT seq FROM events").fetchall()}
     assert rows == live  # no event body outlives the last sink owed it
+
+
+class TestSchema1:
+    """A spool file of schema 1 (a ``pending`` row per sink and event) is migrated at start."""
+
+    def v1_file(self, tmp_path: Path) -> Path:
+        path = tmp_path / "spool.db"
+        events = [detection(n) for n in range(10)]
+        # As schema 1 left it after: 10 events for (a, b), a confirmed 0-3, b confirmed 0-1
+        # and refused 2 (a dead letter), det-0 taken in.
+        write_v1(
+            path,
+            events,
+            {"a": range(4, 10), "b": range(3, 10)},
+            dead=[("b", events[2], "refused")],
+            seen=["det-0"],
+        )
+        return path
+
+    def test_every_owed_event_is_kept_in_order_for_its_sinks(self, tmp_path: Path) -> None:
+        path = self.v1_file(tmp_path)
+        spool = Spool(path)
+        assert spool._db.execute("SELECT value FROM meta WHERE key='schema'").fetchone() == ("2",)
+        tables = {r[0] for r in spool._db.execute("SELECT name FROM sqlite_master")}
+        assert "pending" not in tables
+        assert spool.pending_counts() == {"a": 6, "b": 7}
+        assert ids(spool, "a") == [f"det-{n}" for n in range(4, 10)]
+        assert ids(spool, "b") == [f"det-{n}" for n in range(3, 10)]
+        assert [(d.sink, d.event_id) for d in spool.dead_letters()] == [("b", "det-2")]
+        assert spool.seen("det-0")
+        seq = spool.append(detection(10), ("a", "b", "c"))
+        assert seq == 11  # numbering goes on after the migrated events
+        spool.confirm("a", [row.seq for row in spool.pending("a")])
+        spool.confirm("b", [row.seq for row in spool.pending("b")])
+        spool.confirm("c", [11])
+        assert spool.pending_counts() == {}
+        assert spool._db.execute("SELECT count(*) FROM events").fetchone() == (0,)
+        spool.close()
+        again = Spool(path)  # nothing owed after the restart: nothing is sent twice
+        assert again.pending_counts() == {}
+        assert again.dead_letter_count() == 1
+        again.close()
+
+    def test_a_migration_cut_short_leaves_schema_1_and_runs_again(
+        self, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    ) -> None:
+        path = self.v1_file(tmp_path)
+        connect = Spool._connect
+
+        def failing(self: Spool, *args: Any, **kwargs: Any) -> sqlite3.Connection:
+            db = connect(self, *args, **kwargs)
+
+            def deny_drop(action: int, arg1: str | None, *_: object) -> int:
+                # The migration's last step fails, as a kill -9 or a full disk would stop it.
+                return sqlite3.SQLITE_DENY if action == sqlite3.SQLITE_DROP_TABLE else 0
+
+            db.set_authorizer(deny_drop)
+            return db
+
+        monkeypatch.setattr(Spool, "_connect", failing)
+        with pytest.raises(SpoolError, match="not authorized"):
+            Spool(path)
+        monkeypatch.undo()
+        db = sqlite3.connect(path)
+        assert db.execute("SELECT value FROM meta WHERE key='schema'").fetchone() == ("1",)
+        assert db.execute("SELECT count(*) FROM pending").fetchone() == (13,)
+        db.close()
+        spool = Spool(path)  # the next start migrates it
+        assert spool.pending_counts() == {"a": 6, "b": 7}
+        spool.close()
+
+    def test_the_command_beside_it_asks_for_the_gateway_to_migrate_it(self, tmp_path: Path) -> None:
+        path = self.v1_file(tmp_path)
+        with pytest.raises(SpoolError, match="spool schema 1; start this version's gateway"):
+            Spool(path, exclusive=False)
+        spool = Spool(path)
+        assert spool.pending_counts() == {"a": 6, "b": 7}
+        spool.close()
+
+    def test_another_schema_is_refused_naming_it(self, tmp_path: Path) -> None:
+        path = tmp_path / "spool.db"
+        Spool(path).close()
+        db = sqlite3.connect(path)
+        with db:
+            db.execute("UPDATE meta SET value='7' WHERE key='schema'")
+        db.close()
+        with pytest.raises(SpoolError, match="spool schema 7, this gateway reads 2"):
+            Spool(path)
+
+
+class TestSinkBits:
+    def test_a_sink_owed_nothing_gives_its_bit_to_a_new_one(self) -> None:
+        spool = Spool()
+        names = [f"s{n}" for n in range(MAX_SINKS)]
+        seqs = [spool.append(detection(n), (name,)) for n, name in enumerate(names)]
+        with pytest.raises(SpoolError, match=f"owed to {MAX_SINKS} sinks already"):
+            spool.append(detection(100), ("new",))
+        spool.confirm("s7", [seqs[7]])  # type: ignore[list-item]
+        seq = spool.append(detection(101), ("new",))
+        assert ids(spool, "new") == ["det-101"]
+        assert ids(spool, "s8") == ["det-8"]
+        assert "s7" not in spool._bits
+        spool.confirm("new", [seq])  # type: ignore[list-item]
+        assert spool.pending_counts() == {name: 1 for name in names if name != "s7"}
