@@ -71,6 +71,21 @@ class DatagramSender:
             raise
         self._sock, self._address = sock, (str(address[0]), int(address[1]))
 
+    def send_now(self, data: bytes) -> bool:
+        """Send ``data`` as one datagram if that needs no wait: True if sent, False if the
+        socket is not open or its buffer is full (then ``send`` it). ``OSError`` if refused.
+
+        No coroutine, no lock, no checkpoint: a sink's batch goes out in one call.
+        """
+        sock, address = self._sock, self._address
+        if sock is None or address is None:
+            return False
+        try:
+            sock.sendto(data, address)
+        except BlockingIOError:
+            return False
+        return True
+
     async def send(self, data: bytes) -> None:
         """Send ``data`` as one datagram, opening the socket first if needed.
 

@@ -11,7 +11,9 @@ Destinations are URIs: ``udp://`` (unicast, or multicast when the address is a g
 stream; TLS with a client certificate, the CA pinned and the hostname always verified). The
 encoding is ``xml``, ``protobuf`` (TAK protocol v1: mesh framing on UDP, stream framing on TCP)
 or ``negotiate`` (streams: XML until the server offers v1 and accepts our request; UDP: XML).
-Each event is built once and encoded at most once per encoding, whatever the destinations.
+Each event is built once and encoded at most once per encoding, whatever the destinations,
+and once for all the CoT sinks whose options and airframe types are the same
+(``sinks.cot.shared``).
 Mesh protobuf destinations advertise TAK protocol v1 (``TakControl``) at least every
 ``takcontrol_interval_s`` from the sink's ``run`` lifetime, which its SinkRunner starts.
 ``contact`` carries no ``endpoint``: ``*:-1:stcp`` is only right on a TAK server stream, and
@@ -55,7 +57,8 @@ from gateway.ops.logsetup import RateLimit
 from gateway.transports.tls import TlsFiles, tls_context
 from gateway.transports.udp import is_multicast
 from sinks.cot.codec import Encoded
-from sinks.cot.event import CotOptions, StaleTimes, build, own_uid
+from sinks.cot.event import CotOptions, StaleTimes, own_uid
+from sinks.cot.shared import SHARED, SharedBuilds
 from sinks.cot.transport import Endpoint, StreamConnection
 from sinks.cot.udp import UdpSender
 
@@ -284,7 +287,7 @@ class CotSink:
 
     config_model = CotSinkConfig
 
-    def __init__(self, name: str, config: CotSinkConfig) -> None:
+    def __init__(self, name: str, config: CotSinkConfig, *, builds: SharedBuilds = SHARED) -> None:
         self.name = name
         self.config = config
         geoid = GeoidGrid.from_gtx(config.geoid_file) if config.geoid_file else bundled_geoid()
@@ -301,6 +304,9 @@ class CotSink:
             group=(config.group_name, config.group_role) if config.group_name else None,
             version=_package_version(),
         )
+        # Sinks with equal options share their builds (``sinks.cot.shared``).
+        self._builds = builds
+        self.options = builds.canonical(self.options)
         self._refresh = timedelta(seconds=config.track_refresh_s or stale.track_s / 2)
         #: A CoT source hearing our own reports back (a mesh echo, a TAK server relaying
         #: everything, or a forgery) must not make our airframes friendly units: the gateway
@@ -400,15 +406,15 @@ class CotSink:
         ids: dict[int, str] = {}
         tracks: dict[str, tuple[tuple[object, ...], datetime]] = {}
         for event in batch:
-            cot = build(event, self.options, self._own_types)
-            if cot is None:
+            encoded = self._builds.encoded(event, self.options, self._own_types)
+            if encoded is None:
                 continue
+            cot = encoded.event
             if isinstance(event, Track):
                 content = cot.content()
                 if not self._is_news(cot.uid, content, event.time):
                     continue
                 tracks[cot.uid] = (content, event.time)
-            encoded = Encoded(cot)
             ids[id(encoded)] = event.event_id
             events.append(encoded)
         if not events:
