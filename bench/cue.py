@@ -25,9 +25,9 @@ from __future__ import annotations
 
 import argparse
 import math
-import re
 import os
 import platform
+import re
 import socket
 import statistics
 import subprocess
@@ -47,9 +47,9 @@ from gateway.fleet.dialect import fischer_detection
 from gateway.fleet.security.tunnel import DayKeys, Sealer
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from https_peer import Answer, Head, HttpsPeer  # noqa: E402 - the tests' HTTPS battery
+from https_peer import Answer, Head, HttpsPeer  # the tests' HTTPS battery
 
-CoT_SINKS = 5
+COT_SINKS = 5
 BATTERY = (65.80, 21.70)
 AIRFRAMES = 3
 LOITERING_MUNITION = 5  # FISCHER_DETECTION class_id
@@ -172,7 +172,7 @@ def run_daemon(args: argparse.Namespace, tree: Path | None, workdir: Path) -> di
     """One daemon, ``args.trials`` targets; latencies in ms and the trials not measured."""
     peer = StampingBattery(workdir / f"pki-{time.monotonic_ns()}")
     paths = [f"/b{n}" for n in range(args.gute)]
-    cot_sinks = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(CoT_SINKS)]
+    cot_sinks = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(COT_SINKS)]
     for sock in cot_sinks:
         sock.bind(("127.0.0.1", 0))
         sock.setblocking(False)
