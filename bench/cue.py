@@ -28,6 +28,7 @@ import math
 import os
 import platform
 import re
+import selectors
 import socket
 import statistics
 import subprocess
@@ -54,6 +55,7 @@ BATTERY = (65.80, 21.70)
 AIRFRAMES = 3
 LOITERING_MUNITION = 5  # FISCHER_DETECTION class_id
 _REVISION = re.compile(r"-r\d+$")
+_TRACK_UID = re.compile(rb'uid="[^"]*-trk-([^"]+)"')
 
 
 class StampingBattery(HttpsPeer):
@@ -84,6 +86,53 @@ class StampingBattery(HttpsPeer):
         for key, ats in by_key.items():
             if len(ats) == len(paths):
                 return key, max(ats)
+        return None
+
+
+class TrackStamps:
+    """Stamps the first arrival of each CoT track uid at each CoT sink (its own thread)."""
+
+    def __init__(self, socks: list[socket.socket]) -> None:
+        self.socks = socks
+        self.lock = threading.Lock()
+        #: track uid → arrival at each sink (monotonic ns), first arrival only.
+        self.arrivals: dict[bytes, dict[int, int]] = {}
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def __enter__(self) -> TrackStamps:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join(5)
+
+    def _run(self) -> None:
+        selector = selectors.DefaultSelector()
+        for n, sock in enumerate(self.socks):
+            selector.register(sock, selectors.EVENT_READ, n)
+        while not self._stop.is_set():
+            for handle, _ in selector.select(0.05):
+                sock, sink = handle.fileobj, handle.data
+                while True:
+                    try:
+                        data = sock.recv(65536)  # type: ignore[union-attr]
+                    except BlockingIOError:
+                        break
+                    now = time.monotonic_ns()
+                    match = _TRACK_UID.search(data)
+                    if match:
+                        with self.lock:
+                            self.arrivals.setdefault(match.group(1), {}).setdefault(sink, now)
+        selector.close()
+
+    def new_track(self, seen: set[bytes]) -> tuple[bytes, int] | None:
+        """A track uid not in ``seen`` that every sink has: its arrival at the last one."""
+        with self.lock:
+            for uid, at in self.arrivals.items():
+                if uid not in seen and len(at) == len(self.socks):
+                    return uid, max(at.values())
         return None
 
 
@@ -178,8 +227,9 @@ def run_daemon(args: argparse.Namespace, tree: Path | None, workdir: Path) -> di
         sock.setblocking(False)
     port = free_port(socket.SOCK_DGRAM)
     latencies: list[float] = []
+    to_track: list[float] = []
     late = missed = 0
-    with peer.in_thread():
+    with peer.in_thread(), TrackStamps(cot_sinks) as tracks:
         config = write_config(
             workdir,
             port,
@@ -211,6 +261,7 @@ def run_daemon(args: argparse.Namespace, tree: Path | None, workdir: Path) -> di
             gap_ns = int(args.gap_ms * 1e6)
             ident = 0
             seen: set[str] = set()
+            seen_tracks: set[bytes] = set()
             for trial in range(1, args.trials + 1):
                 lat, lon = spot(trial)
                 sent_at = 0
@@ -243,7 +294,6 @@ def run_daemon(args: argparse.Namespace, tree: Path | None, workdir: Path) -> di
                         time.sleep(0.0002)
                     if arrived is not None:
                         break
-                    _drain(cot_sinks)
                 if arrived is None:
                     # Not within a gap of any detection: wait once more, then count it.
                     time.sleep(1.0)
@@ -253,9 +303,14 @@ def run_daemon(args: argparse.Namespace, tree: Path | None, workdir: Path) -> di
                     else:
                         seen.add(cue[0])
                         late += 1
+                    if (track := tracks.new_track(seen_tracks)) is not None:
+                        seen_tracks.add(track[0])
                     continue
                 latencies.append((arrived - sent_at) / 1e6)
-                _drain(cot_sinks)
+                track = tracks.new_track(seen_tracks)
+                if track is not None:
+                    seen_tracks.add(track[0])
+                    to_track.append((track[1] - sent_at) / 1e6)
             out.close()
         finally:
             proc.terminate()
@@ -266,16 +321,12 @@ def run_daemon(args: argparse.Namespace, tree: Path | None, workdir: Path) -> di
                 proc.wait()
             for sock in cot_sinks:
                 sock.close()
-    return {"latencies": sorted(latencies), "late": late, "missed": missed}
-
-
-def _drain(socks: list[socket.socket]) -> None:
-    for sock in socks:
-        try:
-            while True:
-                sock.recv(65536)
-        except BlockingIOError:
-            pass
+    return {
+        "latencies": sorted(latencies),
+        "to_track": sorted(to_track),
+        "late": late,
+        "missed": missed,
+    }
 
 
 def _pct(ordered: list[float], q: float) -> float:
@@ -316,9 +367,10 @@ def main() -> None:
     for _ in range(args.rounds):
         for kind, tree in kinds:
             result = run_daemon(args, tree, workdir)
-            lat = result["latencies"]
+            lat, trk = result["latencies"], result["to_track"]
             print(
                 f"  {kind}: {len(lat)} cues, p50 {_pct(lat, 0.5):.2f} ms, "
+                f"track at the last CoT sink p50 {_pct(trk, 0.5):.2f} ms, "
                 f"p90 {_pct(lat, 0.9):.2f} ms, max {max(lat, default=float('nan')):.2f} ms, "
                 f"late {result['late']}, missed {result['missed']}",
                 file=sys.stderr,
@@ -326,6 +378,7 @@ def main() -> None:
             figures = rows[kind]
             figures.setdefault("p50", []).append(_pct(lat, 0.5))
             figures.setdefault("p90", []).append(_pct(lat, 0.9))
+            figures.setdefault("track", []).append(_pct(trk, 0.5))
             figures.setdefault("late", []).append(result["late"] + result["missed"])
     print(f"# detection → GUTE II cue, {datetime.now(UTC):%Y-%m-%d %H:%M} UTC")
     print(
@@ -336,13 +389,16 @@ def main() -> None:
         f"command: python bench/cue.py --rounds {args.rounds} --trials {args.trials} "
         f"--gute {args.gute}; min / median / max of the rounds\n"
     )
-    print("| daemon | cue p50 ms | cue p90 ms | cues later than the gap or missing |")
-    print("| --- | --- | --- | --- |")
+    print(
+        "| daemon | cue p50 ms | cue p90 ms | track at the last CoT sink p50 ms "
+        "| cues later than the gap or missing |"
+    )
+    print("| --- | --- | --- | --- | --- |")
     names = {"gateway": "this tree", "compare": str(args.compare)}
     for kind, _ in kinds:
         f = rows[kind]
         print(
-            f"| {names[kind]} | {spread(f['p50'])} | {spread(f['p90'])} "
+            f"| {names[kind]} | {spread(f['p50'])} | {spread(f['p90'])} | {spread(f['track'])} "
             f"| {spread(f['late'], '{:.0f}')} |"
         )
 
