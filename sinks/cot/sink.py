@@ -68,6 +68,9 @@ log = structlog.get_logger(__name__)
 
 CotProtocol = Literal["xml", "protobuf", "negotiate"]
 _FROZEN = ConfigDict(frozen=True, extra="forbid")
+#: Delivered tracks older than their stale time are forgotten at most this often: an entry
+#: that old is news anyway (``track_refresh_s`` < stale), so only memory waits for it.
+_FORGET_EVERY = timedelta(seconds=10)
 _SCHEMES = ("udp", "udp+multicast", "tcp", "tls")
 _ACCEPTED_KINDS = frozenset(
     {
@@ -333,6 +336,7 @@ class CotSink:
         self._log_limit = RateLimit(interval_s=30.0)
         # Per track uid: its CoT content when last delivered, and that event's time.
         self._delivered: dict[str, tuple[tuple[object, ...], datetime]] = {}
+        self._forgot_at: datetime | None = None
 
     def own_uids(self, airframes: Sequence[str]) -> frozenset[str]:
         """The uids our own airframes' CoT carries, which a CoT source would read back."""
@@ -425,8 +429,9 @@ class CotSink:
                 oversize.update(ids[id(e)] for e in transport.oversize(events))
             await self._call(transport, events)
         # Only now: a failed batch is retried whole, its tracks included.
-        self._delivered.update(tracks)
-        self._forget_old_tracks(max(e.event.time for e in events))
+        if tracks:
+            self._delivered.update(tracks)
+            self._forget_old_tracks(max(time for _, time in tracks.values()))
         if oversize:
             raise PermanentSinkError(
                 f"sink {self.name}: {len(oversize)} event(s) larger than one UDP datagram",
@@ -435,6 +440,10 @@ class CotSink:
             )
 
     def _forget_old_tracks(self, now: datetime) -> None:
+        # A scan of every track delivered: at most once per _FORGET_EVERY of track time.
+        if self._forgot_at is not None and now - self._forgot_at < _FORGET_EVERY:
+            return
+        self._forgot_at = now
         horizon = now - timedelta(seconds=self.config.stale.track_s)
         for uid in [u for u, (_, sent) in self._delivered.items() if sent < horizon]:
             del self._delivered[uid]
