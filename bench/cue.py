@@ -127,11 +127,12 @@ class TrackStamps:
                             self.arrivals.setdefault(match.group(1), {}).setdefault(sink, now)
         selector.close()
 
-    def new_track(self, seen: set[bytes]) -> tuple[bytes, int] | None:
-        """A track uid not in ``seen`` that every sink has: its arrival at the last one."""
+    def new_track(self, seen: set[bytes], since_ns: int) -> tuple[bytes, int] | None:
+        """A track uid not in ``seen``, first heard after ``since_ns``, that every sink has:
+        its arrival at the last one."""
         with self.lock:
             for uid, at in self.arrivals.items():
-                if uid not in seen and len(at) == len(self.socks):
+                if uid not in seen and len(at) == len(self.socks) and min(at.values()) > since_ns:
                     return uid, max(at.values())
         return None
 
@@ -265,6 +266,7 @@ def run_daemon(args: argparse.Namespace, tree: Path | None, workdir: Path) -> di
             for trial in range(1, args.trials + 1):
                 lat, lon = spot(trial)
                 sent_at = 0
+                trial_start = time.monotonic_ns()
                 arrived = None
                 for _ in range(args.max_detections):
                     ident += 1
@@ -303,11 +305,11 @@ def run_daemon(args: argparse.Namespace, tree: Path | None, workdir: Path) -> di
                     else:
                         seen.add(cue[0])
                         late += 1
-                    if (track := tracks.new_track(seen_tracks)) is not None:
+                    if (track := tracks.new_track(seen_tracks, trial_start)) is not None:
                         seen_tracks.add(track[0])
                     continue
                 latencies.append((arrived - sent_at) / 1e6)
-                track = tracks.new_track(seen_tracks)
+                track = tracks.new_track(seen_tracks, trial_start)
                 if track is not None:
                     seen_tracks.add(track[0])
                     to_track.append((track[1] - sent_at) / 1e6)
