@@ -120,6 +120,14 @@ class HttpsPoster:
         client = self._client
         assert client is not None  # noqa: S101 - open() made it or raised
         outcomes: list[PostOutcome] = []
+        if len(events) == 1:
+            # A lone cue (the usual batch) is POSTed from here: no task group, no limiter.
+            event = events[0]
+            try:
+                body = encode(event)
+            except ValueError as exc:
+                return [PostOutcome(event.event_id, "refused", str(exc))]
+            return [await self._post(client, event.event_id, body)]
         limiter = anyio.CapacityLimiter(self.max_in_flight)
 
         async def post(event: E) -> None:

@@ -4,10 +4,17 @@
 TTL, loopback on, and the interface to send from, by address or name) and sends each
 datagram whole, waiting while the kernel's buffer is full. CoT to ATAK's SA mesh uses it
 today; KLV and Ra 180's UDP radio gateway will too.
+
+The socket is connected to its one destination: the kernel then resolves the route once,
+not per datagram. A connected socket reports an ICMP error about an *earlier* datagram
+(port unreachable: nobody listening yet) on the next send, which it does not send; UDP is
+fire and forget, so that report is dropped, as an unconnected socket drops it, and the
+datagram is sent again. An error that the second try meets too (no route) is raised.
 """
 
 from __future__ import annotations
 
+import errno
 import socket
 import struct
 from ipaddress import ip_address
@@ -15,6 +22,11 @@ from ipaddress import ip_address
 import anyio
 
 __all__ = ["DatagramSender", "interface_request", "is_multicast"]
+
+#: Errors that ICMP answers to an earlier datagram leave pending on a connected socket.
+_REPORTED_LATE = frozenset(
+    {errno.ECONNREFUSED, errno.EHOSTUNREACH, errno.ENETUNREACH, errno.EHOSTDOWN}
+)
 
 
 def is_multicast(host: str) -> bool:
@@ -43,7 +55,6 @@ class DatagramSender:
         self.ttl = ttl
         self.interface = interface
         self._sock: socket.socket | None = None
-        self._address: tuple[str, int] | None = None
         self._opening = anyio.Lock()
 
     async def open(self) -> None:
@@ -66,10 +77,33 @@ class DatagramSender:
                 if self.interface:
                     request = interface_request(self.interface)
                     sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, request)
+            sock.connect(address)
         except OSError:
             sock.close()
             raise
-        self._sock, self._address = sock, (str(address[0]), int(address[1]))
+        self._sock = sock
+
+    def send_now(self, data: bytes) -> bool:
+        """Send ``data`` as one datagram if that needs no wait: True if sent, False if the
+        socket is not open or its buffer is full (then ``send`` it). ``OSError`` if refused.
+
+        No coroutine, no lock, no checkpoint: a sink's batch goes out in one call.
+        """
+        sock = self._sock
+        if sock is None:
+            return False
+        try:
+            sock.send(data)
+        except BlockingIOError:
+            return False
+        except OSError as exc:
+            if exc.errno not in _REPORTED_LATE:
+                raise
+            try:  # the report of an earlier datagram, dropped; this one was not sent
+                sock.send(data)
+            except BlockingIOError:
+                return False
+        return True
 
     async def send(self, data: bytes) -> None:
         """Send ``data`` as one datagram, opening the socket first if needed.
@@ -79,15 +113,10 @@ class DatagramSender:
         """
         if self._sock is None:
             await self.open()
-        sock, address = self._sock, self._address
-        if sock is None or address is None:
-            raise OSError("the UDP socket is not open")
-        while True:
-            try:
-                sock.sendto(data, address)
-                return
-            except BlockingIOError:
-                await anyio.wait_writable(sock)
+        while not self.send_now(data):
+            if self._sock is None:
+                raise OSError("the UDP socket is not open")
+            await anyio.wait_writable(self._sock)
 
     async def aclose(self) -> None:
         """Close the socket (it is opened again by the next ``send``)."""

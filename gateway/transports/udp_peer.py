@@ -1,11 +1,11 @@
 """One UDP peer that says when it is not there: a connected socket, refusals as ``OSError``.
 
-``DatagramSender`` (``gateway.transports.udp``) sends with ``sendto`` on an unconnected
-socket, where Linux drops the ICMP "port unreachable" of a peer that is not listening: the
-datagram is lost and nobody is told. ``UdpPeer`` connects its socket to the one address, so
-the kernel keeps the refusal as the socket's pending error, and after each datagram waits
-``refusal_wait_s`` for one before it calls the datagram sent. On loopback or a LAN the ICMP
-answer is back well within that; from a peer further away it surfaces at the next send.
+``DatagramSender`` (``gateway.transports.udp``) drops the ICMP "port unreachable" of a peer
+that is not listening, as UDP does: the datagram is lost and nobody is told. ``UdpPeer``
+keeps the refusal, which the kernel holds as its connected socket's pending error: after
+each datagram it waits ``refusal_wait_s`` for one before it calls the datagram sent. On
+loopback or a LAN the ICMP answer is back well within that; from a peer further away it
+surfaces at the next send.
 UDP has no acknowledgement, so a datagram that is not refused may still be lost.
 """
 

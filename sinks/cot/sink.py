@@ -11,7 +11,9 @@ Destinations are URIs: ``udp://`` (unicast, or multicast when the address is a g
 stream; TLS with a client certificate, the CA pinned and the hostname always verified). The
 encoding is ``xml``, ``protobuf`` (TAK protocol v1: mesh framing on UDP, stream framing on TCP)
 or ``negotiate`` (streams: XML until the server offers v1 and accepts our request; UDP: XML).
-Each event is built once and encoded at most once per encoding, whatever the destinations.
+Each event is built once and encoded at most once per encoding, whatever the destinations,
+and once for all the CoT sinks whose options and airframe types are the same
+(``sinks.cot.shared``).
 Mesh protobuf destinations advertise TAK protocol v1 (``TakControl``) at least every
 ``takcontrol_interval_s`` from the sink's ``run`` lifetime, which its SinkRunner starts.
 ``contact`` carries no ``endpoint``: ``*:-1:stcp`` is only right on a TAK server stream, and
@@ -55,7 +57,8 @@ from gateway.ops.logsetup import RateLimit
 from gateway.transports.tls import TlsFiles, tls_context
 from gateway.transports.udp import is_multicast
 from sinks.cot.codec import Encoded
-from sinks.cot.event import CotOptions, StaleTimes, build, own_uid
+from sinks.cot.event import CotOptions, StaleTimes, own_uid
+from sinks.cot.shared import SHARED, SharedBuilds
 from sinks.cot.transport import Endpoint, StreamConnection
 from sinks.cot.udp import UdpSender
 
@@ -65,6 +68,9 @@ log = structlog.get_logger(__name__)
 
 CotProtocol = Literal["xml", "protobuf", "negotiate"]
 _FROZEN = ConfigDict(frozen=True, extra="forbid")
+#: Delivered tracks older than their stale time are forgotten at most this often: an entry
+#: that old is news anyway (``track_refresh_s`` < stale), so only memory waits for it.
+_FORGET_EVERY = timedelta(seconds=10)
 _SCHEMES = ("udp", "udp+multicast", "tcp", "tls")
 _ACCEPTED_KINDS = frozenset(
     {
@@ -284,7 +290,7 @@ class CotSink:
 
     config_model = CotSinkConfig
 
-    def __init__(self, name: str, config: CotSinkConfig) -> None:
+    def __init__(self, name: str, config: CotSinkConfig, *, builds: SharedBuilds = SHARED) -> None:
         self.name = name
         self.config = config
         geoid = GeoidGrid.from_gtx(config.geoid_file) if config.geoid_file else bundled_geoid()
@@ -301,6 +307,9 @@ class CotSink:
             group=(config.group_name, config.group_role) if config.group_name else None,
             version=_package_version(),
         )
+        # Sinks with equal options share their builds (``sinks.cot.shared``).
+        self._builds = builds
+        self.options = builds.canonical(self.options)
         self._refresh = timedelta(seconds=config.track_refresh_s or stale.track_s / 2)
         #: A CoT source hearing our own reports back (a mesh echo, a TAK server relaying
         #: everything, or a forgery) must not make our airframes friendly units: the gateway
@@ -327,6 +336,7 @@ class CotSink:
         self._log_limit = RateLimit(interval_s=30.0)
         # Per track uid: its CoT content when last delivered, and that event's time.
         self._delivered: dict[str, tuple[tuple[object, ...], datetime]] = {}
+        self._forgot_at: datetime | None = None
 
     def own_uids(self, airframes: Sequence[str]) -> frozenset[str]:
         """The uids our own airframes' CoT carries, which a CoT source would read back."""
@@ -400,15 +410,15 @@ class CotSink:
         ids: dict[int, str] = {}
         tracks: dict[str, tuple[tuple[object, ...], datetime]] = {}
         for event in batch:
-            cot = build(event, self.options, self._own_types)
-            if cot is None:
+            encoded = self._builds.encoded(event, self.options, self._own_types)
+            if encoded is None:
                 continue
+            cot = encoded.event
             if isinstance(event, Track):
                 content = cot.content()
                 if not self._is_news(cot.uid, content, event.time):
                     continue
                 tracks[cot.uid] = (content, event.time)
-            encoded = Encoded(cot)
             ids[id(encoded)] = event.event_id
             events.append(encoded)
         if not events:
@@ -419,8 +429,9 @@ class CotSink:
                 oversize.update(ids[id(e)] for e in transport.oversize(events))
             await self._call(transport, events)
         # Only now: a failed batch is retried whole, its tracks included.
-        self._delivered.update(tracks)
-        self._forget_old_tracks(max(e.event.time for e in events))
+        if tracks:
+            self._delivered.update(tracks)
+            self._forget_old_tracks(max(time for _, time in tracks.values()))
         if oversize:
             raise PermanentSinkError(
                 f"sink {self.name}: {len(oversize)} event(s) larger than one UDP datagram",
@@ -429,6 +440,10 @@ class CotSink:
             )
 
     def _forget_old_tracks(self, now: datetime) -> None:
+        # A scan of every track delivered: at most once per _FORGET_EVERY of track time.
+        if self._forgot_at is not None and now - self._forgot_at < _FORGET_EVERY:
+            return
+        self._forgot_at = now
         horizon = now - timedelta(seconds=self.config.stale.track_s)
         for uid in [u for u, (_, sent) in self._delivered.items() if sent < horizon]:
             del self._delivered[uid]

@@ -1,7 +1,8 @@
 """CoT over UDP: datagrams to a unicast address or a multicast group (ATAK's SA mesh).
 
 One event per datagram, XML or TAK protocol v1 mesh protobuf; never split across datagrams
-(``cot.md`` §6). Sockets are non-blocking; the caller's deadline bounds each call.
+(``cot.md`` §6). Sockets are non-blocking and a datagram is sent without an await unless the
+socket's buffer is full; the caller's deadline bounds each call.
 """
 
 from __future__ import annotations
@@ -61,15 +62,20 @@ class UdpSender:
         return [e for e in events if len(e.get(self.encoding)) > _MAX_DATAGRAM]
 
     async def send(self, events: Sequence[Encoded]) -> None:
-        """Send each event as one datagram, skipping ``oversize`` ones; ``OSError`` if refused."""
+        """Send each event as one datagram, skipping ``oversize`` ones; ``OSError`` if refused.
+
+        Each datagram goes straight to the non-blocking socket; only a full buffer (or a
+        socket not open yet) waits, in ``DatagramSender.send``: no await per datagram.
+        """
+        encoding, send_now = self.encoding, self._datagrams.send_now
         for event in events:
-            data = event.get(self.encoding)
+            data = event.get(encoding)
             if len(data) > _MAX_DATAGRAM:
                 continue  # the sink refuses these by id (PermanentSinkError)
-            if self.encoding == "mesh" and self.announce_due_in_s() <= 0:
+            if encoding == "mesh" and self.announce_due_in_s() <= 0:
                 await self._send_datagram(event.mesh_with(self._control))
                 self._announced_at = anyio.current_time()
-            else:
+            elif not send_now(data):
                 await self._send_datagram(data)
 
     async def _send_datagram(self, data: bytes) -> None:

@@ -275,6 +275,24 @@ class TestUdp:
             await cot.aclose()
         assert cot._delivered == {}
 
+    @pytest.mark.anyio
+    async def test_delivered_tracks_are_forgotten_once_past_their_stale_time(self) -> None:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as receiver:
+            receiver.bind(("127.0.0.1", 0))
+            cot = sink(f"udp://127.0.0.1:{receiver.getsockname()[1]}", stale={"track_s": 60})
+            with anyio.fail_after(10):
+                for n in range(30):  # a new track every 10 s: each stale 60 s later
+                    track = TRACK.model_copy(
+                        update={
+                            "track_id": f"2026-{n:06d}",
+                            "time": TRACK.time + timedelta(seconds=10 * n),
+                        }
+                    )
+                    await cot.send([track])
+                await cot.aclose()
+        # The last 60 s of tracks, and at most the 10 s scan interval's more.
+        assert 6 <= len(cot._delivered) <= 8
+
 
 class TestStreams:
     """TAK server streams: XML framing, TLS with client certificates, TAK protocol v1."""
