@@ -22,6 +22,7 @@ import math
 import multiprocessing
 import os
 import platform
+import random
 import re
 import shutil
 import signal
@@ -292,11 +293,28 @@ def daemon_run(
         proc.wait(timeout=15)
 
 
+_GIVEN: set[int] = set()
+
+
 def free_port(kind: socket.SocketKind) -> int:
-    """A loopback port free for ``kind`` (SOCK_DGRAM or SOCK_STREAM) at the time of asking."""
-    with socket.socket(socket.AF_INET, kind) as probe:
-        probe.bind(("127.0.0.1", 0))
-        return int(probe.getsockname()[1])
+    """A loopback port free for ``kind`` (SOCK_DGRAM or SOCK_STREAM) at the time of asking.
+
+    Chosen below the kernel's ephemeral range (32768 on): a port from ``bind(0)`` can be
+    handed to any process's unbound send before the bench's own process binds it.
+    """
+    rng = random.Random(os.getpid() ^ time.monotonic_ns())
+    for _ in range(1_000):
+        port = rng.randrange(20_000, 32_000)
+        if port in _GIVEN:
+            continue
+        with socket.socket(socket.AF_INET, kind) as probe:
+            try:
+                probe.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+        _GIVEN.add(port)
+        return port
+    raise RuntimeError("no free loopback port in 20000-32000")
 
 
 def wait_ready(health: int, proc: subprocess.Popen[bytes]) -> None:
