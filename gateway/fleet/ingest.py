@@ -46,7 +46,7 @@ from gateway.fleet.normalise import (
     detection_from,
 )
 from gateway.fleet.security.signing import SigningVerifier
-from gateway.fleet.security.tunnel import TunnelOpener
+from gateway.fleet.security.tunnel import Opened, TunnelOpener
 from gateway.fleet.session import AirframeSession, Transmit
 from gateway.fleet.video import CameraView
 from gateway.ops.instruments import Instruments
@@ -115,9 +115,8 @@ class Ingest:
             labels = frozenset(link.label for link in cfg.links)
             verifier = (verifiers or {}).get(cfg.sysid)
             airframe = AirframeSession(cfg, state, health, labels, verifier, transmit=transmit)
-            telemetry = partial(self._telemetry, state, cfg.id)
             for name in NORMALISED_TYPES:
-                airframe.on(name, telemetry)
+                airframe.on(name, partial(self._telemetry, state.updater(name), cfg.id))
             airframe.on("FISCHER_DETECTION", self._detection)
             airframe.on("COMMAND_ACK", airframe.on_command_ack)
             view = CameraView(cfg.id, state, clock, terrain)
@@ -193,43 +192,52 @@ class Ingest:
         if opener is None:
             self._rejected(label, "auth", "tunnel link without a tunnel key")
             return
-        if intake.is_stream:
-            deframer = intake.deframers.get(peer)
-            if deframer is None:
-                deframer = intake.deframers[peer] = StreamDeframer(intake.max_chunk_bytes)
-            before = dict(deframer.errors)
-            opened = deframer.feed(data, lambda frame: opener.open_frame(frame, label))
-            for reason, count in deframer.errors.items():
-                if count != before.get(reason, 0):
-                    self._rejected(label, reason, "tunnel frame", count - before.get(reason, 0))
-            if deframer.failed_in_a_row >= MAX_FAILED_IN_A_ROW and intake.drop is not None:
-                # Each try costs an AES-GCM open: a peer that never authenticates is cut off.
-                deframer.failed_in_a_row = 0
-                intake.drop(peer)
-        else:
+        if not intake.is_stream:
+            # One datagram, one tunnel frame: the common case, without the stream's list.
+            now_ms = int(self._clock().timestamp() * 1000)
             try:
-                opened = [opener.open_frame(data, label)]
+                frame = opener.open_frame(data, label, now_ms)
             except FrameError as exc:
                 self._rejected(label, exc.reason, str(exc))
                 return
-        now_ms = int(self._clock().timestamp() * 1000) if opened else 0
-        for frame in opened:
-            airframe = self._by_id.get(frame.airframe)
-            if airframe is None or label not in airframe.labels:
-                # A valid key, but this link is not one of that airframe's links.
-                self._rejected(label, "foreign_link", f"{frame.airframe} is not configured here")
-                continue
-            latency_s = (now_ms - frame.sent_ms) / 1000.0
-            histogram = self._latency.get((frame.airframe, label))
-            if histogram is None:  # bounded: configured (airframe, link) pairs only
-                histogram = self._inst.link_latency.labels(frame.airframe, label)
-                self._latency[(frame.airframe, label)] = histogram
-            histogram.observe(max(latency_s, 0.0))
-            airframe.health.latency(label, latency_s)
-            # The key authenticated the datagram, so the sender is this airframe's peer.
-            key = frame.airframe if not intake.is_stream else (peer, frame.airframe)
-            for msg in self._parse(intake, key, frame.payload):
-                self._frame(intake, peer, msg, airframe)
+            self._opened(intake, peer, frame, now_ms)
+            return
+        deframer = intake.deframers.get(peer)
+        if deframer is None:
+            deframer = intake.deframers[peer] = StreamDeframer(intake.max_chunk_bytes)
+        before = dict(deframer.errors)
+        opened = deframer.feed(data, lambda frame: opener.open_frame(frame, label))
+        for reason, count in deframer.errors.items():
+            if count != before.get(reason, 0):
+                self._rejected(label, reason, "tunnel frame", count - before.get(reason, 0))
+        if deframer.failed_in_a_row >= MAX_FAILED_IN_A_ROW and intake.drop is not None:
+            # Each try costs an AES-GCM open: a peer that never authenticates is cut off.
+            deframer.failed_in_a_row = 0
+            intake.drop(peer)
+        if opened:
+            now_ms = int(self._clock().timestamp() * 1000)
+            for frame in opened:
+                self._opened(intake, peer, frame, now_ms)
+
+    def _opened(self, intake: LinkIntake, peer: object, frame: Opened, now_ms: int) -> None:
+        """One authenticated tunnel frame from ``peer``: its MAVLink frames, for its airframe."""
+        label = intake.label
+        airframe = self._by_id.get(frame.airframe)
+        if airframe is None or label not in airframe.labels:
+            # A valid key, but this link is not one of that airframe's links.
+            self._rejected(label, "foreign_link", f"{frame.airframe} is not configured here")
+            return
+        latency_s = (now_ms - frame.sent_ms) / 1000.0
+        histogram = self._latency.get((frame.airframe, label))
+        if histogram is None:  # bounded: configured (airframe, link) pairs only
+            histogram = self._inst.link_latency.labels(frame.airframe, label)
+            self._latency[(frame.airframe, label)] = histogram
+        histogram.observe(max(latency_s, 0.0))
+        airframe.health.latency(label, latency_s)
+        # The key authenticated the datagram, so the sender is this airframe's peer.
+        key = frame.airframe if not intake.is_stream else (peer, frame.airframe)
+        for msg in self._parse(intake, key, frame.payload):
+            self._frame(intake, peer, msg, airframe)
 
     def _parse(self, intake: LinkIntake, peer: object, data: bytes) -> list[MavMessage]:
         parser = intake.datagram_parser
@@ -312,15 +320,15 @@ class Ingest:
 
     def _telemetry(
         self,
-        state: AirframeState,
+        update: Callable[[MavMessage], bool],
         airframe_id: str,
         airframe: AirframeSession,
         _label: str,
         msg: MavMessage,
     ) -> None:
-        # The airframe's state and id are bound when the handler is registered: this runs
-        # for most frames, so it reads nothing it does not need.
-        if state.update(msg.get_type(), msg):
+        # The state's updater of this message type and the airframe's id are bound when the
+        # handler is registered: this runs for most frames, so it reads nothing it does not need.
+        if update(msg):
             self._dirty[airframe_id] = airframe
             if not self._flush_pending:
                 self._schedule_flush()

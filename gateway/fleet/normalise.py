@@ -104,6 +104,10 @@ class AirframeState:
         """Record which link is active; later snapshots carry it."""
         self.active_link = label
 
+    def updater(self, name: str) -> Callable[[MavMessage], bool]:
+        """The ``update`` of messages of type ``name`` alone (one of ``NORMALISED_TYPES``)."""
+        return self._handlers[name]
+
     def update(self, name: str, msg: MavMessage) -> bool:
         """Merge ``msg`` (of type ``name``); True if the state changed."""
         handler = self._handlers.get(name)
