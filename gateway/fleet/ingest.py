@@ -59,6 +59,7 @@ log = structlog.get_logger(__name__)
 
 #: Seconds between two log lines for the same link and rejection reason.
 REJECT_LOG_INTERVAL_S = 10.0
+_STX_V2 = 0xFD
 #: Tunnel frames in a row that fail authentication before a stream peer is hung up on.
 MAX_FAILED_IN_A_ROW = 64
 
@@ -271,7 +272,8 @@ class Ingest:
         self, intake: LinkIntake, peer: object, msg: MavMessage, sealed_by: AirframeSession | None
     ) -> None:
         label = intake.label
-        sysid = msg.get_srcSystem()
+        buf = msg.get_msgbuf()
+        sysid = buf[5] if buf[0] == _STX_V2 else buf[3]  # the header's system id
         airframe = intake.airframes.get(sysid)
         if airframe is None:
             if sysid in self._by_sysid:
@@ -288,7 +290,6 @@ class Ingest:
             # A tunnel key proves who sealed the frame: it may not speak for another sysid.
             self._rejected(label, "auth", f"{sealed_by.config.id} sent frames as sysid {sysid}")
             return
-        buf = msg.get_msgbuf()
         authenticated = True
         if intake.security == "signed":
             verifier = airframe.verifier
