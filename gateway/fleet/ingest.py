@@ -78,6 +78,8 @@ class LinkIntake:
     airframes: dict[int, AirframeSession] = field(default_factory=dict)
     """The airframes configured on this link, by sysid: the only ones it may speak for."""
     datagram_parser: MavlinkParser | None = None
+    sealed: dict[str, tuple[AirframeSession, HistogramChild]] = field(default_factory=dict)
+    """Per airframe id that a tunnel key on this link named: its session and latency histogram."""
     trust: Callable[[object], None] | None = None
     """Told the first time a peer authenticates for an airframe (a listener keeps it)."""
     drop: Callable[[object], None] | None = None
@@ -130,7 +132,6 @@ class Ingest:
         self._dirty: dict[str, AirframeSession] = {}
         self._flush_pending = False
         self._reject_log = RateLimit(interval_s=REJECT_LOG_INTERVAL_S)
-        self._latency: dict[tuple[str, str], HistogramChild] = {}
 
     def register_link(self, intake: LinkIntake) -> None:
         """Declare a link endpoint before it delivers data."""
@@ -223,17 +224,19 @@ class Ingest:
     def _opened(self, intake: LinkIntake, peer: object, frame: Opened, now_ms: int) -> None:
         """One authenticated tunnel frame from ``peer``: its MAVLink frames, for its airframe."""
         label = intake.label
-        airframe = self._by_id.get(frame.airframe)
-        if airframe is None or label not in airframe.labels:
-            # A valid key, but this link is not one of that airframe's links.
-            self._rejected(label, "foreign_link", f"{frame.airframe} is not configured here")
-            return
-        latency_s = (now_ms - frame.sent_ms) / 1000.0
-        histogram = self._latency.get((frame.airframe, label))
-        if histogram is None:  # bounded: configured (airframe, link) pairs only
+        sealed = intake.sealed.get(frame.airframe)
+        if sealed is None:
+            airframe = self._by_id.get(frame.airframe)
+            if airframe is None or label not in airframe.labels:
+                # A valid key, but this link is not one of that airframe's links.
+                self._rejected(label, "foreign_link", f"{frame.airframe} is not configured here")
+                return
+            # Bounded: the airframes configured on this link.
             histogram = self._inst.link_latency.labels(frame.airframe, label)
-            self._latency[(frame.airframe, label)] = histogram
-        histogram.observe(max(latency_s, 0.0))
+            sealed = intake.sealed[frame.airframe] = (airframe, histogram)
+        airframe, histogram = sealed
+        latency_s = (now_ms - frame.sent_ms) / 1000.0
+        histogram.observe(latency_s if latency_s > 0.0 else 0.0)
         airframe.health.latency(label, latency_s)
         # The key authenticated the datagram, so the sender is this airframe's peer.
         key = frame.airframe if not intake.is_stream else (peer, frame.airframe)

@@ -81,6 +81,8 @@ class AirframeState:
         self.airframe = airframe
         self._clock = clock
         self._enrichment = enrichment
+        #: The EW mode's value, read once (an enum's ``value`` is a descriptor call).
+        self._ew_mode = None if enrichment is None else enrichment.ew_mode.value
         self._agl_for: tuple[float, float, float | None] | None = None
         self._agl: tuple[float | None, float | None] = (None, None)
         self._seq = 0
@@ -136,7 +138,7 @@ class AirframeState:
 
     def _derive(self, enrichment: Enrichment) -> dict[str, Any]:
         """Height above ground (where a DEM covers the point) and predicted endurance."""
-        out: dict[str, Any] = {"ew_mode": enrichment.ew_mode.value}
+        out: dict[str, Any] = {"ew_mode": self._ew_mode}
         position: Position | None = self._fields.get("position")
         terrain = enrichment.terrain
         if position is not None and position.alt_msl_m is not None and terrain is not None:
