@@ -30,6 +30,7 @@ from gateway.events import (
     Telemetry,
     Velocity,
     checked,
+    checked_from,
     event_id,
 )
 from gateway.fleet.dialect import CLASS_NAMES, SENSOR_NAMES
@@ -122,23 +123,22 @@ class AirframeState:
     def snapshot(self) -> Telemetry:
         """The merged state now, as a new Telemetry event."""
         self._seq += 1
-        derived: dict[str, Any] = {}
-        if self._enrichment is not None:
-            derived = self._derive(self._enrichment)
-        # Every field was checked when it was merged (the update handlers, ``_derive``).
-        return checked(
-            Telemetry,
-            event_id=f"{self._id_prefix}{self._seq}",
-            airframe=self.airframe,
-            time=self._clock(),
-            active_link=self.active_link,
+        values = {
+            "event_id": f"{self._id_prefix}{self._seq}",
+            "airframe": self.airframe,
+            "time": self._clock(),
+            "active_link": self.active_link,
             **self._fields,
-            **derived,
-        )
+        }
+        if self._enrichment is not None:
+            self._derive(self._enrichment, values)
+        # Every field was checked when it was merged (the update handlers, ``_derive``).
+        return checked_from(Telemetry, values)
 
-    def _derive(self, enrichment: Enrichment) -> dict[str, Any]:
-        """Height above ground (where a DEM covers the point) and predicted endurance."""
-        out: dict[str, Any] = {"ew_mode": self._ew_mode}
+    def _derive(self, enrichment: Enrichment, out: dict[str, Any]) -> None:
+        """Height above ground (where a DEM covers the point) and predicted endurance, into
+        ``out``."""
+        out["ew_mode"] = self._ew_mode
         position: Position | None = self._fields.get("position")
         terrain = enrichment.terrain
         if position is not None and position.alt_msl_m is not None and terrain is not None:
@@ -170,7 +170,6 @@ class AirframeState:
                 minutes = endurance_remaining_min(wh_left, profile, enrichment.ew_mode)
                 self._endurance = (wh_left, minutes)
             out["endurance_remaining_min"] = self._endurance[1]
-        return out
 
     def apply(self, name: str, msg: MavMessage) -> Telemetry | None:
         """``update`` then ``snapshot``; None if the message changed nothing."""
