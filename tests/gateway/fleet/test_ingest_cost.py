@@ -28,14 +28,18 @@ from tests.gateway.fleet.test_ingest import T0
 
 AIRFRAMES = 10
 #: Ingest's frames/s ÷ pymavlink's, this test's loop on the 2-core development machine with
-#: other work running (2026-11-27): medians 0.46-0.50 (0.40-0.42 earlier that day on a busier
-#: machine; 0.35-0.36 before events were built without re-validation). The floor leaves room
-#: for a loaded machine's noise, not for a path a quarter slower.
-FLOOR = 0.35
+#: other work running (2026-11-27): medians 0.55-0.62 (0.44-0.48 before the snapshot was built
+#: from one dict and the header fields read from the frame; 0.35-0.36 before events were built
+#: without re-validation). The floor leaves room for a loaded machine's noise, not for a path
+#: a quarter slower.
+FLOOR = 0.42
 #: Tunnel ingest's frames/s ÷ plain pymavlink's, this test's loop, same machine and load
 #: (2026-11-27): medians 0.60 (0.46-0.47 before the tunnel's header look-up, the datagram
-#: path without lists and the header fields read from the frame). The floor is the old figure.
-TUNNEL_FLOOR = 0.47
+#: path without lists and the header fields read from the frame); single runs under a burst
+#: of other work dipped to 0.44. Same rule for the floor.
+TUNNEL_FLOOR = 0.45
+#: Timed rounds of each test; the median is held to the floor.
+ROUNDS = 5
 #: Datagrams between two flushes in the tunnel test: telemetry coalesced as under load.
 PER_PASS = 64
 
@@ -91,13 +95,15 @@ def test_ingest_keeps_its_cpu_time_ratio_against_bare_pymavlink() -> None:
 
     ours()  # warm: the fast decoder is built on first use, caches fill
     ratios = []
-    for _ in range(3):
+    for _ in range(ROUNDS):
         events.clear()
         mine = cpu(ours)
         ratios.append(cpu(theirs) / mine)
     assert sum(isinstance(e, Detection) for e in events) == 30
     ratios.sort()
-    assert ratios[1] >= FLOOR, f"ingest ÷ pymavlink CPU-time ratios {ratios}, floor {FLOOR}"
+    assert ratios[ROUNDS // 2] >= FLOOR, (
+        f"ingest ÷ pymavlink CPU-time ratios {ratios}, floor {FLOOR}"
+    )
 
 
 def test_tunnel_ingest_keeps_its_cpu_time_ratio_against_plain_pymavlink() -> None:
@@ -154,7 +160,7 @@ def test_tunnel_ingest_keeps_its_cpu_time_ratio_against_plain_pymavlink() -> Non
 
     ours()
     ratios = []
-    for _ in range(3):
+    for _ in range(ROUNDS):
         events.clear()
         mine = ours()
         ratios.append(cpu(theirs) / mine)
@@ -162,6 +168,6 @@ def test_tunnel_ingest_keeps_its_cpu_time_ratio_against_plain_pymavlink() -> Non
     passes = len(warm) // PER_PASS + len(timed) // PER_PASS + 4
     assert 0 < sum(isinstance(e, Telemetry) for e in events) <= AIRFRAMES * passes
     ratios.sort()
-    assert ratios[1] >= TUNNEL_FLOOR, (
+    assert ratios[ROUNDS // 2] >= TUNNEL_FLOOR, (
         f"tunnel ingest ÷ plain pymavlink CPU-time ratios {ratios}, floor {TUNNEL_FLOOR}"
     )
