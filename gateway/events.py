@@ -70,6 +70,7 @@ __all__ = [
     "Velocity",
     "VideoFrameMetadata",
     "checked",
+    "checked_from",
     "declared_extensions",
     "event_adapter",
     "event_id",
@@ -104,6 +105,11 @@ def checked(cls: type[_M], **values: Any) -> _M:
     types; the instance is the one the validating constructor would build from them. Defaults
     must be immutable (a default factory's value is shared between instances).
     """
+    return checked_from(cls, values)
+
+
+def checked_from(cls: type[_M], values: dict[str, Any]) -> _M:
+    """``checked`` from a dict of the values (the hot path builds one dict, not keywords)."""
     fields = _template(cls).copy()
     fields.update(values)
     instance = cls.__new__(cls)

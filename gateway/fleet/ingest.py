@@ -46,7 +46,7 @@ from gateway.fleet.normalise import (
     detection_from,
 )
 from gateway.fleet.security.signing import SigningVerifier
-from gateway.fleet.security.tunnel import TunnelOpener
+from gateway.fleet.security.tunnel import Opened, TunnelOpener
 from gateway.fleet.session import AirframeSession, Transmit
 from gateway.fleet.video import CameraView
 from gateway.ops.instruments import Instruments
@@ -59,6 +59,7 @@ log = structlog.get_logger(__name__)
 
 #: Seconds between two log lines for the same link and rejection reason.
 REJECT_LOG_INTERVAL_S = 10.0
+_STX_V2 = 0xFD
 #: Tunnel frames in a row that fail authentication before a stream peer is hung up on.
 MAX_FAILED_IN_A_ROW = 64
 
@@ -77,6 +78,8 @@ class LinkIntake:
     airframes: dict[int, AirframeSession] = field(default_factory=dict)
     """The airframes configured on this link, by sysid: the only ones it may speak for."""
     datagram_parser: MavlinkParser | None = None
+    sealed: dict[str, tuple[AirframeSession, HistogramChild]] = field(default_factory=dict)
+    """Per airframe id that a tunnel key on this link named: its session and latency histogram."""
     trust: Callable[[object], None] | None = None
     """Told the first time a peer authenticates for an airframe (a listener keeps it)."""
     drop: Callable[[object], None] | None = None
@@ -115,9 +118,8 @@ class Ingest:
             labels = frozenset(link.label for link in cfg.links)
             verifier = (verifiers or {}).get(cfg.sysid)
             airframe = AirframeSession(cfg, state, health, labels, verifier, transmit=transmit)
-            telemetry = partial(self._telemetry, state, cfg.id)
             for name in NORMALISED_TYPES:
-                airframe.on(name, telemetry)
+                airframe.on(name, partial(self._telemetry, state.updater(name), cfg.id))
             airframe.on("FISCHER_DETECTION", self._detection)
             airframe.on("COMMAND_ACK", airframe.on_command_ack)
             view = CameraView(cfg.id, state, clock, terrain)
@@ -130,7 +132,6 @@ class Ingest:
         self._dirty: dict[str, AirframeSession] = {}
         self._flush_pending = False
         self._reject_log = RateLimit(interval_s=REJECT_LOG_INTERVAL_S)
-        self._latency: dict[tuple[str, str], HistogramChild] = {}
 
     def register_link(self, intake: LinkIntake) -> None:
         """Declare a link endpoint before it delivers data."""
@@ -193,43 +194,54 @@ class Ingest:
         if opener is None:
             self._rejected(label, "auth", "tunnel link without a tunnel key")
             return
-        if intake.is_stream:
-            deframer = intake.deframers.get(peer)
-            if deframer is None:
-                deframer = intake.deframers[peer] = StreamDeframer(intake.max_chunk_bytes)
-            before = dict(deframer.errors)
-            opened = deframer.feed(data, lambda frame: opener.open_frame(frame, label))
-            for reason, count in deframer.errors.items():
-                if count != before.get(reason, 0):
-                    self._rejected(label, reason, "tunnel frame", count - before.get(reason, 0))
-            if deframer.failed_in_a_row >= MAX_FAILED_IN_A_ROW and intake.drop is not None:
-                # Each try costs an AES-GCM open: a peer that never authenticates is cut off.
-                deframer.failed_in_a_row = 0
-                intake.drop(peer)
-        else:
+        if not intake.is_stream:
+            # One datagram, one tunnel frame: the common case, without the stream's list.
+            now_ms = int(self._clock().timestamp() * 1000)
             try:
-                opened = [opener.open_frame(data, label)]
+                frame = opener.open_frame(data, label, now_ms)
             except FrameError as exc:
                 self._rejected(label, exc.reason, str(exc))
                 return
-        now_ms = int(self._clock().timestamp() * 1000) if opened else 0
-        for frame in opened:
+            self._opened(intake, peer, frame, now_ms)
+            return
+        deframer = intake.deframers.get(peer)
+        if deframer is None:
+            deframer = intake.deframers[peer] = StreamDeframer(intake.max_chunk_bytes)
+        before = dict(deframer.errors)
+        opened = deframer.feed(data, lambda frame: opener.open_frame(frame, label))
+        for reason, count in deframer.errors.items():
+            if count != before.get(reason, 0):
+                self._rejected(label, reason, "tunnel frame", count - before.get(reason, 0))
+        if deframer.failed_in_a_row >= MAX_FAILED_IN_A_ROW and intake.drop is not None:
+            # Each try costs an AES-GCM open: a peer that never authenticates is cut off.
+            deframer.failed_in_a_row = 0
+            intake.drop(peer)
+        if opened:
+            now_ms = int(self._clock().timestamp() * 1000)
+            for frame in opened:
+                self._opened(intake, peer, frame, now_ms)
+
+    def _opened(self, intake: LinkIntake, peer: object, frame: Opened, now_ms: int) -> None:
+        """One authenticated tunnel frame from ``peer``: its MAVLink frames, for its airframe."""
+        label = intake.label
+        sealed = intake.sealed.get(frame.airframe)
+        if sealed is None:
             airframe = self._by_id.get(frame.airframe)
             if airframe is None or label not in airframe.labels:
                 # A valid key, but this link is not one of that airframe's links.
                 self._rejected(label, "foreign_link", f"{frame.airframe} is not configured here")
-                continue
-            latency_s = (now_ms - frame.sent_ms) / 1000.0
-            histogram = self._latency.get((frame.airframe, label))
-            if histogram is None:  # bounded: configured (airframe, link) pairs only
-                histogram = self._inst.link_latency.labels(frame.airframe, label)
-                self._latency[(frame.airframe, label)] = histogram
-            histogram.observe(max(latency_s, 0.0))
-            airframe.health.latency(label, latency_s)
-            # The key authenticated the datagram, so the sender is this airframe's peer.
-            key = frame.airframe if not intake.is_stream else (peer, frame.airframe)
-            for msg in self._parse(intake, key, frame.payload):
-                self._frame(intake, peer, msg, airframe)
+                return
+            # Bounded: the airframes configured on this link.
+            histogram = self._inst.link_latency.labels(frame.airframe, label)
+            sealed = intake.sealed[frame.airframe] = (airframe, histogram)
+        airframe, histogram = sealed
+        latency_s = (now_ms - frame.sent_ms) / 1000.0
+        histogram.observe(latency_s if latency_s > 0.0 else 0.0)
+        airframe.health.latency(label, latency_s)
+        # The key authenticated the datagram, so the sender is this airframe's peer.
+        key = frame.airframe if not intake.is_stream else (peer, frame.airframe)
+        for msg in self._parse(intake, key, frame.payload):
+            self._frame(intake, peer, msg, airframe)
 
     def _parse(self, intake: LinkIntake, peer: object, data: bytes) -> list[MavMessage]:
         parser = intake.datagram_parser
@@ -263,7 +275,8 @@ class Ingest:
         self, intake: LinkIntake, peer: object, msg: MavMessage, sealed_by: AirframeSession | None
     ) -> None:
         label = intake.label
-        sysid = msg.get_srcSystem()
+        buf = msg.get_msgbuf()
+        sysid = buf[5] if buf[0] == _STX_V2 else buf[3]  # the header's system id
         airframe = intake.airframes.get(sysid)
         if airframe is None:
             if sysid in self._by_sysid:
@@ -280,7 +293,6 @@ class Ingest:
             # A tunnel key proves who sealed the frame: it may not speak for another sysid.
             self._rejected(label, "auth", f"{sealed_by.config.id} sent frames as sysid {sysid}")
             return
-        buf = msg.get_msgbuf()
         authenticated = True
         if intake.security == "signed":
             verifier = airframe.verifier
@@ -312,15 +324,15 @@ class Ingest:
 
     def _telemetry(
         self,
-        state: AirframeState,
+        update: Callable[[MavMessage], bool],
         airframe_id: str,
         airframe: AirframeSession,
         _label: str,
         msg: MavMessage,
     ) -> None:
-        # The airframe's state and id are bound when the handler is registered: this runs
-        # for most frames, so it reads nothing it does not need.
-        if state.update(msg.get_type(), msg):
+        # The state's updater of this message type and the airframe's id are bound when the
+        # handler is registered: this runs for most frames, so it reads nothing it does not need.
+        if update(msg):
             self._dirty[airframe_id] = airframe
             if not self._flush_pending:
                 self._schedule_flush()

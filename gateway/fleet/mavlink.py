@@ -74,7 +74,23 @@ class MavlinkParser:
         """
         if len(data) > self.max_chunk_bytes:
             raise Oversize(len(data), self.max_chunk_bytes)
-        if whole and self._fast is not None:
+        fast = self._fast
+        if whole and fast is not None:
+            size = len(data)
+            if size >= 8 and size == (
+                12 + data[1] + (13 if data[2] & 1 else 0)
+                if data[0] == _STX_V2
+                else 8 + data[1]
+                if data[0] == _STX_V1
+                else -1
+            ):
+                # One frame per datagram, the common case: decoded without cutting a list.
+                try:
+                    message = fast.decode(data)
+                except Malformed:
+                    self.bad += 1  # a CRC, length or flag pymavlink refuses too
+                    return []
+                return [message] if message is not None else self._pymavlink(data, whole=True)
             try:
                 frames = split_frames(data)
             except Malformed:

@@ -31,6 +31,7 @@ from gateway.events import (
     Telemetry,
     Velocity,
     checked,
+    checked_from,
     event_id,
     plausible_alt,
 )
@@ -83,6 +84,8 @@ class AirframeState:
         self.airframe = airframe
         self._clock = clock
         self._enrichment = enrichment
+        #: The EW mode's value, read once (an enum's ``value`` is a descriptor call).
+        self._ew_mode = None if enrichment is None else enrichment.ew_mode.value
         self._agl_for: tuple[float, float, float | None] | None = None
         self._agl: tuple[float | None, float | None] = (None, None)
         self._seq = 0
@@ -106,6 +109,10 @@ class AirframeState:
         """Record which link is active; later snapshots carry it."""
         self.active_link = label
 
+    def updater(self, name: str) -> Callable[[MavMessage], bool]:
+        """The ``update`` of messages of type ``name`` alone (one of ``NORMALISED_TYPES``)."""
+        return self._handlers[name]
+
     def update(self, name: str, msg: MavMessage) -> bool:
         """Merge ``msg`` (of type ``name``); True if the state changed."""
         handler = self._handlers.get(name)
@@ -118,23 +125,22 @@ class AirframeState:
     def snapshot(self) -> Telemetry:
         """The merged state now, as a new Telemetry event."""
         self._seq += 1
-        derived: dict[str, Any] = {}
-        if self._enrichment is not None:
-            derived = self._derive(self._enrichment)
-        # Every field was checked when it was merged (the update handlers, ``_derive``).
-        return checked(
-            Telemetry,
-            event_id=f"{self._id_prefix}{self._seq}",
-            airframe=self.airframe,
-            time=self._clock(),
-            active_link=self.active_link,
+        values = {
+            "event_id": f"{self._id_prefix}{self._seq}",
+            "airframe": self.airframe,
+            "time": self._clock(),
+            "active_link": self.active_link,
             **self._fields,
-            **derived,
-        )
+        }
+        if self._enrichment is not None:
+            self._derive(self._enrichment, values)
+        # Every field was checked when it was merged (the update handlers, ``_derive``).
+        return checked_from(Telemetry, values)
 
-    def _derive(self, enrichment: Enrichment) -> dict[str, Any]:
-        """Height above ground (where a DEM covers the point) and predicted endurance."""
-        out: dict[str, Any] = {"ew_mode": enrichment.ew_mode.value}
+    def _derive(self, enrichment: Enrichment, out: dict[str, Any]) -> None:
+        """Height above ground (where a DEM covers the point) and predicted endurance, into
+        ``out``."""
+        out["ew_mode"] = self._ew_mode
         position: Position | None = self._fields.get("position")
         terrain = enrichment.terrain
         if position is not None and position.alt_msl_m is not None and terrain is not None:
@@ -166,7 +172,6 @@ class AirframeState:
                 minutes = endurance_remaining_min(wh_left, profile, enrichment.ew_mode)
                 self._endurance = (wh_left, minutes)
             out["endurance_remaining_min"] = self._endurance[1]
-        return out
 
     def apply(self, name: str, msg: MavMessage) -> Telemetry | None:
         """``update`` then ``snapshot``; None if the message changed nothing."""

@@ -58,7 +58,7 @@ _RESULT_NAMES: dict[int, str] = {
     int(key): str(entry.name) for key, entry in dialect.enums["MAV_RESULT"].items()
 }
 _MAV_RESULT_IN_PROGRESS = 5
-_SIGNED_V2 = 0xFD
+_SIGNED_V2 = 0xFD  # MAVLink 2's start byte (a frame that may be signed)
 _MAV_AUTOPILOT_INVALID = 8  # a GCS, a companion or a peripheral: not the flight controller
 _DEDUP_PRUNE_EVERY = 1024
 #: Builds message objects (``*_encode``); each frame is packed by ``encode`` with the
@@ -244,13 +244,17 @@ class AirframeSession:
                 self._peers[label] = peer
                 if trust is not None:
                     trust(peer)
-            self._health.heard(label, msg.get_srcComponent(), msg.get_seq(), now_mono)
+            # Component id and sequence number from the header (MAVLink 2, else 1).
+            if buf[0] == _SIGNED_V2:
+                self._health.heard(label, buf[6], buf[4], now_mono)
+            else:
+                self._health.heard(label, buf[4], buf[2], now_mono)
         if self._multilink and self._duplicate(buf, now_mono):
             return False
         if self._passthrough is not None:
             self._passthrough(bytes(buf))
         if name == "HEARTBEAT" and msg.autopilot != _MAV_AUTOPILOT_INVALID:
-            self._health.autopilot_compid = msg.get_srcComponent()
+            self._health.autopilot_compid = buf[6] if buf[0] == _SIGNED_V2 else buf[4]
         return True
 
     def _duplicate(self, buf: bytes | bytearray, now_mono: float) -> bool:

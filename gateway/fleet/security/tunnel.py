@@ -29,10 +29,10 @@ from __future__ import annotations
 import os
 import struct
 import time
-from collections import OrderedDict
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from datetime import UTC, date, datetime, timedelta
+from typing import NamedTuple
 
 from cryptography.exceptions import InvalidTag
 from cryptography.hazmat.primitives import hashes
@@ -64,7 +64,11 @@ _NONCE = 12
 _FIXED = struct.Struct(">2sBHB")
 _PLAIN_MAVLINK = (0xFD, 0xFE)  # MAVLink 2 and 1 start bytes
 #: Nonces remembered per airframe across links (about 25 min of frames at 50 Hz).
-_MAX_ACCEPTED = 65_536  # magic, version, key_day, id_len
+_MAX_ACCEPTED = 65_536
+#: The accepted nonces of an airframe are pruned every 1,024 insertions.
+_PRUNE_MASK = 1023
+#: Distinct headers (airframe id and key day) remembered before the memory starts again.
+_MAX_HEADERS = 4096
 #: Bytes a sealed frame adds to its payload, for an airframe id of 8 bytes.
 OVERHEAD_BYTES = _FIXED.size + 8 + 6 + _NONCE + _TAG
 
@@ -202,9 +206,8 @@ class ReplayWindow:
             self.bitmap |= 1 << (self.highest - counter)
 
 
-@dataclass(frozen=True, slots=True)
-class Opened:
-    """An authenticated frame: who sent it and the plaintext."""
+class Opened(NamedTuple):
+    """An authenticated frame: who sent it and the plaintext (a tuple: built once a frame)."""
 
     airframe: str
     payload: bytes
@@ -255,12 +258,13 @@ class TunnelOpener:
         self.max_frame_bytes = max_frame_bytes
         self._streams: dict[tuple[object, str], _Sessions] = {}
         self.cross_link_s = cross_link_s
-        self._accepted: dict[str, OrderedDict[bytes, tuple[float, object]]] = {}
+        self._accepted: dict[str, dict[bytes, tuple[float, object]]] = {}
         # The replay windows live in memory, so a frame sealed before this opener existed
         # could be a capture from before a restart: refuse it (docs/tunnel.md, "Restarts").
         self.started_ms = int(clock().timestamp() * 1000)
         self._days: dict[int, date] = {}
-        self._ids: dict[bytes, str] = {}
+        #: Header bytes up to the airframe id, seen before -> airframe, key day, day, cipher.
+        self._headers: dict[bytes, tuple[str, int, date, AESGCM]] = {}
 
     def accepted_days(self, now: datetime) -> tuple[date, ...]:
         """The key days a frame may use at ``now``: today, plus neighbours near midnight."""
@@ -285,43 +289,31 @@ class TunnelOpener:
             day = self._days[key_day] = _EPOCH + timedelta(days=key_day)
         return day
 
-    def open_frame(self, frame: bytes, stream: object = None) -> Opened:
-        """Authenticate ``frame`` (from link ``stream``) and return its plaintext."""
+    def open_frame(self, frame: bytes, stream: object = None, now_ms: int | None = None) -> Opened:
+        """Authenticate ``frame`` (from link ``stream``) and return its plaintext.
+
+        ``now_ms``: the clock now (ms since 1970, UTC) when the caller has just read it.
+        """
         size = len(frame)
         if size > self.max_frame_bytes:
             raise Oversize(size, self.max_frame_bytes)
         if size < _FIXED.size:
             raise Malformed("shorter than a tunnel header")
-        magic, version, key_day, id_len = _FIXED.unpack_from(frame)
-        if magic != MAGIC:
-            if frame[0] in _PLAIN_MAVLINK:
-                raise Malformed("plain MAVLink on a tunnel link (does the sender have its key?)")
-            raise Malformed("not a tunnel frame (bad magic)")
-        if version != VERSION:
-            raise Malformed(f"tunnel version {version} is not supported")
-        id_end = _FIXED.size + id_len
+        id_end = _FIXED.size + frame[5]
+        # Magic, version, key day and airframe id: checked once per airframe and key day,
+        # then found by one look-up (this runs once per frame).
+        known = self._headers.get(frame[:id_end])
+        if known is None:
+            known = self._header(frame, size)
+        airframe, key_day, day, cipher = known
         header_end = id_end + 6 + _NONCE
-        if id_len == 0 or id_len > MAX_ID_BYTES or size < header_end + _TAG:
+        if size < header_end + _TAG:
             raise Malformed("tunnel header lengths are inconsistent")
-        raw_id = frame[_FIXED.size : id_end]
-        airframe = self._ids.get(raw_id)
-        if airframe is None:
-            try:
-                airframe = raw_id.decode("ascii")
-            except UnicodeDecodeError as exc:
-                raise Malformed("airframe id is not ASCII") from exc
-            if airframe not in self._airframes:
-                raise AuthenticationFailed("frame from an unknown airframe")
-            self._ids[raw_id] = airframe  # bounded: only configured ids are kept
-        now_ms = _utc_ms(self._clock())
+        if now_ms is None:
+            now_ms = _utc_ms(self._clock())
         today = now_ms // _DAY_MS
         if key_day != today and key_day not in self._accepted_day_numbers(now_ms, today):
             raise AuthenticationFailed("key day outside the accepted range")
-        day = self._day(key_day)
-        cipher = self._keys.aead(airframe, day)
-        if cipher is None:
-            raise AuthenticationFailed("no key for this airframe and day")
-        header = frame[:header_end]
         nonce = frame[id_end + 6 : header_end]
         sent_ms = int.from_bytes(frame[id_end : id_end + 6], "big")
         sessions = self._streams.get((stream, airframe))
@@ -332,7 +324,7 @@ class TunnelOpener:
         if window is not None and not window.check(counter):
             raise Replayed("frame counter already seen or behind the window")
         try:
-            payload = cipher.decrypt(nonce, frame[header_end:], header)
+            payload = cipher.decrypt(nonce, frame[header_end:], frame[:header_end])
         except InvalidTag as exc:
             raise AuthenticationFailed("authentication tag did not verify") from exc
         # Freshness is judged only after authentication, so a forged timestamp costs nothing.
@@ -349,6 +341,43 @@ class TunnelOpener:
         window.last_seen_ms = now_ms
         return Opened(airframe, payload, day, sent_ms)
 
+    def _header(self, frame: bytes, size: int) -> tuple[str, int, date, AESGCM]:
+        """Check a header not seen before: magic, version, lengths, airframe, key day.
+
+        Raises as ``open_frame`` documents; a header that passes is remembered (bounded:
+        configured airframes, accepted key days) with its airframe, day and cipher.
+        """
+        magic, version, key_day, id_len = _FIXED.unpack_from(frame)
+        if magic != MAGIC:
+            if frame[0] in _PLAIN_MAVLINK:
+                raise Malformed("plain MAVLink on a tunnel link (does the sender have its key?)")
+            raise Malformed("not a tunnel frame (bad magic)")
+        if version != VERSION:
+            raise Malformed(f"tunnel version {version} is not supported")
+        id_end = _FIXED.size + id_len
+        if id_len == 0 or id_len > MAX_ID_BYTES or size < id_end + 6 + _NONCE + _TAG:
+            raise Malformed("tunnel header lengths are inconsistent")
+        try:
+            airframe = frame[_FIXED.size : id_end].decode("ascii")
+        except UnicodeDecodeError as exc:
+            raise Malformed("airframe id is not ASCII") from exc
+        if airframe not in self._airframes:
+            raise AuthenticationFailed("frame from an unknown airframe")
+        # The key day is judged before a key is derived for it: an attacker's choice of day
+        # costs no key derivation and takes no room here.
+        now_ms = _utc_ms(self._clock())
+        today = now_ms // _DAY_MS
+        if key_day != today and key_day not in self._accepted_day_numbers(now_ms, today):
+            raise AuthenticationFailed("key day outside the accepted range")
+        day = self._day(key_day)
+        cipher = self._keys.aead(airframe, day)
+        if cipher is None:
+            raise AuthenticationFailed("no key for this airframe and day")
+        if len(self._headers) >= _MAX_HEADERS:
+            self._headers.clear()  # days went by: the headers of today are learnt again
+        known = self._headers[bytes(frame[:id_end])] = (airframe, key_day, day, cipher)
+        return known
+
     def _check_other_links(self, airframe: str, nonce: bytes, stream: object) -> None:
         """Refuse a frame first accepted on another link longer ago than ``cross_link_s``.
 
@@ -357,16 +386,30 @@ class TunnelOpener:
         capture replayed there, which the per-link windows alone would accept.
         """
         now = time.monotonic()
-        seen = self._accepted.setdefault(airframe, OrderedDict())
+        seen = self._accepted.get(airframe)
+        if seen is None:
+            seen = self._accepted[airframe] = {}
         first = seen.get(nonce)
         if first is None:
             seen[nonce] = (now, stream)
-            # Oldest first: forget what the freshness window refuses anyway, and cap the rest.
-            horizon = now - 2 * self.freshness_s
-            while seen and (len(seen) > _MAX_ACCEPTED or next(iter(seen.values()))[0] < horizon):
-                seen.popitem(last=False)
+            if len(seen) & _PRUNE_MASK == 0:
+                self._prune_accepted(seen, now)
         elif first[1] != stream and now - first[0] > self.cross_link_s:
             raise Replayed("frame already accepted on another link (a replay there?)")
+
+    def _prune_accepted(self, seen: dict[bytes, tuple[float, object]], now: float) -> None:
+        # Oldest first (a dict keeps insertion order): forget what the freshness window
+        # refuses anyway, and cap the rest. Run every _PRUNE_MASK + 1 insertions, not per frame.
+        horizon = now - 2 * self.freshness_s
+        excess = len(seen) - _MAX_ACCEPTED
+        stale = []
+        for nonce, (accepted, _stream) in seen.items():
+            if excess <= 0 and accepted >= horizon:
+                break
+            stale.append(nonce)
+            excess -= 1
+        for nonce in stale:
+            del seen[nonce]
 
     def _forget_idle(self, sessions: _Sessions, now_ms: int) -> None:
         limit = self.freshness_s * 1000 * 2

@@ -168,3 +168,57 @@ class TestRotation:
         clock.now = after - timedelta(minutes=10)
         with pytest.raises(AuthenticationFailed):
             opener.open_frame(early)
+
+
+class TestMemory:
+    """What the opener remembers per frame is bounded, and remembering changes no decision."""
+
+    def test_a_header_seen_before_still_has_its_key_day_judged(self) -> None:
+        sealer, opener, clock = pair(freshness_s=10 * 86_400)
+        first = sealer.seal(b"a")
+        second = sealer.seal(b"b")
+        assert opener.open_frame(first).payload == b"a"  # its header is remembered now
+        clock.now = NOON + timedelta(days=2)
+        with pytest.raises(AuthenticationFailed, match="key day"):
+            opener.open_frame(second)
+
+    def test_headers_of_unknown_airframes_and_refused_days_are_not_remembered(self) -> None:
+        _, opener, clock = pair()
+        stranger = Sealer("F26E-999", DayKeys(master=MASTER), clock)
+        for _ in range(10):
+            with pytest.raises(AuthenticationFailed, match="unknown airframe"):
+                opener.open_frame(stranger.seal(b"x"))
+        old = Sealer("F26E-001", DayKeys(master=MASTER), Clock(NOON - timedelta(days=3)))
+        with pytest.raises(AuthenticationFailed, match="key day"):
+            opener.open_frame(old.seal(b"x"))
+        assert opener._headers == {}
+
+    def test_a_frame_on_a_second_link_passes_only_within_cross_link_s(
+        self, monkeypatch: pytest.MonkeyPatch
+    ) -> None:
+        mono = [100.0]
+        monkeypatch.setattr("gateway.fleet.security.tunnel.time.monotonic", lambda: mono[0])
+        sealer, opener, _ = pair(cross_link_s=1.0)
+        redundant, replayed = sealer.seal(b"r"), sealer.seal(b"p")
+        assert opener.open_frame(redundant, "a").payload == b"r"
+        assert opener.open_frame(replayed, "a").payload == b"p"
+        mono[0] += 0.5
+        assert opener.open_frame(redundant, "b").payload == b"r"  # the same frame on both links
+        mono[0] += 1.0
+        with pytest.raises(Replayed, match="another link"):
+            opener.open_frame(replayed, "b")
+
+    def test_nonces_remembered_across_links_are_capped_and_forgotten_when_stale(
+        self, monkeypatch: pytest.MonkeyPatch
+    ) -> None:
+        mono = [100.0]
+        monkeypatch.setattr("gateway.fleet.security.tunnel.time.monotonic", lambda: mono[0])
+        monkeypatch.setattr("gateway.fleet.security.tunnel._MAX_ACCEPTED", 2048)
+        sealer, opener, _ = pair(freshness_s=30)
+        for _ in range(5000):
+            opener.open_frame(sealer.seal(b"x"), "a")
+            assert len(opener._accepted["F26E-001"]) < 2048 + 1024
+        mono[0] += 61  # twice the freshness window: every nonce so far is stale
+        for _ in range(1024):
+            opener.open_frame(sealer.seal(b"x"), "a")
+        assert len(opener._accepted["F26E-001"]) <= 1024
