@@ -43,6 +43,7 @@ import nats  # noqa: E402
 from nats_server import NatsServer  # noqa: E402 - the tests' server helper
 
 from gateway.events import Detection, Event, Position, Sensor  # noqa: E402
+from gateway.spool.store import Spool  # noqa: E402
 from sinks.nats.sink import NatsSink, NatsSinkConfig  # noqa: E402
 from sinks.nats.source import NatsSource, NatsSourceConfig  # noqa: E402
 from sinks.nats.subjects import encode_event, subject_for  # noqa: E402
@@ -82,9 +83,14 @@ async def peer_rate(url: str, events: list[Detection]) -> float:
 
 
 async def gateway_run(
-    leaf: str, hub: str, events: list[Detection], batch: int, paced_hz: float | None
+    leaf: str,
+    hub: str,
+    events: list[Detection],
+    batch: int,
+    paced_hz: float | None,
+    spool: Spool | None,
 ) -> tuple[float, list[float]]:
-    """The sink at b, the source at a: (events/s, latencies in ms)."""
+    """The sink at b, the source at a (acking once ``spool`` committed): (events/s, ms)."""
     sent_at: dict[str, float] = {}
     latencies: list[float] = []
     done = anyio.Event()
@@ -104,6 +110,8 @@ async def gateway_run(
         taken,
         clock=lambda: datetime.now(UTC),
     )
+    if spool is not None:
+        source.set_ledger(spool)
     await sink.open()
     async with anyio.create_task_group() as tasks:
         await tasks.start(source.run)
@@ -142,6 +150,11 @@ def main() -> None:
     parser.add_argument("--events", type=int, default=20_000, help="detections per run")
     parser.add_argument("--batch", type=int, default=256, help="events per sink send")
     parser.add_argument("--paced", type=int, default=2000, help="events in the 10 %% load run")
+    parser.add_argument(
+        "--no-spool",
+        action="store_true",
+        help="the source acks at once (no spool at node a: the figures before 2026-11-27)",
+    )
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         hub = NatsServer(Path(tmp), "a", hub=True)
@@ -150,20 +163,23 @@ def main() -> None:
             while not hub.leafz().get("leafs"):
                 time.sleep(0.02)
 
+            spool = None if args.no_spool else Spool(Path(tmp) / "a.spool.db")
+
             async def run() -> tuple[float, float, list[float], float]:
                 # The sink creates b's streams; the peer then publishes into the same one.
-                rate, _ = await gateway_run(
-                    leaf.url, hub.url, detections(args.events, "g"), args.batch, None
-                )
+                events = detections(args.events, "g")
+                rate, _ = await gateway_run(leaf.url, hub.url, events, args.batch, None, spool)
                 peer = await peer_rate(leaf.url, detections(args.events, "p"))
                 load = rate * 0.10
-                _, lat = await gateway_run(leaf.url, hub.url, detections(args.paced, "l"), 1, load)
+                paced = detections(args.paced, "l")
+                _, lat = await gateway_run(leaf.url, hub.url, paced, 1, load, spool)
                 return rate, peer, lat, load
 
             rate, peer, lat, load = anyio.run(run)
     print(
         f"nats bench: {platform.python_implementation()} {platform.python_version()}, "
-        f"{args.events} detections, batch {args.batch}\n"
+        f"{args.events} detections, batch {args.batch}, "
+        f"{'no spool' if args.no_spool else 'acked once the spool at a committed'}\n"
     )
     print("| measure | value |")
     print("| --- | --- |")

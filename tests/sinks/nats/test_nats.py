@@ -34,6 +34,7 @@ from gateway.events import (
 from gateway.spool.group import Commit
 from sinks.nats.sink import NatsSink, NatsSinkConfig
 from sinks.nats.source import NatsSource, NatsSourceConfig
+from sinks.nats.streams import events_stream
 from sinks.nats.subjects import BadMessage, airframe_token, decode_event, encode_event, subject_for
 
 pytestmark = NEEDS_NATS
@@ -474,3 +475,36 @@ def test_handoffs_and_order_statuses_cross_with_their_ids_once(
     ]
     assert source.status()["counts"] == {"handoff": 1, "order_status": 1, "duplicate": 2}
     assert sink.counts() == {"published": 2, "duplicate": 1, "relayed_skipped": 1}
+
+
+def test_a_stream_made_by_an_older_version_is_updated_and_keeps_what_it_holds(
+    tmp_path: Path,
+) -> None:
+    """``FSG_b_EVT`` made when only detections crossed: opened again it captures handoffs
+    and order statuses too; with ``create_streams: false`` the difference is an error."""
+    handoff, _ = cue_and_status()
+    with NatsServer(tmp_path, "b") as server:
+
+        async def main() -> tuple[list[str], int, str]:
+            raw = await nats.connect(server.url)
+            js = raw.jetstream()
+            old = events_stream("b", {EventKind.DETECTION}, 3600.0, 1 << 20, 60.0)
+            await js.add_stream(old)
+            await js.publish("fsg.b.det.F1", encode_event(detection("F1", 1)))
+            checked = NatsSink(
+                "out", NatsSinkConfig(node="b", servers=[server.url], create_streams=False)
+            )
+            with pytest.raises(TransientSinkError) as refused:
+                await checked.open()
+            sink = NatsSink("out", NatsSinkConfig(node="b", servers=[server.url]))
+            await sink.open()
+            await sink.send([handoff])
+            await sink.aclose()
+            info = await js.stream_info("FSG_b_EVT")
+            await raw.close()
+            return sorted(info.config.subjects or []), info.state.messages, str(refused.value)
+
+        subjects, messages, refusal = anyio.run(main)
+    assert subjects == ["fsg.b.det.>", "fsg.b.hof.>", "fsg.b.ost.>"]
+    assert messages == 2
+    assert "differs: subjects" in refusal
