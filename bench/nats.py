@@ -32,13 +32,15 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
-import dataclasses
+import multiprocessing
 import platform
 import statistics
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from datetime import UTC, datetime
+from multiprocessing.connection import Connection
 from pathlib import Path
 
 # This file is named nats.py: run as a script, its folder would shadow the nats package.
@@ -49,14 +51,14 @@ sys.path.append(str(_HERE.parent / "tests"))
 
 import anyio  # noqa: E402
 import nats  # noqa: E402
+from nats.js.api import DiscardPolicy, StorageType, StreamConfig  # noqa: E402
 from nats.js.errors import BadRequestError  # noqa: E402
 from nats_server import NatsServer  # noqa: E402 - the tests' server helper
 
-from gateway.events import Detection, Event, EventKind, Position, Sensor  # noqa: E402
+from gateway.events import Detection, Event, Position, Sensor  # noqa: E402
 from gateway.spool.store import Spool  # noqa: E402
 from sinks.nats.sink import NatsSink, NatsSinkConfig  # noqa: E402
 from sinks.nats.source import NatsSource, NatsSourceConfig  # noqa: E402
-from sinks.nats.streams import events_stream  # noqa: E402
 from sinks.nats.subjects import encode_event, subject_for  # noqa: E402
 
 
@@ -85,9 +87,17 @@ async def peer_rate(url: str, events: list[Detection]) -> float:
     """
     nc = await nats.connect(url)
     js = nc.jetstream()
-    like = events_stream("b", {EventKind.DETECTION}, 3600.0, 1 << 30, 600.0)
+    like = StreamConfig(  # as sinks.nats.streams.events_stream makes node b's
+        name="PEER",
+        subjects=["peer.>"],
+        storage=StorageType.FILE,
+        discard=DiscardPolicy.OLD,
+        max_age=3600.0,
+        max_bytes=1 << 30,
+        duplicate_window=600.0,
+    )
     with contextlib.suppress(BadRequestError):  # made by an earlier round
-        await js.add_stream(dataclasses.replace(like, name="PEER", subjects=["peer.>"]))
+        await js.add_stream(like)
     bodies = [
         (subject_for("peer", e).replace("fsg.", "", 1), encode_event(e), e.event_id) for e in events
     ]
@@ -102,40 +112,85 @@ async def peer_rate(url: str, events: list[Detection]) -> float:
     return len(events) / elapsed
 
 
-async def gateway_run(
-    leaf: str,
-    hub: str,
-    events: list[Detection],
-    batch: int,
-    paced_hz: float | None,
-    spool: Spool | None,
-) -> tuple[float, list[float]]:
-    """The sink at b, the source at a (acking once ``spool`` committed): (events/s, ms)."""
-    sent_at: dict[str, float] = {}
-    latencies: list[float] = []
+async def take_at_a(
+    hub: str, ids: set[str], spool_path: Path | None, ready: Callable[[], None]
+) -> dict[str, float]:
+    """Node a: the ``nats`` source (acking once its spool committed) until every id of
+    ``ids`` was taken; when each was (``time.perf_counter``: one clock for every process)."""
+    taken_at: dict[str, float] = {}
     done = anyio.Event()
-    wanted = {e.event_id for e in events}
 
     def taken(event: Event) -> bool:
-        if event.event_id in wanted:
-            latencies.append((time.perf_counter() - sent_at[event.event_id]) * 1000)
-            if len(latencies) == len(wanted):
+        if event.event_id in ids and event.event_id not in taken_at:
+            taken_at[event.event_id] = time.perf_counter()
+            if len(taken_at) == len(ids):
                 done.set()
         return True
 
-    sink = NatsSink("bench", NatsSinkConfig(node="b", servers=[leaf]))
     source = NatsSource(
         "bench",
         NatsSourceConfig(node="a", servers=[hub], remotes=["b"], durable="bench"),
         taken,
         clock=lambda: datetime.now(UTC),
     )
+    spool = None if spool_path is None else Spool(spool_path)
     if spool is not None:
         source.set_ledger(spool)
-    await sink.open()
     async with anyio.create_task_group() as tasks:
         await tasks.start(source.run)
         await anyio.sleep(1.0)  # the consumer and the sourcing are up
+        ready()
+        with anyio.fail_after(120):
+            await done.wait()
+        tasks.cancel_scope.cancel()
+    if spool is not None:
+        spool.close()
+    return taken_at
+
+
+def _node_a(hub: str, ids: set[str], spool_path: Path | None, conn: Connection) -> None:
+    """Node a in a process of its own: says ready, then sends when each id was taken."""
+    conn.send(anyio.run(take_at_a, hub, ids, spool_path, lambda: conn.send("ready")))
+
+
+async def gateway_run(
+    leaf: str,
+    hub: str,
+    events: list[Detection],
+    batch: int,
+    paced_hz: float | None,
+    spool_path: Path | None,
+    *,
+    processes: bool,
+) -> tuple[float, list[float]]:
+    """The sink at b, the source at a (in its own process with ``processes``, as on its
+    own node; else in this one): (events/s, latencies in ms)."""
+    sent_at: dict[str, float] = {}
+    ids = {e.event_id for e in events}
+    ready = anyio.Event()
+    result: list[dict[str, float]] = []
+    sink = NatsSink("bench", NatsSinkConfig(node="b", servers=[leaf]))
+    await sink.open()
+    async with anyio.create_task_group() as tasks:
+        if processes:
+            context = multiprocessing.get_context("spawn")
+            ours, theirs = context.Pipe()
+            node_a = context.Process(target=_node_a, args=(hub, ids, spool_path, theirs))
+            node_a.start()
+            assert await anyio.to_thread.run_sync(ours.recv) == "ready"
+
+            async def collect() -> None:
+                result.append(await anyio.to_thread.run_sync(ours.recv))
+                node_a.join()
+
+            tasks.start_soon(collect)
+        else:
+
+            async def in_process() -> None:
+                result.append(await take_at_a(hub, ids, spool_path, ready.set))
+
+            tasks.start_soon(in_process)
+            await ready.wait()
         start = time.perf_counter()
         if paced_hz is None:
             for i in range(0, len(events), batch):
@@ -152,12 +207,10 @@ async def gateway_run(
                     await anyio.sleep(delay)
                 sent_at[event.event_id] = time.perf_counter()
                 await sink.send([event])
-        with anyio.fail_after(120):
-            await done.wait()
-        elapsed = time.perf_counter() - start
-        tasks.cancel_scope.cancel()
     await sink.aclose()
-    return len(events) / elapsed, latencies
+    taken_at = result[0]
+    elapsed = max(taken_at.values()) - start
+    return len(events) / elapsed, [(taken_at[i] - sent_at[i]) * 1000 for i in sent_at]
 
 
 def p(values: list[float], q: float) -> float:
@@ -170,6 +223,12 @@ def main() -> None:
     parser.add_argument("--events", type=int, default=20_000, help="detections per run")
     parser.add_argument("--batch", type=int, default=256, help="events per sink send")
     parser.add_argument("--paced", type=int, default=2000, help="events in the 10 %% load run")
+    parser.add_argument(
+        "--one-process",
+        action="store_true",
+        help="node a's source in the sink's process (the figures before 2026-11-27); by "
+        "default it runs in a process of its own, as on its own node",
+    )
     parser.add_argument(
         "--repeat", type=int, default=3, help="rounds of gateway, peer and paced runs, in turn"
     )
@@ -186,18 +245,31 @@ def main() -> None:
             while not hub.leafz().get("leafs"):
                 time.sleep(0.02)
 
-            spool = None if args.no_spool else Spool(Path(tmp) / "a.spool.db")
+            def spool(run: str) -> Path | None:
+                return None if args.no_spool else Path(tmp) / f"a-{run}.spool.db"
+
+            processes = not args.one_process
 
             async def run() -> list[tuple[float, float, list[float], float]]:
                 rounds = []
                 for n in range(args.repeat):
-                    # The sink creates b's streams; the peer publishes into the same one.
+                    # The sink creates b's streams; then the peer publishes beside them.
                     events = detections(args.events, f"g{n}")
-                    rate, _ = await gateway_run(leaf.url, hub.url, events, args.batch, None, spool)
+                    rate, _ = await gateway_run(
+                        leaf.url,
+                        hub.url,
+                        events,
+                        args.batch,
+                        None,
+                        spool(f"g{n}"),
+                        processes=processes,
+                    )
                     peer = await peer_rate(leaf.url, detections(args.events, f"p{n}"))
                     load = rate * 0.10
                     paced = detections(args.paced, f"l{n}")
-                    _, lat = await gateway_run(leaf.url, hub.url, paced, 1, load, spool)
+                    _, lat = await gateway_run(
+                        leaf.url, hub.url, paced, 1, load, spool(f"l{n}"), processes=processes
+                    )
                     rounds.append((rate, peer, lat, load))
                 return rounds
 
@@ -205,7 +277,8 @@ def main() -> None:
     print(
         f"nats bench: {platform.python_implementation()} {platform.python_version()}, "
         f"{args.events} detections, batch {args.batch}, {args.repeat} rounds (median), "
-        f"{'no spool' if args.no_spool else 'acked once the spool at a committed'}\n"
+        f"{'no spool' if args.no_spool else 'acked once the spool at a committed'}, "
+        f"{'one process' if args.one_process else 'node a in its own process'}\n"
     )
     rate = statistics.median(r[0] for r in rounds)
     peer = statistics.median(r[1] for r in rounds)
