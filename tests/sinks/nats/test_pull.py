@@ -15,6 +15,7 @@ from pathlib import Path
 import anyio
 import nats
 import pytest
+from daemon_support import free_tcp_port
 from nats.aio.client import Client
 from nats.js.api import AckPolicy, ConsumerConfig, StreamConfig
 from nats_server import DEBIAN_NATS_SERVER, NEEDS_DEBIAN_NATS, NEEDS_NATS, NatsServer
@@ -107,3 +108,34 @@ def test_a_burst_arrives_whole_in_order_once_in_bounded_batches(server: NatsServ
     batches = anyio.run(main)
     assert [int(body) for batch in batches for body in batch] == list(range(1000))
     assert max(map(len, batches)) <= 64
+
+
+def test_pulling_goes_on_after_the_server_restarts(tmp_path: Path) -> None:
+    """The open pull request is lost with the server; the next one, sent once it expired
+    here, takes what was published since (the consumer lives in the server's store)."""
+    with NatsServer(tmp_path, "a", port=free_tcp_port()) as server:
+
+        async def main() -> list[bytes]:
+            nc = await consumer(server.url)
+            puller = Puller(nc, "S", "d", batch=16, wait_s=0.2)
+            taken: list[bytes] = []
+            async with anyio.create_task_group() as tasks:
+                tasks.start_soon(puller.run)
+                await nc.jetstream().publish("s.1", b"before")
+                with anyio.fail_after(HANG_S):
+                    batch = await puller.next_batch()
+                taken += [message.data for message in batch]
+                await batch[0].ack()
+                await anyio.to_thread.run_sync(server.stop)
+                await anyio.to_thread.run_sync(server.start)
+                with anyio.fail_after(HANG_S):
+                    while not nc.is_connected:  # noqa: ASYNC110 - nats-py's own reconnect
+                        await anyio.sleep(0.05)
+                    await nc.jetstream().publish("s.2", b"after")
+                    batch = await puller.next_batch()
+                taken += [message.data for message in batch]
+                tasks.cancel_scope.cancel()
+            await nc.close()
+            return taken
+
+        assert anyio.run(main) == [b"before", b"after"]
