@@ -26,6 +26,8 @@ from collections import Counter
 from pathlib import Path
 
 _ROOT = Path(__file__).resolve().parents[1]
+# Run as a script, bench/ is first on the path, and its nats.py would shadow the nats package.
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _ROOT / "bench"]
 sys.path.insert(0, str(_ROOT))
 sys.path.append(str(_ROOT / "tests"))
 sys.path.append(str(_ROOT / "tests" / "e2e"))

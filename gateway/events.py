@@ -630,6 +630,10 @@ class Handoff(BaseModel):
     """The blue-force check against the nearest friendly unit."""
     operator_authorisation_required: Literal[True] = True
     """Always True: a cue for a human operator, never a command."""
+    origin_node: str | None = Field(default=None, pattern=r"^[A-Za-z0-9_-]{1,32}$")
+    """The gateway node this cue came from when another node sent it (the ``nats`` source);
+    None for this node's own. Still only a cue: a node never sends on an event that carries
+    one, and nothing on the receiving node turns it into a command."""
     late_by_s: float | None = Field(default=None, ge=0.0)
     """Set when the spool delivers the event after its kind's stale threshold: how many seconds
     it waited."""
@@ -914,6 +918,10 @@ class OrderStatus(BaseModel):
     """The order's status sequence: 1 for its first status, then 2, 3, ... Statuses reach
     the issuer at least once (those owed are sent again after a restart): a receiver drops
     one whose ``order_event_id`` and ``seq`` it already has."""
+    origin_node: str | None = Field(default=None, pattern=r"^[A-Za-z0-9_-]{1,32}$")
+    """The gateway node this status came from when another node sent it (the ``nats``
+    source); None for this node's own. A node never sends on an event that carries one, and
+    never answers an issuer of its own with another node's status."""
     late_by_s: float | None = Field(default=None, ge=0.0)
     """Set when the spool delivers the event after its kind's stale threshold: how many seconds
     it waited."""

@@ -182,7 +182,8 @@ class OrderStatusFeed:
         self.listeners.append(listener)
 
     def offer_slot(self, event: Event, ingest_mono: float, slot: str | None) -> None:
-        """Pass an ``OrderStatus`` to every listening source."""
-        if isinstance(event, OrderStatus):
+        """Pass an ``OrderStatus`` of this node's own to every listening source (another
+        node's, taken by the ``nats`` source, answers no issuer of this node)."""
+        if isinstance(event, OrderStatus) and event.origin_node is None:
             for listener in self.listeners:
                 listener.on_order_status(event)

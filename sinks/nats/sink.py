@@ -48,7 +48,9 @@ class NatsSinkConfig(SinkConfig, NatsServer):
     """Options of the ``nats`` sink: this node's server and the streams it publishes to."""
 
     kinds: frozenset[EventKind] = Field(
-        default=_KINDS, min_length=1, description="detection and/or telemetry."
+        default=_KINDS,
+        min_length=1,
+        description="What this node publishes: detection, telemetry, handoff, order_status.",
     )
     create_streams: bool = Field(
         default=True,
@@ -76,7 +78,8 @@ class NatsSinkConfig(SinkConfig, NatsServer):
         extra = kinds - _KINDS
         if extra:
             names = ", ".join(sorted(kind.value for kind in extra))
-            raise ValueError(f"kinds: {names} not carried between nodes (detection, telemetry)")
+            carried = ", ".join(kind.value for kind in KIND_TOKENS)
+            raise ValueError(f"kinds: {names} not carried between nodes ({carried})")
         return kinds
 
 
@@ -95,7 +98,7 @@ class NatsSink:
 
     @property
     def kinds(self) -> frozenset[EventKind]:
-        """detection and telemetry (or the subset configured)."""
+        """detection, telemetry, handoff and order_status (or the subset configured)."""
         return self.config.kinds
 
     def environment_warnings(self) -> list[str]:
@@ -136,9 +139,13 @@ class NatsSink:
         self._nc = nc
         js = nc.jetstream(timeout=cfg.request_timeout_s)
         try:
-            if EventKind.DETECTION in cfg.kinds:
+            if cfg.kinds - {EventKind.TELEMETRY}:
                 wanted = events_stream(
-                    cfg.node, cfg.max_age_h * 3600.0, cfg.max_bytes, cfg.duplicate_window_s
+                    cfg.node,
+                    cfg.kinds,
+                    cfg.max_age_h * 3600.0,
+                    cfg.max_bytes,
+                    cfg.duplicate_window_s,
                 )
                 await ensure_stream(js, wanted, create=cfg.create_streams)
             if EventKind.TELEMETRY in cfg.kinds:

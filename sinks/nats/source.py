@@ -35,15 +35,17 @@ from nats.aio.client import Client
 from nats.aio.msg import Msg
 from nats.js import JetStreamContext
 from nats.js.api import AckPolicy, ConsumerConfig, DeliverPolicy
+from nats.js.errors import NotFoundError
 from pydantic import Field, field_validator
 
 from gateway.c2.source import Commit, DetectionLedger, SourceConfig
 from gateway.clock import Clock
-from gateway.events import Detection, Event, Telemetry
+from gateway.events import Event, Telemetry
 from gateway.ops.logsetup import RateLimit
 from sinks.nats.connection import NatsServer, connect
+from sinks.nats.pull import Puller
 from sinks.nats.streams import aggregate_stream, ensure_stream
-from sinks.nats.subjects import NODE_PATTERN, BadMessage, decode_event
+from sinks.nats.subjects import NODE_PATTERN, BadMessage, Carried, decode_event
 
 __all__ = ["NatsSource", "NatsSourceConfig"]
 
@@ -195,30 +197,16 @@ class NatsSource:
             )
             await ensure_stream(js, wanted, create=cfg.create_streams)
             durable = cfg.durable or f"fsg-{self.name}"
-            subscription = await js.pull_subscribe(
-                "fsg.>",
-                durable=durable,
-                stream=wanted.name,
-                config=ConsumerConfig(
-                    ack_policy=AckPolicy.EXPLICIT,
-                    deliver_policy=DeliverPolicy.ALL,
-                    ack_wait=cfg.ack_wait_s,
-                    max_ack_pending=max(cfg.batch * 4, 1024),
-                ),
-            )
+            stream = wanted.name or ""
+            await _ensure_consumer(js, stream, durable, cfg)
+            puller = Puller(nc, stream, durable, batch=cfg.batch)
             self._connected = self._was_connected = True
             self._reason = None
             async with anyio.create_task_group() as tasks:
-                tasks.start_soon(self._watch, js, wanted.name or "")
+                tasks.start_soon(self._watch, js, stream)
+                tasks.start_soon(puller.run)
                 while True:
-                    try:
-                        messages = await subscription.fetch(cfg.batch, timeout=1.0)
-                    except TimeoutError:
-                        # Nothing waiting: an empty batch, not an error. nats-py raises its
-                        # own TimeoutError or, from a batch fetch whose deadline ran out
-                        # before the server's answer (a loaded machine), a bare one.
-                        continue
-                    await self._take(messages)
+                    await self._take(await puller.next_batch())
         finally:
             self._connected = False
             await _close(nc)
@@ -276,10 +264,10 @@ class NatsSource:
         group does not commit, what it held is asked again too.
         """
         done: list[Msg] = []
-        held: list[tuple[Msg, Detection | Telemetry]] = []
+        held: list[tuple[Msg, Carried]] = []
         later: list[Msg] = []
         group: Commit | None = None
-        ids: set[str] = set()  # this batch's detections: a repeat inside it is a duplicate
+        ids: set[str] = set()  # this batch's kept ids: a repeat inside it is a duplicate
         for index, message in enumerate(messages):
             event = self._check(message, ids)
             if event is None:
@@ -291,7 +279,7 @@ class NatsSource:
                 self._counts["refused"] += 1
                 later = messages[index:]
                 break
-            if isinstance(event, Detection):
+            if not isinstance(event, Telemetry):
                 ids.add(event.event_id)
                 if self._ledger is not None:
                     self._ledger.remember(event.event_id)
@@ -303,9 +291,9 @@ class NatsSource:
             if not committed:
                 await message.nak(delay=1.0)
                 continue
-            if isinstance(event, Detection):
+            if not isinstance(event, Telemetry):
                 self._remember(event.event_id)
-            self._counts["detection" if isinstance(event, Detection) else "telemetry"] += 1
+            self._counts[event.kind.value] += 1
             self._by_node[event.origin_node or ""] += 1
             await message.ack()
         if held and not committed:
@@ -315,7 +303,7 @@ class NatsSource:
         for message in later:
             await message.nak(delay=1.0)
 
-    def _check(self, message: Msg, batch_ids: set[str]) -> Detection | Telemetry | None:
+    def _check(self, message: Msg, batch_ids: set[str]) -> Carried | None:
         """The event to publish, or None (counted) for one to ack and drop."""
         try:
             event = decode_event(message.subject, message.data)
@@ -342,7 +330,7 @@ class NatsSource:
                     refused=self._counts["own_airframe"],
                 )
             return None
-        if isinstance(event, Detection) and (
+        if not isinstance(event, Telemetry) and (
             event.event_id in self._seen
             or event.event_id in batch_ids
             or (self._ledger is not None and self._ledger.seen(event.event_id))
@@ -373,6 +361,26 @@ class NatsSource:
         self._seen[event_id] = None
         if len(self._seen) > self.config.remember_ids:
             self._seen.popitem(last=False)
+
+
+async def _ensure_consumer(
+    js: JetStreamContext, stream: str, durable: str, cfg: NatsSourceConfig
+) -> None:
+    """The durable pull consumer of ``stream``: created if missing, its position kept."""
+    try:
+        await js.consumer_info(stream, durable)
+    except NotFoundError:
+        await js.add_consumer(
+            stream,
+            config=ConsumerConfig(
+                durable_name=durable,
+                ack_policy=AckPolicy.EXPLICIT,
+                deliver_policy=DeliverPolicy.ALL,
+                ack_wait=cfg.ack_wait_s,
+                max_ack_pending=max(cfg.batch * 4, 1024),
+                max_waiting=16,
+            ),
+        )
 
 
 async def _close(nc: Client) -> None:

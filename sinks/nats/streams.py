@@ -2,8 +2,9 @@
 
 Per node N (its server runs JetStream with ``domain: N``):
 
-- ``FSG_N_EVT`` captures ``fsg.N.det.>``: detections, file storage, kept ``max_age``,
-  discard old, de-duplicated by ``Nats-Msg-Id`` within ``duplicate_window``;
+- ``FSG_N_EVT`` captures ``fsg.N.det.>``, ``fsg.N.hof.>`` and ``fsg.N.ost.>``: detections,
+  handoffs and order statuses, file storage, kept ``max_age``, discard old, de-duplicated by
+  ``Nats-Msg-Id`` within ``duplicate_window``;
 - ``FSG_N_TLM`` captures ``fsg.N.tlm.>`` with one message per subject: the newest state
   of each airframe, all that crosses a thin link;
 - ``FSG_N_PIC`` (on an aggregating node) sources every remote node's EVT and TLM through
@@ -13,7 +14,7 @@ Per node N (its server runs JetStream with ``domain: N``):
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 
 from nats.js import JetStreamContext
 from nats.js.api import (
@@ -27,6 +28,8 @@ from nats.js.api import (
 from nats.js.errors import NotFoundError
 
 from gateway.errors import GatewayError
+from gateway.events import EventKind
+from sinks.nats.subjects import KIND_TOKENS
 
 __all__ = [
     "StreamMismatch",
@@ -41,11 +44,21 @@ class StreamMismatch(GatewayError):
     """A stream ops created differs from what the config needs; the text says how."""
 
 
-def events_stream(node: str, max_age_s: float, max_bytes: int, dup_window_s: float) -> StreamConfig:
-    """``FSG_<node>_EVT``: this node's detections."""
+def events_stream(
+    node: str,
+    kinds: Collection[EventKind],
+    max_age_s: float,
+    max_bytes: int,
+    dup_window_s: float,
+) -> StreamConfig:
+    """``FSG_<node>_EVT``: this node's detections, handoffs and order statuses (of ``kinds``)."""
     return StreamConfig(
         name=f"FSG_{node}_EVT",
-        subjects=[f"fsg.{node}.det.>"],
+        subjects=[
+            f"fsg.{node}.{token}.>"
+            for kind, token in KIND_TOKENS.items()
+            if kind in kinds and kind is not EventKind.TELEMETRY
+        ],
         retention=RetentionPolicy.LIMITS,
         storage=StorageType.FILE,
         discard=DiscardPolicy.OLD,
@@ -111,8 +124,10 @@ def _differences(wanted: StreamConfig, actual: StreamConfig) -> list[str]:
 async def ensure_stream(js: JetStreamContext, wanted: StreamConfig, *, create: bool) -> None:
     """Create ``wanted`` if missing (when ``create``), else check the one there.
 
-    ``StreamMismatch`` when the existing stream captures other subjects or sources other
-    streams, or when it is missing and ``create`` is off (ops must create it).
+    With ``create``, a stream the gateway made from an older config (capturing fewer kinds,
+    sourcing fewer remotes) is updated to ``wanted``: subjects and sources only grow or
+    change, what it holds is kept. ``StreamMismatch`` when ops made it (``create`` off) and it
+    captures other subjects or sources other streams, or when it is missing.
     """
     name = wanted.name or ""
     try:
@@ -125,5 +140,7 @@ async def ensure_stream(js: JetStreamContext, wanted: StreamConfig, *, create: b
         await js.add_stream(wanted)
         return
     problems = _differences(wanted, info.config)
-    if problems:
+    if problems and create:
+        await js.update_stream(wanted)
+    elif problems:
         raise StreamMismatch(f"stream {name} differs: " + "; ".join(problems))

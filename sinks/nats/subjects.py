@@ -19,7 +19,15 @@ from pydantic import BaseModel, ValidationError
 
 from gateway.clock import utc_now
 from gateway.errors import GatewayError
-from gateway.events import Detection, Event, EventKind, Telemetry, event_adapter
+from gateway.events import (
+    Detection,
+    Event,
+    EventKind,
+    Handoff,
+    OrderStatus,
+    Telemetry,
+    event_adapter,
+)
 
 __all__ = [
     "KIND_TOKENS",
@@ -32,9 +40,11 @@ __all__ = [
     "MAX_TOKEN",
     "NODE_PATTERN",
     "BadMessage",
+    "Carried",
     "airframe_token",
     "decode_event",
     "encode_event",
+    "key_of",
     "node_of",
     "subject_for",
 ]
@@ -42,7 +52,14 @@ __all__ = [
 #: A node's name: a NATS subject token, a stream-name part and a JetStream domain at once.
 NODE_PATTERN = r"^[A-Za-z0-9_-]{1,32}$"
 #: The kinds that cross between nodes, and their subject tokens.
-KIND_TOKENS: dict[EventKind, str] = {EventKind.DETECTION: "det", EventKind.TELEMETRY: "tlm"}
+KIND_TOKENS: dict[EventKind, str] = {
+    EventKind.DETECTION: "det",
+    EventKind.TELEMETRY: "tlm",
+    EventKind.HANDOFF: "hof",
+    EventKind.ORDER_STATUS: "ost",
+}
+#: What a node takes from another: every carried kind.
+Carried = Detection | Telemetry | Handoff | OrderStatus
 _TOKEN_KINDS = {token: kind for kind, token in KIND_TOKENS.items()}
 MAX_TOKEN = 96
 #: A body larger than this is refused on the way in (an event is well under 4 KiB).
@@ -64,6 +81,7 @@ MAX_AHEAD_S = 300.0
 #: Integers beyond this are refused (no field of an event needs more than 64 bits).
 _MAX_INT = 2**63
 _PLAIN = re.compile(rb"[A-Za-z0-9-]")
+_ALL_PLAIN = re.compile(r"[A-Za-z0-9-]+", re.ASCII)
 _NODE = re.compile(NODE_PATTERN)
 
 
@@ -73,6 +91,8 @@ class BadMessage(GatewayError):
 
 def airframe_token(airframe: str) -> str:
     """``airframe`` as one subject token (reversible unless cut to ``MAX_TOKEN``)."""
+    if len(airframe) <= MAX_TOKEN and _ALL_PLAIN.fullmatch(airframe):
+        return airframe  # the usual id: nothing to escape (twice per event each way)
     token = "".join(
         chr(byte) if _PLAIN.fullmatch(bytes((byte,))) else f"_{byte:02X}"
         for byte in airframe.encode()
@@ -85,11 +105,18 @@ def airframe_token(airframe: str) -> str:
     return f"{token[: MAX_TOKEN - 18]}_H{digest}"
 
 
+def key_of(event: Event) -> str:
+    """What the last subject token names: the airframe; a handoff's battery; an order
+    status's airframe (empty when the order went to none)."""
+    if isinstance(event, Handoff):
+        return event.battery
+    return str(getattr(event, "airframe", None) or "")
+
+
 def subject_for(node: str, event: Event) -> str:
     """The subject of ``event`` published by ``node``; ``KeyError`` for a kind not carried."""
     token = KIND_TOKENS[event.kind]
-    airframe = getattr(event, "airframe", "")
-    return f"fsg.{node}.{token}.{airframe_token(str(airframe))}"
+    return f"fsg.{node}.{token}.{airframe_token(key_of(event))}"
 
 
 def encode_event(event: Event) -> bytes:
@@ -111,14 +138,24 @@ def node_of(subject: str) -> tuple[str, EventKind]:
     return node, kind
 
 
-def decode_event(subject: str, body: bytes) -> Detection | Telemetry:
+def _ids(event: Carried) -> list[str]:
+    """The ids of ``event`` the source keeps or compares: each at most ``MAX_ID_CHARS``."""
+    ids = [event.event_id, key_of(event)]
+    if isinstance(event, Handoff):
+        ids += [event.handoff_id, event.track.event_id, event.superseded_by or ""]
+    elif isinstance(event, OrderStatus):
+        ids.append(event.order_event_id)
+    return ids
+
+
+def decode_event(subject: str, body: bytes) -> Carried:
     """The event a message carries, marked with its node of origin.
 
     ``BadMessage`` for an oversize body, invalid JSON or event, a kind the subject does not
-    name, an event or airframe id longer than ``MAX_ID_CHARS``, a value out of bounds
-    (``unbounded``; a detection's ``sigma_h_m`` above ``MAX_SIGMA_M``), an airframe the
-    subject does not name, or a body that already names an origin (a node never sends on
-    another node's events).
+    name, an id longer than ``MAX_ID_CHARS`` (event, airframe, handoff, track, order), a value
+    out of bounds (``unbounded``; a detection's ``sigma_h_m`` above ``MAX_SIGMA_M``), an
+    airframe (a handoff's battery) the subject does not name, or a body that already names an
+    origin (a node never sends on another node's events).
     """
     node, kind = node_of(subject)
     if len(body) > MAX_BODY_BYTES:
@@ -129,17 +166,18 @@ def decode_event(subject: str, body: bytes) -> Detection | Telemetry:
         raise BadMessage(f"subject {subject[:120]!r}: not a valid event ({_first(exc)})") from None
     except ValueError as exc:
         raise BadMessage(f"subject {subject[:120]!r}: not a valid event ({exc})") from None
-    if event.kind is not kind or not isinstance(event, Detection | Telemetry):
+    if event.kind is not kind or not isinstance(event, Carried):
         raise BadMessage(f"subject {subject[:120]!r}: carries a {event.kind.value} event")
-    if len(event.event_id) > MAX_ID_CHARS or len(event.airframe) > MAX_ID_CHARS:
+    if any(len(value) > MAX_ID_CHARS for value in _ids(event)):
         raise BadMessage(f"subject {subject[:120]!r}: an id is longer than {MAX_ID_CHARS}")
     problem = unbounded(event, utc_now() + timedelta(seconds=MAX_AHEAD_S))
     if problem is not None:
         raise BadMessage(f"subject {subject[:120]!r}: {problem}")
     if isinstance(event, Detection) and event.sigma_h_m > MAX_SIGMA_M:
         raise BadMessage(f"subject {subject[:120]!r}: sigma_h_m above {MAX_SIGMA_M:.0f} m")
-    if airframe_token(event.airframe) != subject.split(".")[3]:
-        raise BadMessage(f"subject {subject[:120]!r}: event of airframe {event.airframe[:64]!r}")
+    if airframe_token(key_of(event)) != subject.split(".")[3]:
+        what = "battery" if isinstance(event, Handoff) else "airframe"
+        raise BadMessage(f"subject {subject[:120]!r}: event of {what} {key_of(event)[:64]!r}")
     if event.origin_node is not None:
         raise BadMessage(f"subject {subject[:120]!r}: event relayed from {event.origin_node!r}")
     return event.model_copy(update={"origin_node": node})

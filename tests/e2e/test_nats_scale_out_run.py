@@ -47,6 +47,8 @@ pytestmark = [
 LEAF_AIRFRAMES = 30
 HUB_AIRFRAMES = 10
 CUT_S = 5.0
+#: The battery node b cues (an id with a '.', as subjects must escape it).
+BATTERY = "GUTE.1"
 
 
 def node_config(
@@ -85,14 +87,22 @@ def node_config(
             f"  - {{name: brigades, type: nats, node: {node}, servers: ['{nats_url}'],"
             f" remotes: [{', '.join(remotes)}]}}",
             "routes:",
-            "  - {kinds: [detection, telemetry, track], sinks: [archive]}",
+            "  - {kinds: [detection, telemetry, track, handoff], sinks: [archive]}",
         ]
     else:
+        # The brigade node cues the battery near its airframes' objects (a handoff, a cue
+        # for the battery's operator), and sends its cues to the hub as well.
         lines += [
             "  - {name: division, type: nats, retry_initial_s: 0.2, retry_max_s: 1,",
             f"     options: {{node: {node}, servers: ['{nats_url}'], request_timeout_s: 1}}}}",
+            "processors:",
+            "  - {name: fusion, type: fusion, options: {update_interval_s: 0.5, tick_s: 0.2}}",
+            "  - {name: cuas, type: counter_uas, options: {min_confidence: 0.5, batteries:",
+            f"     [{{id: {BATTERY}, lat_deg: 65.83, lon_deg: 21.7,",
+            "       effectors: [TRIDON_MK2_40MM, EW_COUNTERMEASURES]}]}}",
             "routes:",
-            "  - {kinds: [detection, telemetry], sinks: [archive, division]}",
+            "  - {kinds: [detection, telemetry, handoff], sinks: [archive, division]}",
+            "  - {kinds: [track], sinks: [archive]}",
         ]
     config = tmp / f"{node}.yaml"
     config.write_text("\n".join(lines) + "\n")
@@ -172,6 +182,11 @@ def replay(url: str, event: dict[str, Any]) -> None:
 
 def picture(archive: Path) -> list[dict[str, Any]]:
     return archive_events(archive)
+
+
+def cues(archive: Path) -> Counter[str]:
+    """The handoffs (cues) in a node's archive, by event id."""
+    return Counter(e["event_id"] for e in picture(archive) if e["kind"] == "handoff")
 
 
 def detections_by_airframe(events: list[dict[str, Any]]) -> Counter[str]:
@@ -283,6 +298,12 @@ def test_the_aggregating_node_holds_every_airframe_and_detection_once_across_a_c
                     30,
                     "every airframe's state at the hub",
                 )
+                # Every cue node b made (its archive has them) at the hub, with its id.
+                wait_until(
+                    lambda: bool(cues(b_archive)) and set(cues(a_archive)) == set(cues(b_archive)),
+                    60,
+                    "node b's cues at the hub",
+                )
                 time.sleep(1.0)  # anything doubled would arrive now
                 events = picture(a_archive)
                 source = hub.status()["sources"]
@@ -319,6 +340,16 @@ def test_the_aggregating_node_holds_every_airframe_and_detection_once_across_a_c
     # Every airframe of both nodes on the hub's picture.
     airframes = {e["airframe"] for e in events if e["kind"] == "telemetry"}
     assert airframes == set(a_ids) | set(b_ids)
+    # Node b's cues reached the hub once each, with their ids, marked with their origin, and
+    # still cues: for the battery's operator to authorise, nothing the hub commands.
+    handoffs = [e for e in events if e["kind"] == "handoff"]
+    assert handoffs
+    assert max(Counter(e["event_id"] for e in handoffs).values()) == 1
+    for cue in handoffs:
+        assert cue["origin_node"] == "b"
+        assert cue["battery"] == BATTERY
+        assert cue["operator_authorisation_required"] is True
+    assert not [e for e in events if e["kind"] in ("order", "order_status")]
     # The hub fused b's detections into its own tracks.
     tracked = {a for e in events if e["kind"] == "track" for a in e["airframes"]}
     assert tracked & set(b_ids), "no track from node b's detections"

@@ -19,11 +19,22 @@ import trustme
 from nats_server import DEBIAN_NATS_SERVER, NEEDS_DEBIAN_NATS, NEEDS_NATS, NatsServer
 from pydantic import ValidationError
 
+from gateway.contract import sample_events
 from gateway.errors import TransientSinkError
-from gateway.events import Detection, Event, Position, Sensor, Telemetry
+from gateway.events import (
+    Detection,
+    Event,
+    EventKind,
+    Handoff,
+    OrderStatus,
+    Position,
+    Sensor,
+    Telemetry,
+)
 from gateway.spool.group import Commit
 from sinks.nats.sink import NatsSink, NatsSinkConfig
 from sinks.nats.source import NatsSource, NatsSourceConfig
+from sinks.nats.streams import events_stream
 from sinks.nats.subjects import BadMessage, airframe_token, decode_event, encode_event, subject_for
 
 pytestmark = NEEDS_NATS
@@ -203,45 +214,6 @@ def test_the_sink_publishes_acked_once_and_the_source_takes_each_once(
     assert sorted(ids) == sorted(f"F.1-det-{n}-{1000 + n}" for n in range(50))
 
 
-def test_a_fetch_timing_out_without_nats_own_error_is_an_empty_batch(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    """nats-py's batch fetch may raise a bare TimeoutError (its deadline ran out before the
-    server's answer, on a loaded machine): nothing waiting, not a reason to reconnect."""
-    from nats.js.client import JetStreamContext
-
-    fetch = JetStreamContext.PullSubscription.fetch
-    raised: list[int] = []
-
-    async def slow_fetch(self: object, *args: object, **kwargs: object) -> object:
-        if len(raised) < 3:
-            raised.append(1)
-            raise TimeoutError
-        return await fetch(self, *args, **kwargs)  # type: ignore[arg-type]
-
-    monkeypatch.setattr(JetStreamContext.PullSubscription, "fetch", slow_fetch)
-    with NatsServer(tmp_path, "a", hub=True) as hub:
-        source = NatsSource(
-            "in",
-            NatsSourceConfig(node="a", servers=[hub.url], remotes=["b"]),
-            lambda event: True,
-            clock=lambda: NOW,
-        )
-
-        async def main() -> None:
-            async with anyio.create_task_group() as tg:
-                await tg.start(source.run)
-                with anyio.fail_after(30):
-                    while len(raised) < 3 or not source.status()["connected"]:  # noqa: ASYNC110
-                        await anyio.sleep(0.05)
-                tg.cancel_scope.cancel()
-
-        anyio.run(main)
-    status = source.status()
-    assert "reconnects" not in status["counts"]  # type: ignore[operator]
-    assert status["reason"] is None
-
-
 class Ledger:
     """The spool's part the source uses: a group that commits (or not) on flush, and the
     detection ids of committed groups."""
@@ -402,3 +374,137 @@ def test_tls_with_a_client_certificate_from_files(tmp_path: Path) -> None:
             {**options, "tls": {**tls, "cert_file": str(tmp_path / "missing.pem")}},
             context={"environment": True},
         )
+
+
+def cue_and_status() -> tuple[Handoff, OrderStatus]:
+    samples = sample_events(frozenset({EventKind.HANDOFF, EventKind.ORDER_STATUS}))
+    handoff = next(e for e in samples if isinstance(e, Handoff))
+    status = next(e for e in samples if isinstance(e, OrderStatus))
+    return handoff.model_copy(update={"battery": "GUTE.1"}), status
+
+
+def test_a_handoff_or_order_status_is_refused_with_its_reason() -> None:
+    handoff, status = cue_and_status()
+    cue_subject = subject_for("b", handoff)
+    assert cue_subject == "fsg.b.hof.GUTE_2E1"  # keyed by the battery cued
+    assert subject_for("b", status) == f"fsg.b.ost.{airframe_token(status.airframe or '')}"
+    taken = decode_event(cue_subject, encode_event(handoff))
+    assert isinstance(taken, Handoff)
+    assert (taken.event_id, taken.origin_node) == (handoff.event_id, "b")
+    assert taken.operator_authorisation_required is True  # still a cue, never a command
+    long_track = handoff.track.model_copy(update={"event_id": "t" * 300})
+    for subject, body, reason in [
+        ("fsg.b.hof.OTHER", encode_event(handoff), "battery"),
+        ("fsg.b.det.GUTE_2E1", encode_event(handoff), "carries a handoff"),
+        ("fsg.b.ost.GUTE_2E1", encode_event(handoff), "carries a handoff"),
+        (
+            cue_subject,
+            encode_event(handoff.model_copy(update={"track": long_track})),
+            "longer than 256",
+        ),
+        (
+            cue_subject,
+            encode_event(handoff).replace(b'"operator_authorisation_required":true', b'"x":1'),
+            "not a valid event",
+        ),
+        (
+            subject_for("b", status),
+            encode_event(status.model_copy(update={"order_event_id": "o" * 300})),
+            "longer than 256",
+        ),
+        (
+            subject_for("b", status),
+            encode_event(status.model_copy(update={"origin_node": "c"})),
+            "relayed",
+        ),
+    ]:
+        with pytest.raises(BadMessage, match=reason):
+            decode_event(subject, body)
+
+
+def test_handoffs_and_order_statuses_cross_with_their_ids_once(
+    nodes: tuple[NatsServer, NatsServer],
+) -> None:
+    """Node b's cue and order status reach node a with the same ids, marked with their
+    origin, once: a resend under the same id (after the stream's window too) is dropped."""
+    hub, leaf = nodes
+    handoff, status = cue_and_status()
+    received: list[Event] = []
+
+    def publish(event: Event) -> bool:
+        received.append(event)
+        return True
+
+    async def main() -> tuple[NatsSink, NatsSource]:
+        sink = NatsSink("out", NatsSinkConfig(node="b", servers=[leaf.url]))
+        await sink.open()
+        await sink.send([handoff, status])
+        await sink.send([handoff])  # a retried batch: dropped by the stream
+        # The same ids under new message ids (past the stream's de-duplication).
+        raw = await nats.connect(leaf.url)
+        for event in (handoff, status):
+            await raw.jetstream().publish(
+                subject_for("b", event), encode_event(event), headers={"Nats-Msg-Id": "again"}
+            )
+            await raw.jetstream().publish(
+                subject_for("b", event), encode_event(event), headers={"Nats-Msg-Id": "x"}
+            )
+        await raw.close()
+        source = NatsSource(
+            "in",
+            NatsSourceConfig(node="a", servers=[hub.url], remotes=["b"]),
+            publish,
+            clock=lambda: NOW,
+        )
+        async with anyio.create_task_group() as tg:
+            await tg.start(source.run)
+            with anyio.fail_after(30):
+                while source.status()["counts"].get("duplicate", 0) < 2:  # type: ignore[attr-defined]  # noqa: ASYNC110
+                    await anyio.sleep(0.05)
+            relayed = received[0]
+            await sink.send([relayed])  # node a's sink never publishes it again
+            await anyio.sleep(0.3)
+            tg.cancel_scope.cancel()
+        await sink.aclose()
+        return sink, source
+
+    sink, source = anyio.run(main)
+    assert [(e.kind, e.event_id, e.origin_node) for e in received] == [
+        (EventKind.HANDOFF, handoff.event_id, "b"),
+        (EventKind.ORDER_STATUS, status.event_id, "b"),
+    ]
+    assert source.status()["counts"] == {"handoff": 1, "order_status": 1, "duplicate": 2}
+    assert sink.counts() == {"published": 2, "duplicate": 1, "relayed_skipped": 1}
+
+
+def test_a_stream_made_by_an_older_version_is_updated_and_keeps_what_it_holds(
+    tmp_path: Path,
+) -> None:
+    """``FSG_b_EVT`` made when only detections crossed: opened again it captures handoffs
+    and order statuses too; with ``create_streams: false`` the difference is an error."""
+    handoff, _ = cue_and_status()
+    with NatsServer(tmp_path, "b") as server:
+
+        async def main() -> tuple[list[str], int, str]:
+            raw = await nats.connect(server.url)
+            js = raw.jetstream()
+            old = events_stream("b", {EventKind.DETECTION}, 3600.0, 1 << 20, 60.0)
+            await js.add_stream(old)
+            await js.publish("fsg.b.det.F1", encode_event(detection("F1", 1)))
+            checked = NatsSink(
+                "out", NatsSinkConfig(node="b", servers=[server.url], create_streams=False)
+            )
+            with pytest.raises(TransientSinkError) as refused:
+                await checked.open()
+            sink = NatsSink("out", NatsSinkConfig(node="b", servers=[server.url]))
+            await sink.open()
+            await sink.send([handoff])
+            await sink.aclose()
+            info = await js.stream_info("FSG_b_EVT")
+            await raw.close()
+            return sorted(info.config.subjects or []), info.state.messages, str(refused.value)
+
+        subjects, messages, refusal = anyio.run(main)
+    assert subjects == ["fsg.b.det.>", "fsg.b.hof.>", "fsg.b.ost.>"]
+    assert messages == 2
+    assert "differs: subjects" in refusal
