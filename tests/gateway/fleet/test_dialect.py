@@ -206,3 +206,5 @@ async def test_simulated_detections_reach_a_sink_every_one() -> None:
     events: list[Event] = mem.events
     assert [e.event_id.split("-")[3] for e in events] == [str(n) for n in range(1, len(events) + 1)]
     assert {e.object_class for e in events if isinstance(e, Detection)} == {"tank", "uav"}
+    # Each simulated detection is the only one of its sensor frame, and says so.
+    assert {e.frame_size for e in events if isinstance(e, Detection)} == {1}
