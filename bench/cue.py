@@ -15,7 +15,10 @@ daemon from another source tree in the same run, interleaved). Prints a Markdown
   arrived at every GUTE sink. The detection that confirms the track is the last one sent
   before that; the latency is its send → the cue's arrival at the *last* GUTE sink. A gap
   longer than the latency keeps that attribution exact (a trial whose cue came in later than
-  the gap is counted as such, not measured).
+  the gap is counted as such, not measured). Each detection is the only one of its sensor
+  frame and says so (FISCHER_DETECTION ``frame_size`` 1; ``--frame-size 0`` sends it as a
+  sender without the extension, whose frames fusion holds ``frame_wait_s``). A daemon from
+  before the extension (``--compare``) reads the same frames without it.
 
 The gateway recommends, it never commands: the cue is a recommendation for the battery's
 operator, and this bench only measures how soon the operator's screen has it.
@@ -282,6 +285,7 @@ def run_daemon(args: argparse.Namespace, tree: Path | None, workdir: Path) -> di
                         sensor=1,
                         confidence_pct=97,
                         subtype="",
+                        frame_size=args.frame_size,
                     ).pack(packers[i])
                     payload = sealers[i].seal(frame)
                     sent_at = time.monotonic_ns()
@@ -356,6 +360,15 @@ def main() -> None:
         type=float,
         help="the fusion processor's frame_wait_s (default: its own, 0.05)",
     )
+    parser.add_argument(
+        "--frame-size",
+        type=int,
+        default=1,
+        choices=range(256),
+        metavar="N",
+        help="FISCHER_DETECTION frame_size sent (default 1: each detection is its own frame; "
+        "0: unknown, as a sender without the extension)",
+    )
     parser.add_argument("--compare", type=Path, help="also run the daemon from this tree")
     args = parser.parse_args()
     workdir = Path(tempfile.mkdtemp(prefix="fg-cue-"))
@@ -389,7 +402,7 @@ def main() -> None:
     )
     print(
         f"command: python bench/cue.py --rounds {args.rounds} --trials {args.trials} "
-        f"--gute {args.gute}; min / median / max of the rounds\n"
+        f"--gute {args.gute} --frame-size {args.frame_size}; min / median / max of the rounds\n"
     )
     print(
         "| daemon | cue p50 ms | cue p90 ms | track at the last CoT sink p50 ms "

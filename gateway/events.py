@@ -362,6 +362,10 @@ class Detection(BaseModel):
     """Where the object is (latitude, longitude; altitude above MSL when given)."""
     sigma_h_m: float = Field(ge=0.0)
     """One-sigma horizontal position error, metres (ingest refuses one above 10 km)."""
+    frame_size: int | None = Field(default=None, ge=1, le=255)
+    """How many detections the airframe says its sensor frame (same airframe, sensor and time)
+    holds, this one included; None when it did not say. Fusion takes a frame as soon as it holds
+    that many rather than waiting ``frame_wait_s`` for more."""
     origin_node: str | None = Field(default=None, pattern=_NODE_NAME)
     """The gateway node this event came from when another node sent it (the ``nats`` source);
     None for this node's own. A node never sends on an event that carries one."""

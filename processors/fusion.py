@@ -2,8 +2,9 @@
 
 ``FusionProcessor`` feeds each Detection from its inbox to a ``tracking.Tracker`` and
 publishes the Tracks it returns. The tracker assigns the detections of one sensor frame
-jointly, so a frame is processed once its source's next frame starts or, at the latest,
-``frame_wait_s`` after the inbox went quiet. It ticks the tracker about once a second (every
+jointly, so a frame is processed once it holds the ``frame_size`` its detections declare,
+once its source's next frame starts or, at the latest, ``frame_wait_s`` after the inbox went
+quiet. It ticks the tracker about once a second (every
 ``tick_s``) even when no detection arrives, so held-back updates are flushed and silent
 tracks are reported lost on time. The algorithm and its rules are in ``tracking``; this
 module holds only the options and the loop.
@@ -121,7 +122,10 @@ class FusionConfig(ProcessorConfig):
         default="uav_attack", description="The symbol a loitering munition's SIDC uses."
     )
     frame_wait_s: float = Field(
-        default=0.05, ge=0, le=5, description="A sensor frame is processed this long after input."
+        default=0.05,
+        ge=0,
+        le=5,
+        description="A sensor frame not known complete is processed this long after input.",
     )
     tick_s: float = Field(
         default=1.0, gt=0, le=60, description="Seconds between ageing passes without input."
@@ -224,7 +228,11 @@ class FusionProcessor:
                     if isinstance(event, Detection):
                         for track in self.tracker.update(event):
                             publish(track)
-                        flush_at = anyio.current_time() + self.config.frame_wait_s
+                        flush_at = (
+                            anyio.current_time() + self.config.frame_wait_s
+                            if self.tracker.holding
+                            else math.inf
+                        )
                 now = anyio.current_time()
                 if now >= flush_at:
                     flush_at = math.inf

@@ -1,8 +1,11 @@
 """Detections to tracks: frames, joint association, track life and emission, with no I/O.
 
 ``Tracker.update(detection)`` collects a detection into its sensor frame (same airframe,
-sensor and time); a frame is processed when its source's next frame starts, on ``flush()``
-or on ``tick(now)``, which also ages tracks and sends held-back updates. Each returns the
+sensor and time); a frame is processed as soon as it holds the ``frame_size`` its detections
+declare (the largest, when they differ), when its source's next frame starts, on ``flush()``
+or on ``tick(now)``, which also ages tracks and sends held-back updates. A detection of a frame
+already processed (a late frame-mate, or one past a ``frame_size`` declared too small) starts a
+frame of its own. Each returns the
 Track events to publish. Time comes only from the detections and from ``tick``.
 
 **A frame** is processed at once: every detection is gated against every live track within
@@ -76,6 +79,18 @@ _NIS_WEIGHT = 0.3
 _Q_SCALE = (0.5, 4.0)
 
 
+class _Held:
+    """One sensor frame being collected: its time, its detections so far and the largest
+    ``frame_size`` they declare (0: none did)."""
+
+    __slots__ = ("detections", "size", "time")
+
+    def __init__(self, time: datetime) -> None:
+        self.time = time
+        self.detections: list[Detection] = []
+        self.size = 0
+
+
 @lru_cache(maxsize=4096)
 def _support(frame: frozenset[str], name: str, confidence: float) -> MassFunction:
     return simple_support(frame, {name}, confidence)
@@ -94,7 +109,7 @@ class Tracker:
         self.frame = frozenset(s.classes) | {OTHER}
         self.counts = TrackerCounts()
         self._tracks: dict[str, TrackState] = {}
-        self._frames: dict[Source, tuple[datetime, list[Detection]]] = {}
+        self._frames: dict[Source, _Held] = {}
         self._pending: set[str] = set()
         self._streaks: dict[tuple[str, str], int] = {}
         self._next = 0
@@ -138,17 +153,24 @@ class Tracker:
         source: Source = (detection.airframe, detection.sensor)
         out: list[Track] = []
         held = self._frames.get(source)
-        if held is not None and held[0] != detection.time:
+        if held is not None and held.time != detection.time:
             del self._frames[source]
-            out += self._frame(held[1])
+            out += self._frame(held.detections)
             held = None
         if held is None:
-            held = self._frames[source] = (detection.time, [])
-        held[1].append(detection)
-        if len(held[1]) >= MAX_FRAME:
+            held = self._frames[source] = _Held(detection.time)
+        held.detections.append(detection)
+        if detection.frame_size is not None and detection.frame_size > held.size:
+            held.size = detection.frame_size
+        if len(held.detections) >= min(held.size or MAX_FRAME, MAX_FRAME):
             del self._frames[source]
-            out += self._frame(held[1])
+            out += self._frame(held.detections)
         return out
+
+    @property
+    def holding(self) -> bool:
+        """Whether a frame is held, waiting for more detections (``flush`` would process it)."""
+        return bool(self._frames)
 
     def update_frame(self, detections: Iterable[Detection]) -> list[Track]:
         """Process ``detections`` now (grouped into frames), with every frame held before."""
@@ -160,12 +182,12 @@ class Tracker:
     def flush(self) -> list[Track]:
         """Process every frame still held, oldest first; the events they cause."""
         frames = sorted(
-            self._frames.items(), key=lambda item: (item[1][0], item[0][0], item[0][1].value)
+            self._frames.items(), key=lambda item: (item[1].time, item[0][0], item[0][1].value)
         )
         self._frames.clear()
         out: list[Track] = []
-        for _, (_, detections) in frames:
-            out += self._frame(detections)
+        for _, held in frames:
+            out += self._frame(held.detections)
         return out
 
     def tick(self, now: datetime) -> list[Track]:

@@ -10,7 +10,8 @@ CRC_EXTRA, same bytes).
 
 FISCHER_DETECTION wire order (sorted by size, then the extension): time_usec u64,
 detection_id u32, lat i32, lon i32 (degE7), alt_msl f32 (m), sigma_h f32 (m), class_id u16,
-sensor u8, confidence u8 (%), subtype char[16] (extension).
+sensor u8, confidence u8 (%), then the extensions subtype char[16] and frame_size u8 (the
+detections in this sensor frame, 0: unknown).
 
 FISCHER_DETECTION_ACK wire order: time_usec u64, detection_id u32 (the detection's identity,
 echoed), target_system u8, target_component u8, result u8 (FISCHER_DETECTION_ACK_RESULT: 0
@@ -74,12 +75,12 @@ class FischerDetection(_mav.MAVLink_message):  # type: ignore[misc]
     msgname = "FISCHER_DETECTION"
     fieldnames: ClassVar[list[str]] = [
         "time_usec", "detection_id", "lat", "lon", "alt_msl", "sigma_h", "class_id", "sensor",
-        "confidence", "subtype",
+        "confidence", "subtype", "frame_size",
     ]  # fmt: skip
     ordered_fieldnames = fieldnames
     fieldtypes: ClassVar[list[str]] = [
         "uint64_t", "uint32_t", "int32_t", "int32_t", "float", "float", "uint16_t", "uint8_t",
-        "uint8_t", "char",
+        "uint8_t", "char", "uint8_t",
     ]  # fmt: skip
     fielddisplays_by_name: ClassVar[dict[str, str]] = {}
     fieldenums_by_name: ClassVar[dict[str, str]] = {"sensor": "FISCHER_SENSOR"}
@@ -87,12 +88,12 @@ class FischerDetection(_mav.MAVLink_message):  # type: ignore[misc]
         "time_usec": "us", "lat": "degE7", "lon": "degE7", "alt_msl": "m", "sigma_h": "m",
         "confidence": "%",
     }  # fmt: skip
-    native_format = bytearray(b"<QIiiffHBBc")
-    orders: ClassVar[list[int]] = list(range(10))
-    lengths: ClassVar[list[int]] = [1] * 10
-    array_lengths: ClassVar[list[int]] = [0] * 9 + [16]
+    native_format = bytearray(b"<QIiiffHBBcB")
+    orders: ClassVar[list[int]] = list(range(11))
+    lengths: ClassVar[list[int]] = [1] * 11
+    array_lengths: ClassVar[list[int]] = [0] * 9 + [16, 0]
     crc_extra = FISCHER_DETECTION_CRC_EXTRA
-    unpacker = struct.Struct("<QIiiffHBB16s")
+    unpacker = struct.Struct("<QIiiffHBB16sB")
     instance_field = None
     instance_offset = -1
 
@@ -108,6 +109,7 @@ class FischerDetection(_mav.MAVLink_message):  # type: ignore[misc]
         sensor: int,
         confidence: int,
         subtype: bytes = b"",
+        frame_size: int = 0,
     ) -> None:
         _mav.MAVLink_message.__init__(self, self.id, self.msgname)
         self._fieldnames = self.fieldnames
@@ -123,12 +125,13 @@ class FischerDetection(_mav.MAVLink_message):  # type: ignore[misc]
         self.sensor = sensor
         self.confidence = confidence
         self.subtype = subtype
+        self.frame_size = frame_size
 
     def pack(self, mav: Any, force_mavlink1: bool = False) -> bytes:
         """The frame bytes, as pymavlink packs every message."""
         payload = self.unpacker.pack(
             self.time_usec, self.detection_id, self.lat, self.lon, self.alt_msl, self.sigma_h,
-            self.class_id, self.sensor, self.confidence, self.subtype,
+            self.class_id, self.sensor, self.confidence, self.subtype, self.frame_size,
         )  # fmt: skip
         return bytes(self._pack(mav, self.crc_extra, payload, force_mavlink1=force_mavlink1))
 
@@ -144,11 +147,13 @@ def fischer_detection(
     sensor: int,
     confidence_pct: int,
     subtype: str = "",
+    frame_size: int = 0,
 ) -> FischerDetection:
-    """A FISCHER_DETECTION message, ready to ``pack``."""
+    """A FISCHER_DETECTION message, ready to ``pack``; ``frame_size`` is the number of
+    detections in its sensor frame (0: unknown)."""
     return FischerDetection(
         time_usec, detection_id, lat_e7, lon_e7, alt_msl_m, sigma_h_m, class_id, sensor,
-        confidence_pct, subtype.encode("ascii")[:16],
+        confidence_pct, subtype.encode("ascii")[:16], frame_size,
     )  # fmt: skip
 
 

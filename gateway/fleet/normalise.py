@@ -312,4 +312,5 @@ def detection_from(airframe: str, msg: MavMessage, now: datetime) -> Detection |
             alt_msl_m=plausible_alt(msg.alt_msl),
         ),
         sigma_h_m=float(sigma),
+        frame_size=msg.frame_size or None,
     )

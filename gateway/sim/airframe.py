@@ -406,6 +406,7 @@ class SimulatedAirframe:
                 sensor=1 if is_tank else 2,  # IR for the tank, RF for the UAV
                 confidence_pct=91 if is_tank else 78,
                 subtype="T-72" if is_tank else "",
+                frame_size=1,  # the only detection of its sensor frame
             )
         ]
 

@@ -12,6 +12,7 @@ until the gateway acknowledges them, re-sending as its ``ResendPolicy`` says.
 from __future__ import annotations
 
 import math
+from collections import Counter
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime, timedelta
@@ -48,6 +49,8 @@ __all__ = ["DetectionFeed", "PlayStats", "blue_force_cot", "play_scenario", "sen
 log = structlog.get_logger(__name__)
 
 _EPS_S = 1e-9
+#: FISCHER_DETECTION.frame_size is a uint8; a larger frame is sent as "unknown" (0).
+_MAX_FRAME_SIZE = 255
 #: A report stays current on the receivers' maps for this many report intervals.
 STALE_INTERVALS = 3
 #: ... and for at least this long.
@@ -91,12 +94,14 @@ class DetectionFeed:
                 seen_at(self._scenario, self._airframe, self._tracks, look, here, self._ids)
             )
             self._next = next(self._looks, None)
-        messages = [_detection_message(d, unix_s) for d in seen]
+        # One sensor frame per sensor (same airframe, sensor and time): each says its size.
+        sizes = Counter(d.sensor_id for d in seen)
+        messages = [_detection_message(d, unix_s, sizes[d.sensor_id]) for d in seen]
         self.sent += len(messages)
         return messages
 
 
-def _detection_message(d: SimDetection, unix_s: float) -> Any:
+def _detection_message(d: SimDetection, unix_s: float, frame_size: int) -> Any:
     return fischer_detection(
         time_usec=round(unix_s * 1e6),
         detection_id=d.detection_id,
@@ -108,6 +113,7 @@ def _detection_message(d: SimDetection, unix_s: float) -> Any:
         sensor=d.sensor_id,
         confidence_pct=round(d.confidence * 100),
         subtype=d.subtype,
+        frame_size=frame_size if frame_size <= _MAX_FRAME_SIZE else 0,
     )
 
 

@@ -37,6 +37,7 @@ def detection(
     sigma_m: float = 10.0,
     alt_msl_m: float | None = 300.0,
     origin_node: str | None = None,
+    frame_size: int | None = None,
 ) -> Detection:
     lat, lon = displace(LAT, LON, east_m, north_m)
     return Detection(
@@ -49,6 +50,7 @@ def detection(
         position=Position(lat_deg=lat, lon_deg=lon, alt_msl_m=alt_msl_m),
         sigma_h_m=sigma_m,
         origin_node=origin_node,
+        frame_size=frame_size,
     )
 
 
@@ -77,6 +79,42 @@ class TestFrames:
         assert [t.status for t in created] == ["created", "created"]
         assert tracker.counts.frames == 1
         assert [t.status for t in tracker.flush()] == ["updated"]
+
+    def test_a_frame_that_says_its_size_is_processed_once_it_holds_that_many(self) -> None:
+        tracker = Tracker(TrackerSettings(confirm_hits=1))
+        assert tracker.update(detection(t_s=0.0, frame_size=2)) == []
+        assert tracker.holding
+        created = tracker.update(detection(t_s=0.0, east_m=500.0, frame_size=2))
+        assert [t.status for t in created] == ["created", "created"]
+        assert not tracker.holding
+        assert tracker.counts.frames == 1
+
+    def test_a_size_larger_than_sent_waits_as_a_frame_without_one(self) -> None:
+        tracker = Tracker(TrackerSettings(confirm_hits=1))
+        assert tracker.update(detection(t_s=0.0, frame_size=3)) == []
+        assert tracker.update(detection(t_s=0.0, east_m=500.0, frame_size=3)) == []
+        assert tracker.holding
+        assert [t.status for t in tracker.flush()] == ["created", "created"]
+        assert tracker.counts.frames == 1
+
+    def test_sizes_that_differ_wait_for_the_largest(self) -> None:
+        tracker = Tracker(TrackerSettings(confirm_hits=1))
+        assert tracker.update(detection(t_s=0.0, frame_size=3)) == []
+        assert tracker.update(detection(t_s=0.0, east_m=500.0, frame_size=2)) == []
+        created = tracker.update(detection(t_s=0.0, east_m=1000.0, frame_size=1))
+        assert [t.status for t in created] == ["created"] * 3
+        assert tracker.counts.frames == 1
+
+    def test_a_size_too_small_processes_early_and_a_late_mate_is_a_frame_of_its_own(
+        self,
+    ) -> None:
+        tracker = Tracker(TrackerSettings(confirm_hits=1))
+        assert [t.status for t in tracker.update(detection(t_s=0.0, frame_size=1))] == ["created"]
+        # Its frame-mate came after the frame was taken: held as a frame of its own.
+        assert tracker.update(detection(t_s=0.0, east_m=500.0)) == []
+        assert [t.status for t in tracker.flush()] == ["created"]
+        assert tracker.counts.frames == 2
+        assert len(tracker) == 2
 
     def test_two_detections_of_one_frame_never_go_to_one_track(self) -> None:
         """Greedy association gave both to the nearer track; jointly, each gets its own."""
@@ -403,6 +441,26 @@ def test_permuting_a_frames_detections_never_changes_the_tracks(
     one, two = Tracker(settings_), Tracker(settings_)
     assert _run(one, stream) == _run(two, shuffled)
     assert one.counts == two.counts
+
+
+@settings(max_examples=40, deadline=None)
+@given(spec=frames)
+def test_frames_that_say_their_size_give_the_tracks_of_frames_that_wait(
+    spec: list[list[tuple[int, float, float, str, float, float]]],
+) -> None:
+    """``frame_size`` only decides when a frame is taken, never what it makes."""
+    stream = _stream(spec)
+    sizes: dict[tuple[str, datetime], int] = defaultdict(int)
+    for d in stream:
+        sizes[d.airframe, d.time] += 1
+    sized = [d.model_copy(update={"frame_size": sizes[d.airframe, d.time]}) for d in stream]
+    settings_ = TrackerSettings(confirm_hits=2, confirm_window=3, update_interval_s=0.0)
+    waiting, told = Tracker(settings_), Tracker(settings_)
+    expected = _run(waiting, stream)
+    events = [track for d in sized for track in told.update(d)]
+    assert not told.holding  # every frame was taken as it completed
+    assert events + told.tick(stream[-1].time + timedelta(seconds=1)) == expected
+    assert waiting.counts == told.counts
 
 
 @settings(max_examples=40, deadline=None)

@@ -47,6 +47,26 @@ def test_crc_extra_and_bytes_match_mavgen(generated: ModuleType) -> None:
     assert len(expected) == 48
 
 
+def test_frame_size_is_an_extension_crc_extra_and_old_frames_unchanged(
+    generated: ModuleType,
+) -> None:
+    """An extension is outside CRC_EXTRA: an old sender's frames (no frame_size, sent as 0
+    and cut by MAVLink 2's truncation) are byte for byte what they were."""
+    theirs = generated.MAVLink(None, srcSystem=1, srcComponent=1)
+    ours = apm.MAVLink(None, srcSystem=1, srcComponent=1)
+    cls = generated.MAVLink_fischer_detection_message
+    assert cls.crc_extra == FISCHER_DETECTION_CRC_EXTRA == 20
+    assert cls.fieldnames[-2:] == ["subtype", "frame_size"]
+    expected = bytes(theirs.fischer_detection_encode(*ARGS, b"T-72", 4).pack(theirs))
+    assert fischer_detection(*ARGS, subtype="T-72", frame_size=4).pack(ours) == expected
+    assert len(expected) == 12 + 32 + 16 + 1  # base, subtype, size: nothing truncated
+    (msg,) = generated.MAVLink(None).parse_buffer(expected)
+    assert msg.frame_size == 4
+    old = fischer_detection(*ARGS, subtype="T-72").pack(apm.MAVLink(None, 1, 1))
+    (back,) = apm.MAVLink(None).parse_buffer(old)
+    assert back.frame_size == 0
+
+
 def test_mavgen_parser_decodes_our_frame(generated: ModuleType) -> None:
     frame = fischer_detection(*ARGS, subtype="T-72").pack(apm.MAVLink(None, 1, 1))
     (msg,) = generated.MAVLink(None).parse_buffer(frame)
@@ -127,6 +147,28 @@ def test_an_altitude_out_of_range_is_refused_by_name() -> None:
         Position(lat_deg=60.0, lon_deg=18.0, alt_hae_m=float("nan"))
 
 
+@pytest.mark.parametrize(("sent", "carried"), [(0, None), (1, 1), (12, 12), (255, 255)])
+def test_frame_size_is_carried_into_the_detection_none_when_unknown(
+    sent: int, carried: int | None
+) -> None:
+    ingest, events, _ = make_ingest(1)
+    frame = fischer_detection(*ARGS, frame_size=sent).pack(apm.MAVLink(None, 1, 1))
+    ingest.on_data("l", "p", frame)
+    (detection,) = [e for e in events if isinstance(e, Detection)]
+    assert detection.frame_size == carried
+    assert Detection.model_validate(detection.model_dump()) == detection
+
+
+def test_a_frame_size_out_of_range_is_refused_by_name() -> None:
+    """A Detection from elsewhere (another node's, over NATS) is validated."""
+    ingest, events, _ = make_ingest(1)
+    ingest.on_data("l", "p", fischer_detection(*ARGS).pack(apm.MAVLink(None, 1, 1)))
+    (detection,) = [e for e in events if isinstance(e, Detection)]
+    for bad in (0, 256):
+        with pytest.raises(ValidationError, match="frame_size"):
+            Detection.model_validate({**detection.model_dump(), "frame_size": bad})
+
+
 def test_impossible_detection_is_rejected_and_counted() -> None:
     ingest, events, inst = make_ingest(1)
     bad = (ARGS[0], 8, 0, 0, *ARGS[4:])  # 0,0: no position
@@ -164,3 +206,5 @@ async def test_simulated_detections_reach_a_sink_every_one() -> None:
     events: list[Event] = mem.events
     assert [e.event_id.split("-")[3] for e in events] == [str(n) for n in range(1, len(events) + 1)]
     assert {e.object_class for e in events if isinstance(e, Detection)} == {"tank", "uav"}
+    # Each simulated detection is the only one of its sensor frame, and says so.
+    assert {e.frame_size for e in events if isinstance(e, Detection)} == {1}

@@ -450,16 +450,23 @@ def test_frames_not_ours_are_left_to_pymavlink() -> None:
 
 
 def test_extensions_absent_are_zero_and_chars_nul_stripped_bytes() -> None:
-    """FISCHER_DETECTION without its subtype extension, then with a short one."""
+    """FISCHER_DETECTION without its extensions (an old sender's), with a short subtype, and
+    with its frame_size; pymavlink reads the same."""
     decoder = default_decoder()
     base = struct.pack("<QIiiffHBB", 1, 2, 3, 4, 5.0, 6.0, 7, 1, 80)
     bare = decoder.decode(frame_of(61000, base))
     assert bare is not None
-    assert bare.subtype == b""
+    assert (bare.subtype, bare.frame_size) == (b"", 0)
     assert (bare.lat, bare.sensor, bare.confidence) == (3, 1, 80)
     tagged = decoder.decode(frame_of(61000, base + b"T-72"))
     assert tagged is not None
-    assert tagged.subtype == b"T-72"
+    assert (tagged.subtype, tagged.frame_size) == (b"T-72", 0)
+    sized = frame_of(61000, base + b"T-72".ljust(16, b"\x00") + bytes([3]))
+    fast = decoder.decode(sized)
+    assert fast is not None
+    assert (fast.subtype, fast.frame_size) == (b"T-72", 3)
+    (slow,) = apm.MAVLink(None).parse_buffer(sized)
+    assert (slow.subtype, slow.frame_size) == (b"T-72", 3)
 
 
 def test_upstream_chars_are_text_cut_at_the_first_nul_as_pymavlinks_classes_give() -> None:

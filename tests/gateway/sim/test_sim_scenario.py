@@ -229,6 +229,19 @@ class TestEncoding:
         assert msg.subtype == b"T-72B3"
         assert feed.next_due_s() == 1.0
 
+    def test_feed_tells_each_sensor_frame_its_size(self) -> None:
+        """The detections of one look are one sensor frame: each says how many it holds."""
+        text = scenario_text(range_m=2000).replace(
+            "    path: [{lat_deg: 65.83, lon_deg: 21.69, alt_msl_m: 50}]",
+            "    path: [{lat_deg: 65.83, lon_deg: 21.69, alt_msl_m: 50}]\n"
+            "  - {id: T2, class: tank, path: [{lat_deg: 65.831, lon_deg: 21.69, alt_msl_m: 50}]}\n"
+            "  - {id: T3, class: tank, path: [{lat_deg: 65.86, lon_deg: 21.69, alt_msl_m: 50}]}",
+        )
+        s = load_scenario_text(text)
+        feed = DetectionFeed(s, s.airframes[0], s.duration_s, lambda _t: (65.83, 21.70))
+        messages = feed.messages_at(0.0, 1_700_000_000.0)
+        assert [m.frame_size for m in messages] == [2, 2]  # T3 is out of range
+
     def test_blue_force_cot_parses_as_a_friendly_position(self) -> None:
         from datetime import UTC, datetime, timedelta
 
