@@ -191,11 +191,15 @@ def sensor_looks(airframe: Airframe, end_s: float) -> Iterator[tuple[float, int,
     """Every look of every sensor of ``airframe`` up to ``end_s``: (sim time, sensor index,
     look number), in time order."""
     return heapq.merge(
-        *(
-            ((t_s, s, k) for k, t_s in _looks(sensor.rate_hz, end_s))
-            for s, sensor in enumerate(airframe.sensors)
-        )
+        *(_sensor_looks(s, sensor.rate_hz, end_s) for s, sensor in enumerate(airframe.sensors))
     )
+
+
+def _sensor_looks(s: int, rate_hz: float, end_s: float) -> Iterator[tuple[float, int, int]]:
+    # A function of its own binds ``s`` per sensor: a generator expression inside the one
+    # above would read ``s`` only when iterated, the last sensor's for every one.
+    for k, t_s in _looks(rate_hz, end_s):
+        yield t_s, s, k
 
 
 def seen_at(

@@ -23,6 +23,7 @@ from gateway.sim.schedule import (
     detections,
     events_at,
     schedule,
+    sensor_looks,
     target_tracks,
 )
 from sinks.cot.validate import parse_cot
@@ -162,6 +163,28 @@ class TestSchedule:
     def test_schedule_is_in_time_order(self) -> None:
         times = [e.t_s for e in schedule(load_scenario("brigade"))]
         assert times == sorted(times)
+
+
+class TestSensors:
+    """Each sensor of an airframe looks with its own kind, rate and range."""
+
+    def test_an_airframe_with_two_sensors_reports_from_both(self) -> None:
+        text = scenario_text().replace(
+            "      - {sensor: eo, range_m: 5000, confidence: 0.8, sigma_h_m: 10, rate_hz: 1}\n",
+            "      - {sensor: eo, range_m: 5000, confidence: 0.8, sigma_h_m: 10, rate_hz: 1}\n"
+            "      - {sensor: ir, range_m: 5000, confidence: 0.7, sigma_h_m: 20, rate_hz: 2}\n",
+        )
+        scenario = load_scenario_text(text)
+        (airframe,) = scenario.airframes
+        looks = list(sensor_looks(airframe, 10.0))
+        assert {s for _, s, _ in looks} == {0, 1}
+        # Looks at 0..10 s inclusive: 11 at 1 Hz, 21 at 2 Hz.
+        assert [sum(1 for _, s, _ in looks if s == i) for i in (0, 1)] == [11, 21]
+        seen = dets(text)
+        by_sensor = {d.sensor: [x for x in seen if x.sensor == d.sensor] for d in seen}
+        assert set(by_sensor) == {"eo", "ir"}
+        assert {d.sigma_h_m for d in by_sensor["eo"]} == {10.0}
+        assert {d.sigma_h_m for d in by_sensor["ir"]} == {20.0}
 
 
 class TestShipped:
