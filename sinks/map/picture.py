@@ -318,6 +318,7 @@ class Picture:
             "nearest_blue_callsign_provenance": decon.nearest_blue_callsign_provenance,
             "nearest_blue_m": _round(decon.nearest_blue_m, 0),
             "operator_authorisation_required": True,
+            "origin_node": event.origin_node,
             "revisions": list(revisions),
         }
         changes = self._upsert("cue", event.handoff_id, data)

@@ -10,6 +10,7 @@ disconnects and errors to the log at most every 10 s.
 from __future__ import annotations
 
 import asyncio
+import re
 import ssl
 from pathlib import Path
 from typing import Any
@@ -91,6 +92,14 @@ class NatsServer(BaseModel):
     request_timeout_s: float = Field(
         default=5.0, gt=0, le=120, description="Deadline of a JetStream API call or publish ack."
     )
+
+    @field_validator("node", mode="before")
+    @classmethod
+    def _node(cls, node: object) -> object:
+        # Before the pattern, so the error says what a node name is in words.
+        if isinstance(node, str) and not re.fullmatch(NODE_PATTERN, node):
+            raise ValueError("a node name is 1-32 letters, digits, '_' or '-'")
+        return node
 
     @field_validator("servers")
     @classmethod

@@ -113,9 +113,11 @@ def test_what_a_program_reads_from_the_node_holds_to_the_schema() -> None:
     anyio.run(main)
 
 
-def test_another_nodes_airframe_detection_and_fused_track_carry_their_nodes() -> None:
+def test_another_nodes_airframe_detection_cue_and_fused_track_carry_their_nodes() -> None:
     picture = Picture(Limits())
-    first = sample_events(frozenset({EventKind.TELEMETRY, EventKind.DETECTION, EventKind.TRACK}))
+    first = sample_events(
+        frozenset({EventKind.TELEMETRY, EventKind.DETECTION, EventKind.TRACK, EventKind.HANDOFF})
+    )
     remote: list[Event] = []
     for event in first:
         if isinstance(event, Track):
@@ -129,6 +131,6 @@ def test_another_nodes_airframe_detection_and_fused_track_carry_their_nodes() ->
         check.validate({"seq": seq, **change})
         data = change["data"]
         shown[change["layer"]] = data.get("origin_nodes", data.get("origin_node"))
-    assert shown == {"airframe": "b", "detection": "b", "track": ["b", "c"]}
+    assert shown == {"airframe": "b", "detection": "b", "track": ["b", "c"], "cue": "b"}
     bad = {**changes[0], "seq": 1, "data": {**changes[0]["data"], "origin_node": "<b>"}}
     assert not check.is_valid(bad)
