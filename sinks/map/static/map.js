@@ -167,7 +167,8 @@
           "recommended " + (e.recommended_effector || "none"), e.note,
           e.origin_node ? "from node " + e.origin_node : null];
       case "order":
-        return ["order " + e.order_id + " (" + e.source + ")", (e.task || "?") + ": " + e.status, e.reason];
+        return ["order " + e.order_id + " (" + e.source + ")", (e.task || "?") + ": " + e.status, e.reason,
+          e.origin_node ? "from node " + e.origin_node : null];
       case "detection":
         return [e.object_class + " by " + e.airframe + " (" + e.sensor + ")", "confidence " + fmt(e.confidence * 100, " %", 0),
           e.origin_node ? "from node " + e.origin_node : null];
