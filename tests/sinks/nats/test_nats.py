@@ -145,6 +145,17 @@ sinks:
         ),
         (
             "nats://127.0.0.1:4222",
+            "nats://127.0.0.1:notaport",
+            ":11 sources[0].servers: 'nats://127.0.0.1:notaport': not a URL",
+        ),
+        ("nats://127.0.0.1:4222", "nats://", ":11 sources[0].servers: 'nats://': no host"),
+        (
+            "nats://127.0.0.1:4222",
+            "nats://fg:hunter2@127.0.0.1:4222",
+            ":11 sources[0].servers: a server URL carries no user or password",
+        ),
+        (
+            "nats://127.0.0.1:4222",
             "htp:/127.0.0.1:x",
             ":11 sources[0].servers: 'htp:/127.0.0.1:x': a server URL starts with nats://",
         ),
@@ -170,6 +181,7 @@ def test_run_refuses_a_bad_nats_config_naming_key_and_line(
     assert result.returncode == 2, result.stderr
     assert f"{config}{message}" in result.stderr
     assert "Traceback" not in result.stderr
+    assert "hunter2" not in result.stderr
 
 
 def test_check_config_warns_of_a_node_that_publishes_without_credentials(
