@@ -205,7 +205,7 @@ class Gateway:
         self.sources: list[Source] = []
         self._source_publish: list[SourcePublish] = []
         #: Other nodes' events the sources put on the bus, per node and airframe (/status).
-        self.remote = RemoteOrigins(clock=clock)
+        self.remote = RemoteOrigins(clock=clock, own=frozenset(airframe_ids))
         remote_publish = self.remote.wrap(self.bus.publish)
         for source_entry in config.sources:
             component = load_component(SOURCE_GROUP, source_entry.type)

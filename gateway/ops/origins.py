@@ -8,7 +8,10 @@ This node's own events (no ``origin_node``) pass untouched.
 
 Bounded whatever the peers send: at most ``max_nodes`` nodes (the rest counted in
 ``nodes_dropped``) and the ``max_airframes`` airframes heard from most recently (older ones
-forgotten, counted in ``airframes_forgotten``). A node name is at most 32 characters (the
+forgotten, counted in ``airframes_forgotten``). This node's ``own`` airframes are never listed
+as another node's: an event of one from elsewhere (a detection it made that another node
+relayed, or one forged on that node's subjects) is counted under its node but does not make
+the airframe that node's. A node name is at most 32 characters (the
 event models check it); an airframe id is shown cut to ``AIRFRAME_CHARS``.
 """
 
@@ -39,9 +42,15 @@ class RemoteOrigins:
     """Counts of other nodes' events on this node's bus, and where each remote airframe is from."""
 
     def __init__(
-        self, *, clock: Clock = utc_now, max_nodes: int = 256, max_airframes: int = 2000
+        self,
+        *,
+        clock: Clock = utc_now,
+        max_nodes: int = 256,
+        max_airframes: int = 2000,
+        own: frozenset[str] = frozenset(),
     ) -> None:
         self._clock = clock
+        self._own = own
         self._max_nodes = max_nodes
         self._max_airframes = max_airframes
         self._nodes: dict[str, _Node] = {}
@@ -76,7 +85,7 @@ class RemoteOrigins:
         node.kinds[event.kind.value] += 1
         node.last_heard = now
         airframe = getattr(event, "airframe", None)
-        if not isinstance(airframe, str):
+        if not isinstance(airframe, str) or airframe in self._own:
             return
         airframe = airframe[:AIRFRAME_CHARS]
         before = self._airframes.pop(airframe, None)

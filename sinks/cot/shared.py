@@ -15,6 +15,11 @@ when everything that shapes the bytes is the same:
 A telemetry event also teaches the sink its airframe's type; a reused build applies that to
 the asking sink's map as ``build`` would have. Memory is bounded: at most ``size`` entries,
 the oldest dropped first; a miss costs one build, as before.
+
+``AirframeTypes`` is a sink's map of airframe → CoT type, bounded too: since the ``nats``
+source, telemetry of any airframe id another node (or whoever may publish on its subjects)
+names reaches the sink, so the map keeps the ``MAX_AIRFRAME_TYPES`` airframes heard from most
+recently. A forgotten airframe's detections link with the default type until its next state.
 """
 
 from __future__ import annotations
@@ -23,10 +28,13 @@ from gateway.events import Detection, Event, Telemetry, Track
 from sinks.cot.codec import Encoded
 from sinks.cot.event import CotOptions, build
 
-__all__ = ["DEFAULT_SIZE", "SHARED", "SharedBuilds"]
+__all__ = ["DEFAULT_SIZE", "MAX_AIRFRAME_TYPES", "SHARED", "AirframeTypes", "SharedBuilds"]
 
 #: Builds kept: a few batches (``batch_max`` 100 by default) of every CoT sink in step.
 DEFAULT_SIZE = 1024
+
+#: Airframes whose CoT type a sink keeps (its own fleet is at most 255; remote nodes add theirs).
+MAX_AIRFRAME_TYPES = 4096
 
 #: The event, its build, and the (airframe, CoT type) a telemetry event teaches.
 _Entry = tuple[Event, Encoded | None, tuple[str, str] | None]
@@ -39,6 +47,23 @@ def _links(event: Event, own_types: dict[str, str]) -> object:
     if isinstance(event, Track):
         return tuple(own_types.get(airframe) for airframe in event.airframes)
     return None
+
+
+class AirframeTypes(dict[str, str]):
+    """Airframe → CoT type, the ``limit`` airframes set most recently (the oldest forgotten)."""
+
+    def __init__(self, limit: int = MAX_AIRFRAME_TYPES) -> None:
+        super().__init__()
+        if limit < 1:
+            raise ValueError(f"limit must be at least 1, got {limit}")
+        self.limit = limit
+
+    def __setitem__(self, airframe: str, cot_type: str) -> None:
+        if airframe in self:
+            del self[airframe]  # moved to the newest end
+        super().__setitem__(airframe, cot_type)
+        if len(self) > self.limit:
+            del self[next(iter(self))]
 
 
 class SharedBuilds:

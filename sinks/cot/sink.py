@@ -58,7 +58,7 @@ from gateway.transports.tls import TlsFiles, tls_context
 from gateway.transports.udp import is_multicast
 from sinks.cot.codec import Encoded
 from sinks.cot.event import CotOptions, StaleTimes, own_uid
-from sinks.cot.shared import SHARED, SharedBuilds
+from sinks.cot.shared import SHARED, AirframeTypes, SharedBuilds
 from sinks.cot.transport import Endpoint, StreamConnection
 from sinks.cot.udp import UdpSender
 
@@ -330,7 +330,7 @@ class CotSink:
                         response_wait_s=config.response_wait_s,
                     )
                 )
-        self._own_types: dict[str, str] = {}
+        self._own_types = AirframeTypes()
         #: Mesh TakControl announcements the network refused.
         self.announce_failures = 0
         self._log_limit = RateLimit(interval_s=30.0)

@@ -318,6 +318,7 @@ class Picture:
             "nearest_blue_callsign_provenance": decon.nearest_blue_callsign_provenance,
             "nearest_blue_m": _round(decon.nearest_blue_m, 0),
             "operator_authorisation_required": True,
+            "origin_node": event.origin_node,
             "revisions": list(revisions),
         }
         changes = self._upsert("cue", event.handoff_id, data)
@@ -346,16 +347,26 @@ class Picture:
             "lon": round(lon, 7),
             "mgrs": area.mgrs,
             "polygon": [[round(a, 7), round(b, 7)] for a, b in corners],
+            "origin_node": None,
         }
         return self._upsert("order", event.event_id, data)
 
     def _order_status(self, event: OrderStatus) -> list[Change]:
-        old = self._layers["order"].get(event.order_event_id)
+        # Another node's status is its own entity: order ids are the issuer's
+        # (``slb-order-<id>``), so a remote status (or one forged on a remote's subjects) under
+        # the id of this node's order must never rewrite that order's state here. Local ids
+        # start with their system (``slb-``, ``sweccis-``, ``local-``), never ``node/``.
+        key = (
+            event.order_event_id
+            if event.origin_node is None
+            else f"node/{event.origin_node}/{event.order_event_id}"
+        )
+        old = self._layers["order"].get(key)
         data = (
             dict(old)
             if old is not None
             else {
-                "id": event.order_event_id,
+                "id": key,
                 "order_id": event.order_id,
                 "source": event.source,
                 "task": None,
@@ -372,8 +383,9 @@ class Picture:
             status=event.status.value,
             check=event.check,
             reason=event.reason,
+            origin_node=event.origin_node,
         )
-        return self._upsert("order", event.order_event_id, data)
+        return self._upsert("order", key, data)
 
     def _detection(self, event: Detection) -> list[Change]:
         data = {

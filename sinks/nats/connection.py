@@ -10,9 +10,11 @@ disconnects and errors to the log at most every 10 s.
 from __future__ import annotations
 
 import asyncio
+import re
 import ssl
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlsplit
 
 import nats
 import structlog
@@ -57,6 +59,24 @@ class NatsTls(BaseModel):
         return self
 
 
+def _url_problem(url: str) -> str | None:
+    """Why ``url`` is no server URL nats-py could connect to, or None. Checked with the
+    config, not at the first connect: a bad one would otherwise be retried for ever."""
+    try:
+        parts = urlsplit(url)
+        parts.port  # noqa: B018 - raises for a port that is not one
+    except ValueError as exc:
+        return f"{url[:200]!r}: not a URL ({exc})"
+    if parts.username is not None or parts.password is not None:
+        # It would be logged with every connect failure, and secrets are files.
+        return "a server URL carries no user or password: use creds_file or token_file"
+    if not parts.hostname:
+        return f"{url[:200]!r}: no host"
+    if parts.path not in ("", "/") or parts.query or parts.fragment:
+        return f"{url[:200]!r}: only nats://HOST:PORT or tls://HOST:PORT"
+    return None
+
+
 class NatsServer(BaseModel):
     """Where this node's NATS server is and how to authenticate to it."""
 
@@ -92,12 +112,23 @@ class NatsServer(BaseModel):
         default=5.0, gt=0, le=120, description="Deadline of a JetStream API call or publish ack."
     )
 
+    @field_validator("node", mode="before")
+    @classmethod
+    def _node(cls, node: object) -> object:
+        # Before the pattern, so the error says what a node name is in words.
+        if isinstance(node, str) and not re.fullmatch(NODE_PATTERN, node):
+            raise ValueError("a node name is 1-32 letters, digits, '_' or '-'")
+        return node
+
     @field_validator("servers")
     @classmethod
     def _urls(cls, servers: list[str]) -> list[str]:
         for url in servers:
             if not url.startswith(("nats://", "tls://")):
-                raise ValueError(f"{url!r}: a server URL starts with nats:// or tls://")
+                raise ValueError(f"{url[:200]!r}: a server URL starts with nats:// or tls://")
+            problem = _url_problem(url)
+            if problem is not None:
+                raise ValueError(problem)
         return servers
 
     @field_validator("creds_file", "token_file")

@@ -36,7 +36,7 @@ from nats.aio.msg import Msg
 from nats.js import JetStreamContext
 from nats.js.api import AckPolicy, ConsumerConfig, DeliverPolicy
 from nats.js.errors import NotFoundError
-from pydantic import Field, field_validator
+from pydantic import Field, ValidationInfo, field_validator
 
 from gateway.c2.source import Commit, DetectionLedger, SourceConfig
 from gateway.clock import Clock
@@ -99,14 +99,16 @@ class NatsSourceConfig(SourceConfig, NatsServer):
 
     @field_validator("remotes")
     @classmethod
-    def _nodes(cls, remotes: list[str]) -> list[str]:
+    def _nodes(cls, remotes: list[str], info: ValidationInfo) -> list[str]:
         import re
 
         for node in remotes:
             if not re.fullmatch(NODE_PATTERN, node):
-                raise ValueError(f"{node!r}: a node name is 1-32 letters, digits, '_' or '-'")
+                raise ValueError(f"{node[:64]!r}: a node name is 1-32 letters, digits, '_' or '-'")
         if len(set(remotes)) != len(remotes):
             raise ValueError("a node is named twice")
+        if info.data.get("node") in remotes:
+            raise ValueError(f"{info.data['node']!r} is this node itself")
         return remotes
 
 

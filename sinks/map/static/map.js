@@ -164,9 +164,11 @@
       case "cue":
         return ["cue " + e.id + " r" + e.revision + " " + e.status, "battery " + e.battery + " → track " + e.track_id,
           e.clear ? "deconfliction clear" : "NOT clear" + (e.nearest_blue_callsign ? ": " + e.nearest_blue_callsign + " at " + fmt(e.nearest_blue_m, " m", 0) : ""),
-          "recommended " + (e.recommended_effector || "none"), e.note];
+          "recommended " + (e.recommended_effector || "none"), e.note,
+          e.origin_node ? "from node " + e.origin_node : null];
       case "order":
-        return ["order " + e.order_id + " (" + e.source + ")", (e.task || "?") + ": " + e.status, e.reason];
+        return ["order " + e.order_id + " (" + e.source + ")", (e.task || "?") + ": " + e.status, e.reason,
+          e.origin_node ? "from node " + e.origin_node : null];
       case "detection":
         return [e.object_class + " by " + e.airframe + " (" + e.sensor + ")", "confidence " + fmt(e.confidence * 100, " %", 0),
           e.origin_node ? "from node " + e.origin_node : null];

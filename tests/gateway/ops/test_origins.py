@@ -88,6 +88,17 @@ def test_an_airframe_heard_from_a_second_node_moves_to_it() -> None:
     assert status["nodes"]["c"]["airframes"] == 1
 
 
+def test_an_own_airframe_is_never_listed_as_another_nodes() -> None:
+    # A detection of this node's own airframe relayed (or forged) on node b's subjects is
+    # counted under b, but the airframe stays this node's.
+    origins = RemoteOrigins(own=frozenset({"A-001"}))
+    origins.record(detection("A-001", "b"))
+    status = origins.status()
+    assert status["nodes"]["b"]["events"] == 1
+    assert status["nodes"]["b"]["airframes"] == 0
+    assert status["airframes"] == {}
+
+
 def test_nodes_and_airframes_are_bounded() -> None:
     origins = RemoteOrigins(max_nodes=3, max_airframes=50)
     for n in range(10):

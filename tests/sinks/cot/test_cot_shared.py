@@ -16,7 +16,7 @@ from test_cot_event import DETECTION, EVENTS, TELEMETRY, TRACK, options
 from gateway.events import Event
 from sinks.cot.codec import Encoded, Encoding
 from sinks.cot.event import CotOptions, build
-from sinks.cot.shared import SharedBuilds
+from sinks.cot.shared import MAX_AIRFRAME_TYPES, AirframeTypes, SharedBuilds
 from sinks.cot.sink import CotSink, CotSinkConfig
 
 ENCODINGS: tuple[Encoding, ...] = ("xml", "mesh", "stream")
@@ -174,3 +174,25 @@ async def test_sinks_on_real_sockets_send_what_each_would_alone() -> None:
     assert got == want
     assert got[0] == got[1] == got[2] != got[3]
     assert builds.misses == 2 * len(EVENTS)  # the default options, and the b- prefix
+
+
+def test_a_sinks_airframe_types_keep_the_newest_airframes_only() -> None:
+    # Remote nodes' telemetry (the nats source) may name any number of airframe ids: the
+    # sink's map of airframe -> CoT type must not grow with them.
+    builds = SharedBuilds()
+    types = AirframeTypes(limit=3)
+    for n in range(50):
+        telemetry = TELEMETRY.model_copy(update={"airframe": f"GHOST-{n}"})
+        builds.encoded(telemetry, builds.canonical(options()), types)
+    assert list(types) == ["GHOST-47", "GHOST-48", "GHOST-49"]
+    types["GHOST-47"] = "a-f-A"  # set again: now the newest
+    types["GHOST-50"] = "a-f-A"
+    assert list(types) == ["GHOST-49", "GHOST-47", "GHOST-50"]
+    with pytest.raises(ValueError, match="limit"):
+        AirframeTypes(limit=0)
+
+
+def test_the_cot_sink_bounds_its_airframe_types() -> None:
+    sink = CotSink("atak", CotSinkConfig.model_validate({"destinations": ["udp://127.0.0.1:9"]}))
+    assert isinstance(sink._own_types, AirframeTypes)
+    assert sink._own_types.limit == MAX_AIRFRAME_TYPES

@@ -113,9 +113,11 @@ def test_what_a_program_reads_from_the_node_holds_to_the_schema() -> None:
     anyio.run(main)
 
 
-def test_another_nodes_airframe_detection_and_fused_track_carry_their_nodes() -> None:
+def test_another_nodes_airframe_detection_cue_and_fused_track_carry_their_nodes() -> None:
     picture = Picture(Limits())
-    first = sample_events(frozenset({EventKind.TELEMETRY, EventKind.DETECTION, EventKind.TRACK}))
+    first = sample_events(
+        frozenset({EventKind.TELEMETRY, EventKind.DETECTION, EventKind.TRACK, EventKind.HANDOFF})
+    )
     remote: list[Event] = []
     for event in first:
         if isinstance(event, Track):
@@ -129,6 +131,30 @@ def test_another_nodes_airframe_detection_and_fused_track_carry_their_nodes() ->
         check.validate({"seq": seq, **change})
         data = change["data"]
         shown[change["layer"]] = data.get("origin_nodes", data.get("origin_node"))
-    assert shown == {"airframe": "b", "detection": "b", "track": ["b", "c"]}
+    assert shown == {"airframe": "b", "detection": "b", "track": ["b", "c"], "cue": "b"}
     bad = {**changes[0], "seq": 1, "data": {**changes[0]["data"], "origin_node": "<b>"}}
     assert not check.is_valid(bad)
+
+
+def test_another_nodes_status_never_rewrites_this_nodes_order_of_the_same_id() -> None:
+    # Order event ids are the issuer's (slb-order-<id>): node b's status of an order of that
+    # id, or one forged on b's subjects, is b's entity, not a new state of this node's order.
+    picture = Picture(Limits())
+    order = next(e for e in sample_events(frozenset({EventKind.ORDER})))
+    picture.apply(order)
+    remote = OrderStatus(
+        event_id=f"{order.event_id}-completed",
+        order_event_id=order.event_id,
+        order_id=order.order_id,
+        source=order.source,
+        time=order.time,
+        status=OrderState.COMPLETED,
+        origin_node="b",
+    )
+    (change,) = picture.apply(remote)
+    validator("change").validate({"seq": 1, **change})
+    orders = {entity["id"]: entity for entity in picture.snapshot()["order"]}
+    assert orders[order.event_id]["status"] == "received"
+    assert orders[order.event_id]["origin_node"] is None
+    theirs = orders[f"node/b/{order.event_id}"]
+    assert (theirs["status"], theirs["origin_node"]) == ("completed", "b")

@@ -7,6 +7,8 @@ aggregate stream, marks each event with its origin and never takes one twice.
 
 from __future__ import annotations
 
+import subprocess
+import sys
 import time
 from collections.abc import Callable, Iterator
 from datetime import UTC, datetime
@@ -104,11 +106,82 @@ def test_options_are_checked() -> None:
         NatsSinkConfig(node="a", servers=["http://x"])
     with pytest.raises(ValidationError, match="named twice"):
         NatsSourceConfig(node="a", remotes=["b", "b"])
+    with pytest.raises(ValidationError, match=r"remotes\n.*'a' is this node itself"):
+        NatsSourceConfig(node="a", remotes=["b", "a"])
+    with pytest.raises(ValidationError, match=r"node\n.*a node name is 1-32 letters"):
+        NatsSinkConfig(node="b c")
     for key in ("creds_file", "token_file"):  # the error names the key (and so its line)
         with pytest.raises(ValidationError, match=rf"{key}\n.*no such file"):
             NatsSinkConfig.model_validate(
                 {"node": "a", key: "/nonexistent.creds"}, context={"environment": True}
             )
+
+
+HUB_CONFIG = """\
+gateway: {node_id: a}
+health: {enabled: false}
+airframes:
+  - id: A-001
+    sysid: 1
+    links: [{uri: "udp://127.0.0.1:0", security: unsecured}]
+sources:
+  - name: brigades
+    type: nats
+    node: a
+    servers: ['nats://127.0.0.1:4222']
+    remotes: [b]
+sinks:
+  - {name: archive, type: jsonl, options: {path: archive.jsonl}}
+"""
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "message"),
+    [
+        (
+            "    remotes: [b]",
+            "    remotes: [b]\n    creds_file: /nonexistent/nats.creds",
+            ":13 sources[0].creds_file: no such file",
+        ),
+        (
+            "nats://127.0.0.1:4222",
+            "nats://127.0.0.1:notaport",
+            ":11 sources[0].servers: 'nats://127.0.0.1:notaport': not a URL",
+        ),
+        ("nats://127.0.0.1:4222", "nats://", ":11 sources[0].servers: 'nats://': no host"),
+        (
+            "nats://127.0.0.1:4222",
+            "nats://fg:hunter2@127.0.0.1:4222",
+            ":11 sources[0].servers: a server URL carries no user or password",
+        ),
+        (
+            "nats://127.0.0.1:4222",
+            "htp:/127.0.0.1:x",
+            ":11 sources[0].servers: 'htp:/127.0.0.1:x': a server URL starts with nats://",
+        ),
+        ("remotes: [b]", "remotes: [b, 'c.>']", ":12 sources[0].remotes: 'c.>': a node name"),
+        ("remotes: [b]", "remotes: [b, a]", ":12 sources[0].remotes: 'a' is this node itself"),
+        ("    node: a", "    node: a b", ":10 sources[0].node: a node name is 1-32"),
+    ],
+)
+def test_run_refuses_a_bad_nats_config_naming_key_and_line(
+    tmp_path: Path, old: str, new: str, message: str
+) -> None:
+    config = tmp_path / "hub.yaml"
+    assert old in HUB_CONFIG
+    config.write_text(HUB_CONFIG.replace(old, new))
+    result = subprocess.run(
+        [sys.executable, "-m", "gateway", "run", "--config", str(config)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+        cwd=tmp_path,
+    )
+    assert result.returncode == 2, result.stderr
+    assert f"{config}{message}" in result.stderr
+    assert "Traceback" not in result.stderr
+    assert "hunter2" not in result.stderr
 
 
 def test_check_config_warns_of_a_node_that_publishes_without_credentials(
