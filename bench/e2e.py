@@ -6,7 +6,10 @@ Three processes per measurement, all on loopback:
 
 - a **sender** builds FISCHER_DETECTION frames for ``--airframes`` airframes, seals each in
   the tunnel at the moment it sends it, and writes ``time.monotonic_ns()`` of the send into a
-  side table keyed by the detection id (shared memory);
+  side table keyed by the detection id (shared memory). By default it spins between frames
+  closer than 0.5 ms apart, which keeps a core busy at thousands per second: on a 2-core
+  machine the daemon then waits for a CPU (issue #24). ``--pacing sleep`` sleeps at least
+  1 ms and sends the frames that came due, each stamped as it goes out;
 - the **system under test**: ``python -m gateway run --config FILE`` with the spool on (a
   file) and five CoT sinks, each to its own UDP port; or, for comparison in the same run, a
   bare Python forwarder (receive a datagram, send it to five ports, nothing else) and
@@ -16,8 +19,16 @@ Three processes per measurement, all on loopback:
 
 Latency is send → arrival at the *last* of the five sinks. Capacity is the highest offered
 rate (detections/s) at which < 0.1 % of detections are missing at any sink and ≥ 99.9 %
-reach all five within 1 s; the search starts from the previous round's figure and moves in
-25 % steps. At 10 % and 80 % of that capacity the table gives p50/p99. The forwarder and
+reach all five within ``--in-time-ms`` (1 s by default); the search starts from the previous
+round's figure, moves up in 50 % steps (down by a third), then bisects. At 10 % and 80 % of
+that capacity the table gives p50/p99.
+
+The in-time bound decides what "capacity" means. A system that delivers T detections/s,
+offered R > T for ``--seconds`` S, ends the run with a backlog that it clears in
+(R - T) × S / T seconds: with a bound of B seconds it passes up to R = T × (1 + B / S). With
+the default 1 s and S = 3 s that is 1.33 × T, and "80 % of capacity" is then up to 1.07 × T,
+past what the system sustains: its queue grows for the whole run. ``--in-time-ms 50`` puts
+the figure within 2 % of T (issue #24). The forwarder and
 MAVProxy carry plain MAVLink ``DEBUG`` frames (detection id in ``time_boot_ms``): neither can
 open the tunnel, and MAVProxy does not know the project's dialect. Rounds are interleaved
 (gateway, forwarder, MAVProxy, then again) and the table shows min / median / max.
@@ -102,8 +113,14 @@ def send(
     rate: float,
     stamps: SynchronizedArray[int],
     sent: Synchronized[int],
+    pacing: str = "spin",
 ) -> None:
-    """Send ``frames`` at ``rate`` per second (own process); stamp each send by detection id."""
+    """Send ``frames`` at ``rate`` per second (own process); stamp each send by detection id.
+
+    ``pacing="spin"`` waits for each frame's due time, spinning when it is under 0.5 ms away
+    (at thousands per second: always, a core busy); ``"sleep"`` sleeps at least 1 ms and then
+    sends every frame that has come due, each stamped as it goes out.
+    """
     keys = DayKeys(master=MASTER)
     sealers = [Sealer(airframe_id(i), keys, lambda: datetime.now(UTC)) for i in range(airframes)]
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -114,6 +131,10 @@ def send(
     count = 0
     for index, data in frames:
         due = start + int(count * 1e9 / rate)
+        if pacing == "sleep":
+            ahead = due - clock()
+            if ahead > 0:
+                time.sleep(max(ahead / 1e9, 0.001))
         while clock() < due:
             pause = (due - clock()) / 1e9
             if pause > 0.0005:
@@ -327,7 +348,7 @@ def measure(kind: str, rate: float, args: argparse.Namespace, workdir: Path) -> 
         cpu0, t0 = cpu_s(system.proc.pid), time.perf_counter()
         sender = ctx.Process(
             target=send,
-            args=(system.port, frames, args.airframes, is_gateway, rate, stamps, sent),
+            args=(system.port, frames, args.airframes, is_gateway, rate, stamps, sent, args.pacing),
         )
         sender.start()
         sender.join()
@@ -359,7 +380,7 @@ def measure(kind: str, rate: float, args: argparse.Namespace, workdir: Path) -> 
             latencies.append(last - sends[ident])
     total = max(sent.value, 1)
     latencies.sort()
-    in_time = sum(1 for lat in latencies if lat <= IN_TIME_NS) / total
+    in_time = sum(1 for lat in latencies if lat <= args.in_time_ms * 1_000_000) / total
     return Result(
         offered=sent.value / args.seconds,
         sent=sent.value,
@@ -385,7 +406,7 @@ def capacity(kind: str, start: float, args: argparse.Namespace, workdir: Path) -
     rate = start
     for _ in range(args.steps):
         r = measure(kind, rate, args, workdir)
-        print(f"  {kind} {rate:,.0f}/s: lost {r.lost:.3%}, in 1 s {r.in_time:.3%}, "
+        print(f"  {kind} {rate:,.0f}/s: lost {r.lost:.3%}, in time {r.in_time:.3%}, "
               f"p99 {r.p99_ms:.1f} ms, CPU {r.cpu_pct:.0f} %", file=sys.stderr)  # fmt: skip
         if r.ok:
             if best is None or r.offered > best.offered:
@@ -416,6 +437,18 @@ def main() -> None:
     parser.add_argument("--airframes", type=int, default=10, help="at most 250: 8-bit sysids")
     parser.add_argument("--start", type=float, default=1000.0, help="first rate tried (det/s)")
     parser.add_argument("--steps", type=int, default=7, help="runs per capacity search")
+    parser.add_argument(
+        "--pacing",
+        choices=("spin", "sleep"),
+        default="spin",
+        help="the sender's wait between frames: spin (a core busy) or sleep (bursts per ms)",
+    )
+    parser.add_argument(
+        "--in-time-ms",
+        type=float,
+        default=IN_TIME_NS / 1e6,
+        help="a detection later than this at its last sink is not delivered in time",
+    )
     parser.add_argument("--no-mavproxy", action="store_true")
     parser.add_argument(
         "--compare",
@@ -450,7 +483,8 @@ def main() -> None:
           f"Python {platform.python_version()}, {platform.platform()}; "
           f"load average {os.getloadavg()[0]:.1f}")  # fmt: skip
     print(f"command: python bench/e2e.py --rounds {args.rounds} --seconds {args.seconds} "
-          f"--airframes {args.airframes}; min / median / max of the rounds\n")  # fmt: skip
+          f"--airframes {args.airframes} --in-time-ms {args.in_time_ms:g} --pacing {args.pacing}; "
+          "min / median / max of the rounds\n")  # fmt: skip
     print("| system | capacity det/s | CPU % at capacity | p50 ms at 10 % | p99 ms at 10 % "
           "| p50 ms at 80 % | p99 ms at 80 % |")  # fmt: skip
     print("| --- | --- | --- | --- | --- | --- | --- |")

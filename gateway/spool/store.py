@@ -240,7 +240,11 @@ class Spool:
         self.checkpointer: Checkpointer | None = None
         if path is not None and exclusive:
             # The worker holds the spool weakly: one dropped unclosed stops its worker.
-            self.checkpointer = Checkpointer(path, weakref.WeakMethod(self._checkpoint_now))
+            self.checkpointer = Checkpointer(
+                path,
+                weakref.WeakMethod(self._checkpoint_now),
+                finish=weakref.WeakMethod(self._checkpoint_rest),
+            )
             weakref.finalize(self, self.checkpointer.halt)
             self.checkpointer.start()
         if exclusive:
@@ -350,6 +354,11 @@ class Spool:
             events_owed_to_none=max(orphans, 0),
             seconds=round(time.monotonic() - started, 3),
         )
+
+    def _checkpoint_rest(self) -> None:
+        """A PASSIVE checkpoint on this connection: the pages the worker's did not copy."""
+        if not self._db.in_transaction:
+            self._db.execute("PRAGMA wal_checkpoint(PASSIVE)").fetchone()
 
     def _checkpoint_now(self) -> None:
         """A blocking checkpoint on this connection, the log emptied (the WAL past its bound)."""

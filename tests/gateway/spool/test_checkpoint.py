@@ -93,6 +93,53 @@ def test_the_worker_checkpoints_and_the_log_starts_over(tmp_path: Path) -> None:
     reopened.close()
 
 
+def test_a_commit_finishes_a_complete_checkpoint_and_the_log_starts_over(tmp_path: Path) -> None:
+    """Commits without a pause: the worker copies all it found, more commits follow before
+    the log could start over; the loop's next commit copies the rest, and the one after
+    rewinds the log (issue #24: it used to grow to ``hard_bytes`` and stall the loop)."""
+    path = tmp_path / "spool.db"
+    spool = Spool(path)
+    checkpointer = spool.checkpointer
+    assert checkpointer is not None
+    checkpointer.stop()  # the test plays the worker, at the moments it chooses
+    checkpointer.soft_bytes = 64 << 10
+    worker = sqlite3.connect(path, isolation_level=None)
+    try:
+        commit_events(spool, 0, 100)
+        checkpointer._checkpoint(worker, 4096)  # the worker copies every frame there is
+        assert checkpointer.last[0] == checkpointer.last[1] > 0
+        assert checkpointer._finish_due
+        commit_events(spool, 100, 1)  # committed before the log could start over; finishes
+        assert checkpointer.finished == 1
+        assert not checkpointer._finish_due
+        commit_events(spool, 101, 1)  # the first commit after a complete checkpoint
+        assert wal_frames(path) < 10
+        assert checkpointer.blocking == 0
+    finally:
+        worker.close()
+        spool.close()
+    reopened = Spool(path)
+    assert reopened.pending_count("a") == 102
+    reopened.close()
+
+
+def test_the_loop_does_not_wait_for_the_worker_to_finish(tmp_path: Path) -> None:
+    """While the worker checkpoints, the finish is left to a later commit."""
+    path = tmp_path / "spool.db"
+    spool = Spool(path)
+    checkpointer = spool.checkpointer
+    assert checkpointer is not None
+    checkpointer.stop()
+    checkpointer._finish_due = True
+    with checkpointer._checkpointing:  # the worker's checkpoint in progress
+        commit_events(spool, 0, 1)
+    assert checkpointer.finished == 0
+    assert checkpointer._finish_due
+    commit_events(spool, 1, 1)
+    assert checkpointer.finished == 1
+    spool.close()
+
+
 def test_past_its_hard_limit_the_log_is_checkpointed_by_the_commit(tmp_path: Path) -> None:
     path = tmp_path / "spool.db"
     spool = Spool(path)
