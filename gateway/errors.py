@@ -18,6 +18,7 @@ translated once, at the boundary where they enter, with ``raise ... from exc``::
     │   ├── PermanentSinkError       these events will never be accepted (dead-lettered)
     │   └── SinkLoadError            the sink named in config cannot be loaded or configured
     ├── SpoolError                   the spool database cannot be opened or written
+    ├── HttpAnswerError              a server's HTTP answer is not HTTP/1.1 within our bounds
     ├── OrderRejected                an order failed its acceptance checks
     └── ScoreInputError              a truth file or archive given to the scorer is unusable
 
@@ -36,6 +37,7 @@ __all__ = [
     "ConfigIssue",
     "FrameError",
     "GatewayError",
+    "HttpAnswerError",
     "LinkClosed",
     "LinkError",
     "LinkUnavailable",
@@ -187,6 +189,10 @@ class SinkOptionsInvalid(SinkLoadError):
 
 class SpoolError(GatewayError):
     """Raised when the spool database cannot be opened, read or written (disk, schema)."""
+
+
+class HttpAnswerError(GatewayError):
+    """Raised when an HTTPS server's answer cannot be read: not HTTP/1.1, or past a bound."""
 
 
 class OrderRejected(GatewayError):

@@ -16,6 +16,7 @@ server's status code: delivered, already delivered (409), worth retrying (with t
 from __future__ import annotations
 
 import importlib
+import socket
 import ssl
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -28,6 +29,7 @@ import anyio.to_thread
 import httpx
 
 from gateway.clock import utc_now
+from gateway.errors import HttpAnswerError, os_reason
 from gateway.transports.tls import TlsFiles, describe_tls_error, tls_context
 
 __all__ = [
@@ -152,10 +154,16 @@ def describe_https_error(exc: BaseException, url: str, files: TlsFiles) -> str:
         }.get(type(exc), "on the request")
         return f"{url}: timed out {phase}"
     text = str(exc) or type(exc).__name__
-    if isinstance(exc, httpx.ConnectError):
+    if isinstance(exc, httpx.ConnectError | ConnectionRefusedError | socket.gaierror):
         return f"{url}: cannot connect: {text}"
     if isinstance(exc, httpx.RemoteProtocolError | httpx.ReadError | httpx.WriteError):
         return f"{url}: connection lost: {text}"
+    if isinstance(exc, ConnectionError):  # reset, aborted, broken pipe
+        return f"{url}: connection lost: {text}"
+    if isinstance(exc, HttpAnswerError):
+        return f"{url}: unreadable answer: {text}"
+    if isinstance(exc, OSError):
+        return f"{url}: network error: {os_reason(exc)}"
     return f"{url}: {type(exc).__name__}: {text}"
 
 

@@ -1,9 +1,12 @@
 """One pooled HTTPS client that POSTs events one by one: what the ``gute2`` and ``slb`` sinks share.
 
 ``HttpsPoster`` loads the TLS material (``open``), POSTs each event's document with
-``Idempotency-Key: <event_id>``, up to ``max_in_flight`` at once, each under one deadline for
-the whole exchange (httpx's own deadlines are per phase, so a server trickling its answer
-could otherwise hold a POST far longer), and reads at most ``MAX_REASON_BYTES`` of the answer.
+``Idempotency-Key: <event_id>``, up to ``max_in_flight`` at once over kept TLS connections
+(``gateway.transports.http1``: the pinned CA, the hostname checked, the client certificate
+presented), each under one deadline for the whole exchange (connecting, sending, a server
+trickling its answer), and keeps at most ``MAX_REASON_BYTES`` of the answer's body. A POST
+that a kept connection lost before any answer is sent once more on a new connection: the
+idempotency key makes the server take a second copy as a duplicate (409), never twice.
 Every answer is classified by the table all HTTPS sinks share
 (``gateway.transports.https.classify_answer``); what to do with the outcomes (log, hold back,
 raise) stays with the sink.
@@ -19,17 +22,12 @@ from typing import Literal, TypeVar
 
 import anyio
 import anyio.to_thread
-import httpx
 
-from gateway.errors import TransientSinkError
+from gateway.errors import HttpAnswerError, TransientSinkError
 from gateway.events import Event
-from gateway.transports.https import (
-    classify_answer,
-    describe_https_error,
-    https_client,
-    read_at_most,
-)
-from gateway.transports.tls import TlsFiles, unreadable_file
+from gateway.transports.http1 import Http1Origin
+from gateway.transports.https import classify_answer, describe_https_error
+from gateway.transports.tls import TlsFiles, tls_context, unreadable_file
 
 __all__ = ["MAX_REASON_BYTES", "HttpsPoster", "PostOutcome"]
 
@@ -57,7 +55,7 @@ class PostOutcome:
 
 
 class HttpsPoster:
-    """POSTs documents to one URL for the sink ``sink`` over a pooled client."""
+    """POSTs documents to one URL for the sink ``sink`` over kept connections."""
 
     def __init__(
         self,
@@ -75,7 +73,7 @@ class HttpsPoster:
         self.timeout_s = timeout_s
         self.max_in_flight = max_in_flight
         self.max_retry_after_s = max_retry_after_s
-        self._client: httpx.AsyncClient | None = None
+        self._client: Http1Origin | None = None
         self._user_agent = f"fischer-gateway/{_package_version()}"
 
     def fail(self, what: str) -> TransientSinkError:
@@ -92,16 +90,9 @@ class HttpsPoster:
         unreadable = await anyio.to_thread.run_sync(unreadable_file, self.files)
         if unreadable is not None:
             raise self.fail(f"{self.url}: {unreadable}")
-        timeout_s = self.timeout_s
         try:
-            self._client = await https_client(
-                self.files,
-                connect_timeout_s=timeout_s,
-                read_timeout_s=timeout_s,
-                write_timeout_s=timeout_s,
-                pool_timeout_s=timeout_s,
-                max_connections=self.max_in_flight,
-            )
+            context = await anyio.to_thread.run_sync(tls_context, self.files)
+            self._client = Http1Origin(self.url, context, max_connections=self.max_in_flight)
         except OSError as exc:
             name = exc.filename or self.files.ca_file
             raise self.fail(f"{self.url}: {name}: {exc.strerror or exc}") from exc
@@ -144,7 +135,7 @@ class HttpsPoster:
                 tg.start_soon(post, event)
         return outcomes
 
-    async def _post(self, client: httpx.AsyncClient, key: str, body: bytes) -> PostOutcome:
+    async def _post(self, client: Http1Origin, key: str, body: bytes) -> PostOutcome:
         headers = {
             "Content-Type": "application/json",
             "Accept": "application/json",
@@ -153,24 +144,21 @@ class HttpsPoster:
         }
         try:
             with anyio.fail_after(self.timeout_s):
-                async with client.stream(
-                    "POST", self.url, content=body, headers=headers
-                ) as response:
-                    status = response.status_code
-                    reason = await read_at_most(response, MAX_REASON_BYTES)
+                reply = await client.post(headers, body, limit=MAX_REASON_BYTES)
         except TimeoutError:
             return PostOutcome(key, "retry", f"{self.url}: no answer within {self.timeout_s} s")
-        except (httpx.HTTPError, ssl.SSLError, OSError) as exc:
+        except (HttpAnswerError, OSError) as exc:  # ssl.SSLError is an OSError
             return PostOutcome(key, "retry", describe_https_error(exc, self.url, self.files))
-        text = reason.decode("utf-8", "replace").strip() or response.reason_phrase
+        except ValueError as exc:  # a key no HTTP header can carry: never sendable
+            return PostOutcome(key, "refused", str(exc))
+        text = reply.body.decode("utf-8", "replace").strip() or reply.reason_phrase
         answer = classify_answer(
-            self.url, status, response.headers, text, max_retry_after_s=self.max_retry_after_s
+            self.url, reply.status, reply.headers, text, max_retry_after_s=self.max_retry_after_s
         )
         return PostOutcome(key, answer.outcome, answer.detail, answer.retry_after_s)
 
     async def aclose(self) -> None:
-        """Close the pooled connections; safe before ``open`` and after a failed one."""
+        """Close the kept connections; safe before ``open`` and after a failed one."""
         client, self._client = self._client, None
         if client is not None:
-            with anyio.move_on_after(self.timeout_s, shield=True):
-                await client.aclose()
+            client.close()
