@@ -22,7 +22,7 @@ is parsed here, without httpx's per-request machinery (~4 ms per cue on a loaded
   and read on (so the connection can be kept) up to ``MAX_DRAIN_BYTES``, after which the
   connection is dropped instead. Content-Length, chunked and read-until-close bodies are read.
   Memory is bounded by the socket buffer: reading pauses past ``MAX_BUFFER_BYTES``.
-- **No deadline here**: the caller bounds the whole exchange (``anyio.fail_after``); a
+- **No deadline here**: the caller bounds the whole exchange (``asyncio.timeout``); a
   cancelled exchange drops its connection.
 
 Anything the server sends that is not an HTTP/1.1 answer within those bounds raises
@@ -37,6 +37,8 @@ import ssl
 from dataclasses import dataclass
 from typing import cast
 from urllib.parse import urlsplit
+
+import anyio
 
 from gateway.errors import HttpAnswerError
 
@@ -89,6 +91,8 @@ class _Wire(asyncio.Protocol):
         self._waiter: asyncio.Future[None] | None = None
         self._paused = False
         self._writable: asyncio.Future[None] | None = None
+        self._gone = False
+        self._lost_at: asyncio.Future[None] | None = None
 
     # -- asyncio.Protocol ------------------------------------------------------------------
 
@@ -110,7 +114,9 @@ class _Wire(asyncio.Protocol):
         return None  # close the transport
 
     def connection_lost(self, exc: Exception | None) -> None:
-        self.closed = True
+        self.closed = self._gone = True
+        if self._lost_at is not None and not self._lost_at.done():
+            self._lost_at.set_result(None)
         if exc is not None and self.error is None:
             self.error = exc
         self._wake()
@@ -237,6 +243,13 @@ class _Wire(asyncio.Protocol):
         self.closed = True
         if self.transport is not None:
             self.transport.close()
+
+    async def wait_lost(self) -> None:
+        """Until the connection is gone (``connection_lost``)."""
+        if self._lost_at is None:
+            self._lost_at = asyncio.get_running_loop().create_future()
+        if not self._gone:
+            await self._lost_at
 
 
 def _quote(data: bytes) -> str:
@@ -415,9 +428,15 @@ class Http1Origin:
                 return bytes(kept), True
         raise HttpAnswerError(f"more than {MAX_HEADERS} trailer lines in the answer")
 
-    def close(self) -> None:
-        """Close every connection (TLS close_notify, not waited for)."""
-        for wire in list(self._open):
-            wire.close()
-        self._open.clear()
+    async def aclose(self, timeout_s: float) -> None:
+        """Close every connection: TLS close_notify, up to ``timeout_s`` for the server's
+        side, then dropped. Shielded: a cancelled caller still leaves no socket open."""
+        wires, self._open = list(self._open), set()
         self._idle.clear()
+        with anyio.CancelScope(shield=True), anyio.move_on_after(timeout_s):
+            for wire in wires:
+                wire.close()
+            for wire in wires:
+                await wire.wait_lost()
+        for wire in wires:
+            wire.abort()

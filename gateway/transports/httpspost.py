@@ -14,6 +14,7 @@ raise) stays with the sink.
 
 from __future__ import annotations
 
+import asyncio
 import ssl
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -143,7 +144,8 @@ class HttpsPoster:
             "User-Agent": self._user_agent,
         }
         try:
-            with anyio.fail_after(self.timeout_s):
+            # The loop's own deadline (one timer, no cancel scope), as the SinkRunner's.
+            async with asyncio.timeout(self.timeout_s):
                 reply = await client.post(headers, body, limit=MAX_REASON_BYTES)
         except TimeoutError:
             return PostOutcome(key, "retry", f"{self.url}: no answer within {self.timeout_s} s")
@@ -161,4 +163,4 @@ class HttpsPoster:
         """Close the kept connections; safe before ``open`` and after a failed one."""
         client, self._client = self._client, None
         if client is not None:
-            client.close()
+            await client.aclose(self.timeout_s)
