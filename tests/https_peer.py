@@ -6,7 +6,8 @@ at the handshake, and OpenSSL's alert is sent so the client can say why). It spe
 HTTP/1.1 for a client (Content-Length bodies, keep-alive) and hands each request to the
 subclass's ``_answer(head, body)``, which returns ``(status, json_answer)`` or
 ``(status, json_answer, extra_headers)``. It can drop the connection for the first
-``drop_first`` POSTs, and be ``down`` (every connection closed before the handshake).
+``drop_first`` POSTs, and be ``down`` (every new connection closed before the handshake, and
+a kept one at its next request, unanswered).
 
 In an async test ``async with Peer(tmp_path) as peer: ...``; from a sync test (a daemon
 subprocess, ``check_sink``) ``with Peer(tmp_path).in_thread() as peer: ...``. The CA, the
@@ -97,7 +98,8 @@ class HttpsPeer:
     ) -> None:
         self.directory = directory
         self.drop_first = drop_first
-        #: True: every connection is closed at once, before the TLS handshake.
+        #: True: every new connection is closed at once, before the TLS handshake, and a kept
+        #: one when its next request has come, unanswered.
         self.down = False
         self.ca = trustme.CA()
         self.server_cert = self.ca.issue_cert(server_name)
@@ -115,7 +117,7 @@ class HttpsPeer:
         self.requests: list[Request] = []
         #: Why each refused TLS handshake failed (a missing or foreign client certificate).
         self.handshake_failures: list[str] = []
-        #: Connections closed unanswered because the peer was ``down``.
+        #: Connections (new or kept) closed unanswered because the peer was ``down``.
         self.refused_while_down = 0
         self._stack: AsyncExitStack | None = None
 
@@ -213,6 +215,10 @@ class HttpsPeer:
             await respond(stream, 400, {"error": str(exc) or "request head too long"}, False)
             return False
         body = await reader.receive_exactly(length) if length else b""
+        if self.down:
+            # A server going down drops its kept connections too, unanswered.
+            self.refused_while_down += 1
+            return False
         keep_alive = head.headers.get("connection", "").lower() != "close"
         request = Request(head.method, head.path, head.headers, None, body, head.query)
         self.requests.append(request)

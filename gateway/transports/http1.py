@@ -36,7 +36,7 @@ import asyncio
 import ssl
 from dataclasses import dataclass
 from typing import cast
-from urllib.parse import urlsplit
+from urllib.parse import quote, urlsplit
 
 import anyio
 
@@ -64,6 +64,8 @@ MAX_DRAIN_BYTES = 65_536
 MAX_BUFFER_BYTES = 262_144
 #: The longest chunk-size line of a chunked body.
 _MAX_CHUNK_LINE = 1_024
+#: Characters a request target keeps as they are (RFC 3986 pchar, "/" and escapes).
+_TARGET_SAFE = "/%:@!$&'()*+,;=-._~"
 #: How much of an unreadable answer is quoted in the error.
 _QUOTE = 40
 
@@ -299,7 +301,12 @@ class Http1Origin:
         self.port = parts.port or 443
         self.context = context
         self.max_connections = max_connections
-        target = (parts.path or "/") + (f"?{parts.query}" if parts.query else "")
+        # As a browser sends it: what may not stand in a request target percent-encoded.
+        target = quote(parts.path or "/", safe=_TARGET_SAFE)
+        if parts.query:
+            target += "?" + quote(parts.query, safe=_TARGET_SAFE + "?")
+        #: The request target sent: the URL's path and query, percent-encoded where need be.
+        self.target = target
         authority = parts.netloc.rpartition("@")[2]
         self._request_line = f"POST {target} HTTP/1.1\r\nHost: {authority}\r\n".encode("ascii")
         self._idle: list[_Wire] = []

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import ssl
 from pathlib import Path
 
 import anyio
@@ -191,3 +192,12 @@ class TestHostileAnswers:
         assert outcome.result == "refused"
         assert outcome.detail.startswith("header Idempotency-Key cannot be sent")
         assert peer.keys == []
+
+
+def test_the_request_target_is_percent_encoded_where_it_must_be() -> None:
+    origin = Http1Origin(
+        "https://battery.example:8443/gute 2/ü?site=Nord 1&x=%20",
+        ssl.create_default_context(),
+        max_connections=1,
+    )
+    assert origin.target == "/gute%202/%C3%BC?site=Nord%201&x=%20"
