@@ -111,6 +111,28 @@ class TestKeptConnections:
         assert peer.keys == ["H-1"]
 
     @pytest.mark.anyio
+    async def test_chunk_extensions_and_trailers_are_read_and_the_connection_kept(
+        self, tmp_path: Path
+    ) -> None:
+        trailer = Script(
+            "chunked, extension, trailer",
+            (
+                b"HTTP/1.1 201 Created\r\nTransfer-Encoding: chunked\r\n\r\n"
+                b"2;ext=1\r\n{}\r\n0\r\nX-Trailer: 1\r\n\r\n",
+            ),
+            close=False,
+        )
+        with anyio.fail_after(20):
+            async with ScriptedPeer(tmp_path, [trailer]) as peer:
+                poster = poster_for(peer)
+                try:
+                    results = [await post(poster, 1), await post(poster, 2)]
+                finally:
+                    await poster.aclose()
+        assert results == [("delivered", ""), ("delivered", "")]
+        assert peer.connections == 1
+
+    @pytest.mark.anyio
     async def test_interim_answers_are_skipped(self, tmp_path: Path) -> None:
         interim = Script(
             "100 then 201",
@@ -178,6 +200,19 @@ class TestHostileAnswers:
         assert refused == ("refused", "HTTP 422: " + "r" * MAX_REASON_BYTES)
         assert delivered == ("delivered", "")
         assert peer.connections == 2  # the rest of the 10 MB was never read: dropped
+
+    @pytest.mark.anyio
+    async def test_an_answer_without_a_length_is_read_to_the_close(self, tmp_path: Path) -> None:
+        old_server = Script("HTTP/1.0, no length", (b"HTTP/1.0 422 Nope\r\n\r\nbad ", b"document"))
+        with anyio.fail_after(20):
+            async with ScriptedPeer(tmp_path, [old_server]) as peer:
+                poster = poster_for(peer)
+                try:
+                    results = [await post(poster, 1), await post(poster, 2)]
+                finally:
+                    await poster.aclose()
+        assert results == [("refused", "HTTP 422: bad document"), ("delivered", "")]
+        assert peer.connections == 2
 
     @pytest.mark.anyio
     async def test_a_key_no_header_can_carry_is_refused_unsent(self, tmp_path: Path) -> None:
