@@ -44,6 +44,7 @@ import anyio
 from gateway.errors import HttpAnswerError
 
 __all__ = [
+    "CLOSE_WAIT_S",
     "MAX_DRAIN_BYTES",
     "MAX_HEADERS",
     "MAX_HEAD_BYTES",
@@ -63,6 +64,8 @@ MAX_INTERIM = 8
 MAX_DRAIN_BYTES = 65_536
 #: Reading from the socket pauses while this much is buffered and unread.
 MAX_BUFFER_BYTES = 262_144
+#: How long ``aclose`` waits for a server to answer the TLS close_notify, at most.
+CLOSE_WAIT_S = 0.25
 #: The longest chunk-size line of a chunked body.
 _MAX_CHUNK_LINE = 1_024
 #: Characters a request target keeps as they are (RFC 3986 pchar, "/" and escapes).
@@ -437,11 +440,13 @@ class Http1Origin:
         raise HttpAnswerError(f"more than {MAX_HEADERS} trailer lines in the answer")
 
     async def aclose(self, timeout_s: float) -> None:
-        """Close every connection: TLS close_notify, up to ``timeout_s`` for the server's
-        side, then dropped. Shielded: a cancelled caller still leaves no socket open."""
+        """Close every connection: TLS close_notify, then up to ``timeout_s`` (at most
+        ``CLOSE_WAIT_S``) for the server's side before the socket is dropped. Shielded: a
+        cancelled caller still leaves no socket open; a server that never answers the
+        close_notify does not hold a shutdown."""
         wires, self._open = list(self._open), set()
         self._idle.clear()
-        with anyio.CancelScope(shield=True), anyio.move_on_after(timeout_s):
+        with anyio.CancelScope(shield=True), anyio.move_on_after(min(timeout_s, CLOSE_WAIT_S)):
             for wire in wires:
                 wire.close()
             for wire in wires:
