@@ -1,7 +1,10 @@
 """Logging configuration (called only from the CLI) and a rate limiter for noisy events.
 
 JSON lines on the chosen stream, or the console renderer on a terminal. Loggers are cached
-on first use and filter below the configured level. Under journald (``$JOURNAL_STREAM``
+on first use and filter below the configured level; a logger bound before the last
+``configure_logging`` (the CLI logs at ``info`` while it reads the config, and a sink checked
+there binds its logger) keeps the class of its time, so every chain starts with a gate that
+drops what is below the level configured last. Under journald (``$JOURNAL_STREAM``
 names the stream's device and inode, as systemd documents) each line starts with a
 ``<N>`` syslog priority, which journald strips and stores, so ``journalctl -p warning``
 filters. Tracebacks never carry local variables: they may hold payloads or key material.
@@ -43,6 +46,28 @@ _PRIORITIES = {
 }
 
 log = structlog.get_logger(__name__)
+
+#: The level configured last: the gate of every processor chain drops what is below it.
+_threshold = logging.INFO
+_METHOD_LEVELS = {
+    "debug": logging.DEBUG,
+    "info": logging.INFO,
+    "warning": logging.WARNING,
+    "warn": logging.WARNING,
+    "error": logging.ERROR,
+    "exception": logging.ERROR,
+    "critical": logging.CRITICAL,
+    "fatal": logging.CRITICAL,
+}
+
+
+def _level_gate(
+    logger: Any, method_name: str, event_dict: structlog.typing.EventDict
+) -> structlog.typing.EventDict:
+    """Drop an event below the level configured last (for loggers bound before it)."""
+    if _METHOD_LEVELS.get(method_name, logging.INFO) < _threshold:
+        raise structlog.DropEvent
+    return event_dict
 
 
 def is_journal_stream(stream: TextIO, env: Mapping[str, str] | None = None) -> bool:
@@ -90,8 +115,11 @@ def configure_logging(
     ``stream`` defaults to stderr, so stdout stays free for command output and the console
     sink. ``env`` (default ``os.environ``) is where ``JOURNAL_STREAM`` is looked up.
     """
+    global _threshold  # the one level every chain's gate reads
+    _threshold = _LEVELS[level]
     stream = stream or sys.stderr
     processors: list[structlog.typing.Processor] = [
+        _level_gate,
         structlog.contextvars.merge_contextvars,
         structlog.processors.add_log_level,
         structlog.processors.TimeStamper(fmt="iso", utc=True),
