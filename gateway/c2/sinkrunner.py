@@ -398,18 +398,25 @@ class SinkRunner:
         ):
             self._wake_sender()
             return
-        items = self._take()  # commits the spool's open appends first (``Outbox.take``)
+        latest = self._latest
+        if self.outbox.drained and len(latest) <= self.entry.batch_max:
+            items = list(latest.values())  # latest-wins values only: no spool involved
+            latest.clear()
+        else:
+            items = self._take()  # commits the spool's open appends first (``Outbox.take``)
         if items:
             try:
                 done = send_now([item.event for item in items])
             except Exception:  # noqa: BLE001 - the task's ``send`` meets it and handles it
                 done = 0
-            done = min(max(done, 0), len(items)) if type(done) is int else 0
+            count = len(items)
+            if done != count:
+                done = min(max(done, 0), count) if type(done) is int else 0
             if done:
                 self._error_attempts = 0
                 self.sent_in_pass += done
-                self._delivered(items[:done] if done < len(items) else items)
-            if done < len(items):
+                self._delivered(items if done == count else items[:done])
+            if done < count:
                 self._put_back(items[done:])
                 self._wake_sender()
                 return
@@ -550,8 +557,11 @@ class SinkRunner:
             self.state, self.reason = "open", ""
 
     def _confirm(self, items: list[Queued]) -> None:
+        durable = [item for item in items if item.seq]
+        if not durable:
+            return
         try:
-            self.outbox.confirm([item for item in items if item.seq])
+            self.outbox.confirm(durable)
         except SpoolError:
             # Delivered but still in the spool: sent again after a restart (the receiver
             # de-duplicates by event id). Logged, never fatal.
