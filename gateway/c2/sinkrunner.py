@@ -692,5 +692,6 @@ class SinkRunner:
             "queue_max": self.entry.queue_max,
             "dead_letters": self._dead_letters_held(),
             "sent": int(self._sent.value),
+            "sent_in_pass": self.sent_in_pass,
             **({"detail": detail} if detail is not None else {}),
         }
