@@ -387,7 +387,7 @@ class SinkRunner:
         """
         self._in_pass = False
         waiter, send_now = self._waiter, self._send_now
-        if not self._waiting or waiter is None or waiter.done():
+        if waiter is None or waiter.done() or not self._waiting:
             return  # the task is on its way and takes what is ready itself
         if (
             send_now is None
@@ -399,7 +399,8 @@ class SinkRunner:
             self._wake_sender()
             return
         latest = self._latest
-        if self.outbox.drained and len(latest) <= self.entry.batch_max:
+        whole = self.outbox.drained and len(latest) <= self.entry.batch_max
+        if whole:
             items = list(latest.values())  # latest-wins values only: no spool involved
             latest.clear()
         else:
@@ -420,7 +421,7 @@ class SinkRunner:
                 self._put_back(items[done:])
                 self._wake_sender()
                 return
-        if self._expired_some or self._latest or len(self.outbox):
+        if not whole and (self._expired_some or self._latest or len(self.outbox)):
             self._wake_sender()  # more than one batch ready, or a stale backlog
 
     async def _idle(self) -> None:
