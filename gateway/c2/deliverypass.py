@@ -47,22 +47,25 @@ class PassRunner(Protocol):
 class DeliveryPass:
     """The runners to serve at the end of this loop pass, served together in one callback."""
 
-    __slots__ = ("_error_log", "_ready", "_scheduled", "passes")
+    __slots__ = ("_error_log", "_loop", "_ready", "_scheduled", "passes")
 
     def __init__(self) -> None:
         self._ready: list[PassRunner] = []
         self._scheduled = False
+        self._loop: asyncio.AbstractEventLoop | None = None
         self._error_log = RateLimit(interval_s=30.0)
         #: Passes run (for tests and benchmarks).
         self.passes = 0
 
     def ready(self, runner: PassRunner) -> bool:
         """Serve ``runner`` in this loop pass's delivery; False without a running loop."""
+        try:
+            loop = asyncio.get_running_loop()
+        except RuntimeError:
+            return False
+        if loop is not self._loop:  # first use, or a new loop: the old one's callback is gone
+            self._loop, self._ready, self._scheduled = loop, [], False
         if not self._scheduled:
-            try:
-                loop = asyncio.get_running_loop()
-            except RuntimeError:
-                return False
             loop.call_soon(self._run)
             self._scheduled = True
         self._ready.append(runner)

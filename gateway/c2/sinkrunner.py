@@ -428,6 +428,7 @@ class SinkRunner:
         """Wait for an offer, a stop or ``IDLE_POLL_S``: a plain future and one timer, the
         cheapest wait the loop has (no cancel scope per wait)."""
         loop = asyncio.get_running_loop()
+        self._in_pass = False  # a pass of a loop that ended without running it
         waiter = self._waiter = loop.create_future()
         timer = loop.call_later(IDLE_POLL_S, _release, waiter)
         self._waiting = True

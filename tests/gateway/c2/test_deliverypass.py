@@ -225,3 +225,52 @@ async def test_a_failing_send_now_falls_back_to_the_tasks_retries() -> None:
 
 def test_without_a_loop_the_pass_declines() -> None:
     assert not DeliveryPass().ready(SinkRunner(entry("s"), NowSink("s"), Instruments()))
+
+
+class Counting:
+    name = "counting"
+
+    def __init__(self, fail: bool = False) -> None:
+        self.served = 0
+        self.woken = 0
+        self.fail = fail
+
+    def deliver_now(self) -> None:
+        self.served += 1
+        if self.fail:
+            raise RuntimeError("bug in the pass")
+
+    def wake(self) -> None:
+        self.woken += 1
+
+
+def test_a_pass_left_behind_by_an_ended_loop_does_not_stop_the_next_loops() -> None:
+    delivery = DeliveryPass()
+    runner = Counting()
+
+    async def offer_and_leave() -> None:
+        assert delivery.ready(runner)  # the loop ends before its pass runs
+
+    async def offer_and_wait() -> None:
+        assert delivery.ready(runner)
+        await anyio.lowlevel.checkpoint()
+
+    for _ in range(3):
+        anyio.run(offer_and_leave)
+        served = runner.served
+        anyio.run(offer_and_wait)
+        assert runner.served == served + 1
+
+
+def test_a_runner_failing_in_the_pass_is_woken_and_the_others_served() -> None:
+    delivery = DeliveryPass()
+    bad, good = Counting(fail=True), Counting()
+
+    async def main() -> None:
+        delivery.ready(bad)
+        delivery.ready(good)
+        await anyio.lowlevel.checkpoint()
+
+    anyio.run(main)
+    assert (bad.served, bad.woken, good.served, good.woken) == (1, 1, 1, 0)
+    assert delivery.passes == 1
