@@ -43,7 +43,7 @@ import anyio.abc
 import anyio.lowlevel
 import structlog
 
-from gateway.c2.circuit import Circuit
+from gateway.c2.circuit import Circuit, CircuitState
 from gateway.c2.deliverypass import DeliveryPass
 from gateway.c2.outbox import Outbox, Queued
 from gateway.c2.sink import LifetimeSink, Sink
@@ -195,7 +195,7 @@ class SinkRunner:
                 # the oldest latest-wins report makes room (counted like an overflow).
                 del latest[next(iter(latest))]
                 self._overflow.inc()
-            latest[slot] = Queued(event, ingest_mono, 0)
+            latest[slot] = Queued(event, ingest_mono, 0, 0.0)  # never spooled: no clock read
         else:
             try:
                 held = self.outbox.append(event, ingest_mono)
@@ -552,7 +552,10 @@ class SinkRunner:
                 self._late.labels(self.name, item.event.kind.value).inc()
         self._confirm(items)
         self._sent.inc(len(items))
-        ended = self.circuit.succeeded()
+        circuit = self.circuit
+        if not circuit.failures_in_row and circuit.state is CircuitState.CLOSED:
+            return  # closed already, and its gauge says so (set at each take and failure)
+        ended = circuit.succeeded()
         self._circuit_gauge.set(0.0)
         if ended:
             self.log.info("sink_recovered", after_failures=ended)
