@@ -17,6 +17,11 @@ highest offered rate with < 0.1 % loss; then 10 % and 80 % of that. Reports loss
 gateway counted vs sent), the ingest→sink delivery latency p50/p99/p99.9 from the gateway's
 own histogram (kernel socket time excluded), CPU and RSS of the daemon.
 With ``--mavproxy`` and MAVProxy installed, the same load through ``mavproxy.py`` forwarding.
+
+``--floor`` adds the floor of the per-pass column: the same run, a datagram per loop pass,
+with ``Bus.publish`` doing nothing (tunnel open, decode, normalise and the loop pass only, so
+no sink is fed), and bare pymavlink with a loop pass per datagram; each ÷ bare pymavlink.
+No delivery design brings the per-pass ratio above the first.
 """
 
 from __future__ import annotations
@@ -38,6 +43,7 @@ import time
 import urllib.request
 from datetime import UTC, datetime
 from pathlib import Path
+from unittest import mock
 
 import anyio
 import anyio.lowlevel
@@ -46,6 +52,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mav
 from gateway.app import Gateway
 from gateway.config import Config
 from gateway.fleet.security.tunnel import DayKeys, Sealer
+from gateway.flow.bus import Bus
 from gateway.ops.logsetup import configure_logging
 from gateway.sim.airframe import SimProfile, SimulatedAirframe
 from gateway.testing import NullSink
@@ -134,13 +141,43 @@ def bare_pymavlink(datagrams: list[bytes], tunnel: bool) -> float:
     return count / (time.perf_counter() - start)
 
 
+def _publish_nothing(self: Bus, event: object) -> bool:
+    return True
+
+
+def bare_pymavlink_passes(datagrams: list[bytes]) -> float:
+    """Messages per second of pymavlink alone with a pass of the event loop per datagram."""
+    parser = mav.MAVLink(None)
+    parser.robust_parsing = True
+
+    async def run() -> float:
+        start = time.perf_counter()
+        count = 0
+        for data in datagrams:
+            count += len(parser.parse_buffer(data) or ())
+            await anyio.lowlevel.checkpoint()
+        return count / (time.perf_counter() - start)
+
+    return anyio.run(run, backend_options={"use_uvloop": True})
+
+
 def gateway_pipeline(
-    datagrams: list[bytes], airframes: int, tunnel: bool, key: str, per_pass: int = 256
+    datagrams: list[bytes],
+    airframes: int,
+    tunnel: bool,
+    key: str,
+    per_pass: int = 256,
+    *,
+    bus: bool = True,
 ) -> float:
     """Messages per second through ingest, normalise, bus and five sink runners.
 
     ``per_pass``: datagrams handed to ingest between two passes of the event loop.
+    ``bus`` False: ``Bus.publish`` does nothing (the floor: no sink is fed).
     """
+    if not bus:
+        with mock.patch.object(Bus, "publish", _publish_nothing):
+            return gateway_pipeline(datagrams, airframes, tunnel, key, per_pass)
     cfg = config(airframes, tunnel, 0, key if tunnel else None)
     sinks = {f"null{n}": NullSink(f"null{n}") for n in range(SINKS)}
     gateway = Gateway(cfg, sinks=dict(sinks))
@@ -403,6 +440,11 @@ def main() -> None:
     parser.add_argument(
         "--pipeline-only", action="store_true", help="part A only (no daemon over UDP)"
     )
+    parser.add_argument(
+        "--floor",
+        action="store_true",
+        help="also the per-pass floor: the bus doing nothing, and bare pymavlink with a pass",
+    )
     args = parser.parse_args()
     configure_logging("warning", sys.stderr)
     key_dir = Path(tempfile.mkdtemp())
@@ -434,6 +476,24 @@ def main() -> None:
                 f"| {n} | {mode} | {bare:,.0f} | {ours:,.0f} | {ours / bare:.2f} "
                 f"| {ours / bare_rates[n]:.2f} | {single:,.0f} | {single / bare:.3f} |"
             )
+    if args.floor:
+        print("\n## A'. floor of the per-pass column (messages/s, a datagram per loop pass)\n")
+        print(
+            "| airframes | tunnel | pymavlink | gateway, bus doing nothing | ratio "
+            "| pymavlink, a loop pass per datagram | ratio |"
+        )
+        print("| --- | --- | --- | --- | --- | --- | --- |")
+        for n in (int(x) for x in args.airframes.split(",")):
+            for tunnel in (False, True):
+                datagrams = make_datagrams(n, max(1.0, 40_000 / (n * 13)), tunnel)
+                bare = bare_pymavlink(datagrams, tunnel)
+                floor = gateway_pipeline(datagrams, n, tunnel, str(key), per_pass=1, bus=False)
+                passes = "" if tunnel else f"{bare_pymavlink_passes(datagrams):,.0f}"
+                ratio = "" if tunnel else f"{float(passes.replace(',', '')) / bare:.3f}"
+                print(
+                    f"| {n} | {'on' if tunnel else 'off'} | {bare:,.0f} | {floor:,.0f} "
+                    f"| {floor / bare:.3f} | {passes} | {ratio} |"
+                )
     if args.pipeline_only:
         return
     print("\n## B. daemon over UDP loopback, tunnel on, 5 null sinks\n")

@@ -20,6 +20,7 @@ import anyio
 import anyio.abc
 import structlog
 
+from gateway.c2.deliverypass import DeliveryPass
 from gateway.c2.plugins import PROCESSOR_GROUP, SOURCE_GROUP, build_sink, load_component
 from gateway.c2.sink import ReleasesOwnAirframes, Sink
 from gateway.c2.sinkrunner import SinkRunner
@@ -127,10 +128,17 @@ class Gateway:
         self.spool = open_spool(config)
         given = dict(sinks or {})
         self.runners: dict[str, SinkRunner] = {}
+        #: One delivery pass per loop pass for every runner whose sink sends without awaiting.
+        self.delivery = DeliveryPass()
         for entry in config.sinks:
             sink = given.pop(entry.name, None) or build_sink(entry.type, entry.name, entry.options)
             self.runners[entry.name] = SinkRunner(
-                entry, sink, self.instruments, spool=self.spool, stale=config.spool.stale
+                entry,
+                sink,
+                self.instruments,
+                spool=self.spool,
+                stale=config.spool.stale,
+                delivery=self.delivery,
             )
         if given:
             raise ValueError(f"sinks given for names not in the config: {sorted(given)}")

@@ -126,6 +126,11 @@ class NullSink:
         """Count the batch."""
         self.count += len(batch)
 
+    def send_now(self, batch: Sequence[Event]) -> int:
+        """Count the batch, without awaiting (``gateway.c2.sink.SendsNow``)."""
+        self.count += len(batch)
+        return len(batch)
+
     async def aclose(self) -> None:
         """Nothing to close."""
 

@@ -55,6 +55,11 @@ class Outbox:
         return len(self._items)
 
     @property
+    def drained(self) -> bool:
+        """True if nothing is in the window and nothing waits in the spool to refill it."""
+        return not self._items and not self._spilled
+
+    @property
     def owed(self) -> int:
         """Events the spool owes this sink (in the window, in flight, or only on disk)."""
         return self.spool.pending_count(self.sink)

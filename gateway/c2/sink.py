@@ -21,6 +21,11 @@ in the sink: the runner counts it, logs it (rate-limited, with its traceback), r
 batch a bounded number of times (``sinkrunner.ERROR_ATTEMPTS``), then sends the batch's events
 one by one and dead-letters only those that still fail, so one poisoned event cannot block the
 queue behind it.
+
+A sink that can deliver without awaiting (datagrams to a non-blocking socket) may also offer
+``send_now(batch) -> int`` (``SendsNow``): its runner then sends what is ready in the loop
+pass's one delivery pass (``gateway.c2.deliverypass``) instead of waking its task, and falls
+back to ``send`` for whatever ``send_now`` did not deliver.
 """
 
 from __future__ import annotations
@@ -35,7 +40,14 @@ from pydantic import BaseModel, ConfigDict
 if TYPE_CHECKING:
     from gateway.events import Event, EventKind
 
-__all__ = ["LifetimeSink", "ReleasesOwnAirframes", "Sink", "SinkClass", "SinkConfig"]
+__all__ = [
+    "LifetimeSink",
+    "ReleasesOwnAirframes",
+    "SendsNow",
+    "Sink",
+    "SinkClass",
+    "SinkConfig",
+]
 
 
 class SinkConfig(BaseModel):
@@ -89,6 +101,23 @@ class LifetimeSink(Sink, Protocol):
         self, *, task_status: anyio.abc.TaskStatus[None] = anyio.TASK_STATUS_IGNORED
     ) -> None:
         """Do the sink's background work until cancelled; raise to have the sink reopened."""
+        ...
+
+
+@runtime_checkable
+class SendsNow(Protocol):
+    """A sink that can deliver a batch synchronously, without blocking, when nothing is in
+    the way (room in a socket's buffer). Optional; ``send`` still does all the rest."""
+
+    def send_now(self, batch: Sequence[Event]) -> int:
+        """Deliver the leading events of ``batch`` that go out without waiting; how many.
+
+        ``batch[:n]`` is delivered (to every destination), ``batch[n:]`` is not: the runner
+        sends it with ``send`` (a destination that took part of event ``n`` gets it again,
+        as after any retry). Return before an event that needs a wait, a retry or a refusal
+        (``send`` decides those); never block, never await. An exception counts as 0
+        delivered. Called only between ``open`` and ``aclose`` while no ``send`` is in flight.
+        """
         ...
 
 

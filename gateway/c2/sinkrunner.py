@@ -14,6 +14,11 @@ Every sink gets the same delivery behaviour from here, and holds none of its own
   scope per event) and confirms it in the spool's group commit of the loop pass
   (``gateway.spool.group``); a hung sink costs that sink a timeout and a retry, never another
   sink or the ingest path (``offer`` is synchronous and O(1));
+- a sink that can send without awaiting (``gateway.c2.sink.SendsNow``) is not woken at all
+  while idle: the offer puts its runner on the loop pass's one delivery pass
+  (``gateway.c2.deliverypass``), which takes, sends and confirms for every such runner in
+  one callback; what the sink cannot take at once (a full buffer, an error) wakes the runner,
+  which delivers it as below;
 - a sink bug (an exception that is neither a ``SinkError`` nor the network's) is retried
   ``ERROR_ATTEMPTS`` times, then the batch is tried event by event and only the events that
   still fail are given up on, so one poisoned event cannot block the queue;
@@ -38,7 +43,8 @@ import anyio.abc
 import anyio.lowlevel
 import structlog
 
-from gateway.c2.circuit import Circuit
+from gateway.c2.circuit import Circuit, CircuitState
+from gateway.c2.deliverypass import DeliveryPass
 from gateway.c2.outbox import Outbox, Queued
 from gateway.c2.sink import LifetimeSink, Sink
 from gateway.config import SinkEntry, StaleRule
@@ -99,7 +105,9 @@ class SinkRunner:
         *,
         spool: Spool | None = None,
         stale: Mapping[EventKind, StaleRule] | None = None,
+        delivery: DeliveryPass | None = None,
     ) -> None:
+        """``delivery``: the pass shared by the runners of one gateway (its own if None)."""
         self.entry = entry
         self.sink = sink
         self.name = entry.name
@@ -110,6 +118,13 @@ class SinkRunner:
         self.outbox = Outbox(self.name, self.spool, window=entry.queue_max, stale=stale)
         self._waiter: asyncio.Future[None] | None = None
         self._waiting = False
+        send_now = getattr(sink, "send_now", None)
+        #: The sink's synchronous send (``SendsNow``), None if it has none.
+        self._send_now = send_now if callable(send_now) else None
+        self._delivery = delivery if delivery is not None else DeliveryPass()
+        self._in_pass = False
+        #: Events delivered by the delivery pass, without waking this runner's task.
+        self.sent_in_pass = 0
         self._stopping = False
         self._done = anyio.Event()
         self._stop_requested = anyio.Event()
@@ -180,7 +195,7 @@ class SinkRunner:
                 # the oldest latest-wins report makes room (counted like an overflow).
                 del latest[next(iter(latest))]
                 self._overflow.inc()
-            latest[slot] = Queued(event, ingest_mono, 0)
+            latest[slot] = Queued(event, ingest_mono, 0, 0.0)  # never spooled: no clock read
         else:
             try:
                 held = self.outbox.append(event, ingest_mono)
@@ -190,13 +205,23 @@ class SinkRunner:
             if not held:
                 self.refused(event)
                 return
-        self._wake_sender()
+        if self._waiting:
+            self._nudge()
 
     def offer_spooled(self, event: Event, ingest_mono: float, seq: int) -> None:
         """Queue a durable event the bus has already spooled for this sink as ``seq``."""
         self.outbox.add(event, ingest_mono, seq)
         if self._waiting:
+            self._nudge()
+
+    def _nudge(self) -> None:
+        """Something is ready for an idle runner: the delivery pass sends it, or the task."""
+        if self._send_now is None:
             self._wake_sender()
+        elif not self._in_pass:
+            self._in_pass = self._delivery.ready(self)
+            if not self._in_pass:
+                self._wake_sender()
 
     def refused(self, event: Event) -> None:
         """Count a durable event the spool had no room for (the spool logs it too)."""
@@ -208,6 +233,10 @@ class SinkRunner:
                 event_id=event.event_id,
                 note="the spool is full: durable events are refused until sinks catch up",
             )
+
+    def wake(self) -> None:
+        """Wake the runner's task if it is idle (the delivery pass hands work back by this)."""
+        self._wake_sender()
 
     def _wake_sender(self) -> None:
         if self._waiting:
@@ -348,10 +377,58 @@ class SinkRunner:
                 continue
             await self._deliver(items)
 
+    def deliver_now(self) -> None:
+        """The delivery pass: send what is ready with the sink's ``send_now``, no await.
+
+        Only while the task waits idle (nothing taken, nothing in flight) with the sink open,
+        the circuit closed and no stop asked, so a batch sent here never overtakes another of
+        this sink's; otherwise, and for whatever the sink did not take at once, the task is
+        woken and delivers as ever (deadline, retry, backoff, dead letters).
+        """
+        self._in_pass = False
+        waiter, send_now = self._waiter, self._send_now
+        if waiter is None or waiter.done() or not self._waiting:
+            return  # the task is on its way and takes what is ready itself
+        if (
+            send_now is None
+            or self._stopping
+            or not self.is_open
+            or self.circuit.failures_in_row
+            or self._lifetime_failure is not None
+        ):
+            self._wake_sender()
+            return
+        latest = self._latest
+        whole = self.outbox.drained and len(latest) <= self.entry.batch_max
+        if whole:
+            items = list(latest.values())  # latest-wins values only: no spool involved
+            latest.clear()
+        else:
+            items = self._take()  # commits the spool's open appends first (``Outbox.take``)
+        if items:
+            try:
+                done = send_now([item.event for item in items])
+            except Exception:  # noqa: BLE001 - the task's ``send`` meets it and handles it
+                done = 0
+            count = len(items)
+            if done != count:
+                done = min(max(done, 0), count) if type(done) is int else 0
+            if done:
+                self._error_attempts = 0
+                self.sent_in_pass += done
+                self._delivered(items if done == count else items[:done])
+            if done < count:
+                self._put_back(items[done:])
+                self._wake_sender()
+                return
+        if not whole and (self._expired_some or self._latest or len(self.outbox)):
+            self._wake_sender()  # more than one batch ready, or a stale backlog
+
     async def _idle(self) -> None:
         """Wait for an offer, a stop or ``IDLE_POLL_S``: a plain future and one timer, the
         cheapest wait the loop has (no cancel scope per wait)."""
         loop = asyncio.get_running_loop()
+        self._in_pass = False  # a pass of a loop that ended without running it
         waiter = self._waiter = loop.create_future()
         timer = loop.call_later(IDLE_POLL_S, _release, waiter)
         self._waiting = True
@@ -475,15 +552,21 @@ class SinkRunner:
                 self._late.labels(self.name, item.event.kind.value).inc()
         self._confirm(items)
         self._sent.inc(len(items))
-        ended = self.circuit.succeeded()
+        circuit = self.circuit
+        if not circuit.failures_in_row and circuit.state is CircuitState.CLOSED:
+            return  # closed already, and its gauge says so (set at each take and failure)
+        ended = circuit.succeeded()
         self._circuit_gauge.set(0.0)
         if ended:
             self.log.info("sink_recovered", after_failures=ended)
             self.state, self.reason = "open", ""
 
     def _confirm(self, items: list[Queued]) -> None:
+        durable = [item for item in items if item.seq]
+        if not durable:
+            return
         try:
-            self.outbox.confirm([item for item in items if item.seq])
+            self.outbox.confirm(durable)
         except SpoolError:
             # Delivered but still in the spool: sent again after a restart (the receiver
             # de-duplicates by event id). Logged, never fatal.
@@ -614,5 +697,6 @@ class SinkRunner:
             "queue_max": self.entry.queue_max,
             "dead_letters": self._dead_letters_held(),
             "sent": int(self._sent.value),
+            "sent_in_pass": self.sent_in_pass,
             **({"detail": detail} if detail is not None else {}),
         }

@@ -25,12 +25,17 @@ the sink keeps no delivery state: a failure raises ``TransientSinkError`` naming
 the destination, and the SinkRunner retries the batch with its jittered backoff (CoT receivers
 replace by uid, so a destination that already had the batch shrugs off the repeat). One sink
 backs off as a whole; give a flaky TAK server its own sink so the mesh does not wait for it.
+
+A sink whose destinations are all UDP also has ``send_now`` (``gateway.c2.sink.SendsNow``):
+its runner sends each ready batch in the loop pass's delivery pass, datagram by datagram
+straight to the non-blocking sockets, and hands ``send`` the events from the first one a
+socket could not take at once.
 """
 
 from __future__ import annotations
 
 import ssl
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from datetime import datetime, timedelta
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
@@ -330,6 +335,12 @@ class CotSink:
                         response_wait_s=config.response_wait_s,
                     )
                 )
+        udp = tuple(t for t in self._transports if isinstance(t, UdpSender))
+        self._udp = udp if len(udp) == len(self._transports) else ()
+        #: ``SendsNow``, offered only when every destination is UDP (a stream may block).
+        self.send_now: Callable[[Sequence[Event]], int] | None = (
+            self._send_now if self._udp else None
+        )
         self._own_types = AirframeTypes()
         #: Mesh TakControl announcements the network refused.
         self.announce_failures = 0
@@ -438,6 +449,36 @@ class CotSink:
                 sink=self.name,
                 event_ids=oversize,
             )
+
+    def _send_now(self, batch: Sequence[Event]) -> int:
+        """``send`` for UDP destinations without an await: how many leading events went out.
+
+        Stops before the first event a socket cannot take at once, or that is too large or
+        due a ``TakControl``: ``send`` delivers (or refuses) it and the rest.
+        """
+        senders = self._udp
+        tracks: dict[str, tuple[tuple[object, ...], datetime]] = {}
+        done = 0
+        for event in batch:
+            encoded = self._builds.encoded(event, self.options, self._own_types)
+            track: tuple[str, tuple[tuple[object, ...], datetime]] | None = None
+            if encoded is not None and isinstance(event, Track):
+                cot = encoded.event
+                content = cot.content()
+                if self._is_news(cot.uid, content, event.time):
+                    track = (cot.uid, (content, event.time))
+                else:
+                    encoded = None  # unchanged since delivered: not re-sent yet
+            if encoded is not None:
+                if not all(sender.send_now(encoded) for sender in senders):
+                    break
+                if track is not None:
+                    tracks[track[0]] = track[1]
+            done += 1
+        if tracks:
+            self._delivered.update(tracks)
+            self._forget_old_tracks(max(time for _, time in tracks.values()))
+        return done
 
     def _forget_old_tracks(self, now: datetime) -> None:
         # A scan of every track delivered: at most once per _FORGET_EVERY of track time.

@@ -2,7 +2,8 @@
 
 One event per datagram, XML or TAK protocol v1 mesh protobuf; never split across datagrams
 (``cot.md`` §6). Sockets are non-blocking and a datagram is sent without an await unless the
-socket's buffer is full; the caller's deadline bounds each call.
+socket's buffer is full; the caller's deadline bounds each call. ``send_now`` sends one
+event with no await at all, or says it cannot (the sink's runner then uses ``send``).
 """
 
 from __future__ import annotations
@@ -60,6 +61,23 @@ class UdpSender:
     def oversize(self, events: Sequence[Encoded]) -> list[Encoded]:
         """The events too large for one datagram in this destination's encoding."""
         return [e for e in events if len(e.get(self.encoding)) > _MAX_DATAGRAM]
+
+    def send_now(self, event: Encoded) -> bool:
+        """Send ``event``'s datagram at once; False if that needs ``send`` instead.
+
+        False when the socket is not open or its buffer is full, when the event is too large
+        for a datagram (``send`` skips it, the sink refuses it), when a ``TakControl`` is due
+        (``send`` adds it), or when the network refuses (``send`` reports it).
+        """
+        data = event.get(self.encoding)
+        if len(data) > _MAX_DATAGRAM:
+            return False
+        if self.encoding == "mesh" and self.announce_due_in_s() <= 0:
+            return False
+        try:
+            return self._datagrams.send_now(data)
+        except OSError:
+            return False
 
     async def send(self, events: Sequence[Encoded]) -> None:
         """Send each event as one datagram, skipping ``oversize`` ones; ``OSError`` if refused.

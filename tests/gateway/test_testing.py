@@ -21,6 +21,12 @@ def test_null_sink_counts_and_keeps_nothing() -> None:
     assert not hasattr(sink, "events")
 
 
+def test_null_sink_sends_now_and_counts() -> None:
+    sink = NullSink("n")
+    assert sink.send_now([EVENT, EVENT]) == 2
+    assert sink.count == 2
+
+
 def test_memory_sink_fails_as_told() -> None:
     sink = MemorySink("m")
     sink.fail_transient = True
