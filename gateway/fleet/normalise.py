@@ -39,7 +39,8 @@ from gateway.events import (
     Telemetry,
     Velocity,
     checked,
-    checked_from,
+    checked_fields,
+    checked_template,
     event_id,
     plausible_alt,
 )
@@ -157,6 +158,8 @@ class AirframeState:
         self._id_prefix = event_id(airframe, "tel", BOOT_ID, "")
         self._endurance: tuple[float | None, float | None] = (None, None)
         self._fields: dict[str, Any] = {}
+        #: Every Telemetry field with its default, the airframe's in: a snapshot's start.
+        self._template = {**checked_template(Telemetry), "airframe": airframe}
         self._geoid_sep_m: float | None = None
         #: The checked values of the latest position, velocity and attitude whose models are
         #: not built yet (``_settle`` builds them); None when ``_fields`` holds the latest.
@@ -211,22 +214,23 @@ class AirframeState:
         """The merged state now, as a new Telemetry event."""
         self._seq += 1
         self._settle()
-        values = {
-            "event_id": f"{self._id_prefix}{self._seq}",
-            "airframe": self.airframe,
-            "time": self._clock(),
-            "active_link": self.active_link,
-            **self._fields,
-        }
+        merged = self._fields
+        fields = self._template.copy()  # declaration order, which the JSON keeps
+        fields.update(merged)
+        fields["event_id"] = f"{self._id_prefix}{self._seq}"
+        fields["time"] = self._clock()
+        fields["active_link"] = self.active_link
+        given = {"event_id", "airframe", "time", "active_link", *merged}
         if self._enrichment is not None:
-            self._derive(self._enrichment, values)
+            self._derive(self._enrichment, fields, given)
         # Every field was checked when it was merged (the update handlers, ``_derive``).
-        return checked_from(Telemetry, values)
+        return checked_fields(Telemetry, fields, given)
 
-    def _derive(self, enrichment: Enrichment, out: dict[str, Any]) -> None:
+    def _derive(self, enrichment: Enrichment, out: dict[str, Any], given: set[str]) -> None:
         """Height above ground (where a DEM covers the point) and predicted endurance, into
-        ``out``."""
+        ``out``, their names into ``given``."""
         out["ew_mode"] = self._ew_mode
+        given.add("ew_mode")
         position: Position | None = self._fields.get("position")
         terrain = enrichment.terrain
         if position is not None and position.alt_msl_m is not None and terrain is not None:
@@ -244,6 +248,7 @@ class AirframeState:
                     )
                 )
             out["alt_agl_m"], out["agl_sigma_m"] = self._agl
+            given.update(("alt_agl_m", "agl_sigma_m"))
         profile = enrichment.energy
         pct = self._fields.get("battery_pct")
         consumed = self._fields.get("battery_consumed_wh")
@@ -258,6 +263,7 @@ class AirframeState:
                 minutes = endurance_remaining_min(wh_left, profile, enrichment.ew_mode)
                 self._endurance = (wh_left, minutes)
             out["endurance_remaining_min"] = self._endurance[1]
+            given.add("endurance_remaining_min")
 
     def apply(self, name: str, msg: MavMessage) -> Telemetry | None:
         """``update`` then ``snapshot``; None if the message changed nothing."""
