@@ -27,6 +27,7 @@ import time
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import asdict, dataclass, field
 from functools import partial
+from time import time_ns
 
 import structlog
 
@@ -109,11 +110,11 @@ class Ingest:
         self._inst = instruments
         self._opener = opener
         self._clock = clock
-        #: The clock in milliseconds since 1970 (UTC), read once per datagram on a tunnel link:
-        #: the wall clock's own reading when the clock is the wall clock (a datetime per frame
-        #: costs four times as much).
-        self._now_ms: Callable[[], int] = (
-            _wall_ms if clock is utc_now else lambda: int(clock().timestamp() * 1000)
+        #: The clock in milliseconds since 1970 (UTC), read once per datagram on a tunnel link;
+        #: None when the clock is the wall clock, whose own reading is taken instead (a
+        #: datetime per frame costs four times as much).
+        self._now_ms: Callable[[], int] | None = (
+            None if clock is utc_now else lambda: int(clock().timestamp() * 1000)
         )
         self._by_sysid: dict[int, AirframeSession] = {}
         self._by_id: dict[str, AirframeSession] = {}
@@ -202,7 +203,7 @@ class Ingest:
             return
         if not intake.is_stream:
             # One datagram, one tunnel frame: the common case, without the stream's list.
-            now_ms = self._now_ms()
+            now_ms = time_ns() // 1_000_000 if self._now_ms is None else self._now_ms()
             try:
                 frame = opener.open_frame(data, label, now_ms)
             except FrameError as exc:
@@ -223,7 +224,7 @@ class Ingest:
             deframer.failed_in_a_row = 0
             intake.drop(peer)
         if opened:
-            now_ms = self._now_ms()
+            now_ms = time_ns() // 1_000_000 if self._now_ms is None else self._now_ms()
             for frame in opened:
                 self._opened(intake, peer, frame, now_ms)
 
@@ -380,8 +381,10 @@ class Ingest:
         """Publish one Telemetry snapshot for every airframe updated since the last flush."""
         self._flush_pending = False
         dirty, self._dirty = self._dirty, {}
-        for airframe in dirty.values():
-            self._publish(airframe.state.snapshot())
+        if dirty:
+            now = self._clock()  # one time for the snapshots made together
+            for airframe in dirty.values():
+                self._publish(airframe.state.snapshot(now))
 
     def _rejected(self, label: str, reason: str, detail: str, count: int = 1) -> None:
         self._inst.link_rejected.labels(label, reason).inc(count)
@@ -430,8 +433,3 @@ class Ingest:
     def unknown_sysids(self) -> frozenset[int]:
         """System ids heard that no configured airframe has."""
         return frozenset(self._unknown_sysids)
-
-
-def _wall_ms() -> int:
-    """The wall clock in milliseconds since 1970 (UTC), truncated as ``utc_now`` would be."""
-    return time.time_ns() // 1_000_000

@@ -210,15 +210,16 @@ class AirframeState:
             f["attitude"] = attitude(*self._attitude_values)
             self._attitude_values = None
 
-    def snapshot(self) -> Telemetry:
-        """The merged state now, as a new Telemetry event."""
+    def snapshot(self, now: datetime | None = None) -> Telemetry:
+        """The merged state now, as a new Telemetry event (made at ``now``, else the clock's
+        time: a caller that makes many at once reads the clock once)."""
         self._seq += 1
         self._settle()
         merged = self._fields
         fields = self._template.copy()  # declaration order, which the JSON keeps
         fields.update(merged)
         fields["event_id"] = f"{self._id_prefix}{self._seq}"
-        fields["time"] = self._clock()
+        fields["time"] = self._clock() if now is None else now
         fields["active_link"] = self.active_link
         given = {"event_id", "airframe", "time", "active_link", *merged}
         if self._enrichment is not None:
@@ -293,11 +294,12 @@ class AirframeState:
 
     def _global_position(self, msg: MavMessage) -> bool:
         f = self._fields
-        if msg.lat == 0 and msg.lon == 0:
+        lat_e7, lon_e7 = msg.lat, msg.lon  # each field read once: this runs per message
+        if lat_e7 == 0 and lon_e7 == 0:
             f["position"] = None
             self._position_values = None
         else:
-            lat, lon = msg.lat / 1e7, msg.lon / 1e7
+            lat, lon = lat_e7 / 1e7, lon_e7 / 1e7
             alt_msl_m = plausible_alt(msg.alt / 1000.0)
             sep = self._geoid_sep_m
             alt_hae_m = None if sep is None or alt_msl_m is None else plausible_alt(alt_msl_m + sep)
@@ -317,8 +319,9 @@ class AirframeState:
                 )
                 self._position_values = None
         self._velocity_values = (msg.vx / 100.0, msg.vy / 100.0, msg.vz / 100.0)
-        if msg.hdg != _UINT16_MAX:
-            f["heading_deg"] = msg.hdg / 100.0
+        hdg = msg.hdg
+        if hdg != _UINT16_MAX:
+            f["heading_deg"] = hdg / 100.0
         return True
 
     def _gps_raw(self, msg: MavMessage) -> bool:

@@ -276,7 +276,7 @@ class TunnelOpener:
         self.started_ms = int(clock().timestamp() * 1000)
         self._days: dict[int, date] = {}
         #: Header bytes up to the airframe id, seen before -> airframe, key day, day, cipher
-        #: and the airframe's accepted nonces (``_check_other_links``).
+        #: and the airframe's accepted nonces (``cross_link_s``).
         self._headers: dict[bytes, _Header] = {}
 
     def accepted_days(self, now: datetime) -> tuple[date, ...]:
@@ -348,7 +348,17 @@ class TunnelOpener:
             raise Replayed("frame is older (or newer) than the freshness window")
         if sent_ms < self.started_ms:
             raise Replayed("frame sealed before the gateway started (a replay across a restart?)")
-        self._check_other_links(seen, nonce, stream)
+        # A frame first accepted on another link more than ``cross_link_s`` ago is refused:
+        # the same sealed frame on two of an airframe's links at nearly the same time is
+        # redundancy (ingest delivers it once); on a second link seconds later it is a capture
+        # replayed there, which the per-link windows alone would accept.
+        first = seen.get(nonce)
+        if first is None:
+            seen[nonce] = (time.monotonic(), stream)
+            if len(seen) & _PRUNE_MASK == 0:
+                self._prune_accepted(seen, time.monotonic())
+        elif first[1] != stream and time.monotonic() - first[0] > self.cross_link_s:
+            raise Replayed("frame already accepted on another link (a replay there?)")
         if window is None:
             self._forget_idle(sessions, now_ms)
             window = ReplayWindow()
@@ -396,22 +406,6 @@ class TunnelOpener:
             seen = self._accepted[airframe] = {}
         known = self._headers[bytes(frame[:id_end])] = (airframe, key_day, day, cipher, seen)
         return known
-
-    def _check_other_links(self, seen: _Seen, nonce: bytes, stream: object) -> None:
-        """Refuse a frame first accepted on another link longer ago than ``cross_link_s``.
-
-        The same sealed frame arriving on two of an airframe's links at nearly the same time
-        is redundancy (ingest delivers it once); arriving on a second link seconds later is a
-        capture replayed there, which the per-link windows alone would accept.
-        """
-        now = time.monotonic()
-        first = seen.get(nonce)
-        if first is None:
-            seen[nonce] = (now, stream)
-            if len(seen) & _PRUNE_MASK == 0:
-                self._prune_accepted(seen, now)
-        elif first[1] != stream and now - first[0] > self.cross_link_s:
-            raise Replayed("frame already accepted on another link (a replay there?)")
 
     def _prune_accepted(self, seen: _Seen, now: float) -> None:
         # Oldest first (a dict keeps insertion order): forget what the freshness window
