@@ -17,12 +17,6 @@ highest offered rate with < 0.1 % loss; then 10 % and 80 % of that. Reports loss
 gateway counted vs sent), the ingest→sink delivery latency p50/p99/p99.9 from the gateway's
 own histogram (kernel socket time excluded), CPU and RSS of the daemon.
 With ``--mavproxy`` and MAVProxy installed, the same load through ``mavproxy.py`` forwarding.
-
-With ``--floor`` (part A first): where a message's CPU time goes with the tunnel on, each
-stage timed with ``time.process_time`` in one process (a shared machine's load cancels out),
-median of 3: bare pymavlink on the plain frames; the floor, the tunnel's open and the fast
-decoder alone; ingest with snapshots made but not published; the whole pipeline to the five
-sinks. The floor's ratio is what ingest could reach if nothing but opening and decoding cost.
 """
 
 from __future__ import annotations
@@ -42,7 +36,6 @@ import sys
 import tempfile
 import time
 import urllib.request
-from collections.abc import Callable
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -142,17 +135,11 @@ def bare_pymavlink(datagrams: list[bytes], tunnel: bool) -> float:
 
 
 def gateway_pipeline(
-    datagrams: list[bytes],
-    airframes: int,
-    tunnel: bool,
-    key: str,
-    per_pass: int = 256,
-    clock: Callable[[], float] = time.perf_counter,
+    datagrams: list[bytes], airframes: int, tunnel: bool, key: str, per_pass: int = 256
 ) -> float:
     """Messages per second through ingest, normalise, bus and five sink runners.
 
-    ``per_pass``: datagrams handed to ingest between two passes of the event loop; ``clock``:
-    what a second is (``time.process_time``: CPU seconds of this process).
+    ``per_pass``: datagrams handed to ingest between two passes of the event loop.
     """
     cfg = config(airframes, tunnel, 0, key if tunnel else None)
     sinks = {f"null{n}": NullSink(f"null{n}") for n in range(SINKS)}
@@ -168,7 +155,7 @@ def gateway_pipeline(
             for runner in gateway.runners.values():
                 await tg.start(runner.run)
             on_data = gateway.fleet.ingest.on_data
-            start = clock()
+            start = time.perf_counter()
             for index, data in enumerate(datagrams):
                 on_data("bench", "peer", data)
                 if index % per_pass == 0:
@@ -179,7 +166,7 @@ def gateway_pipeline(
                 runner.stop()
             for runner in gateway.runners.values():
                 await runner.wait_done()
-            elapsed = clock() - start
+            elapsed = time.perf_counter() - start
             tg.cancel_scope.cancel()
         return elapsed
 
@@ -192,71 +179,6 @@ def gateway_pipeline(
     frames = gateway.instruments.link_frames.labels("bench").value
     assert frames == total, (frames, total)
     return total / elapsed
-
-
-def floor_split(airframes: int, key: str, rounds: int = 3) -> dict[str, float]:
-    """CPU microseconds per message of each stage with the tunnel on (module docstring)."""
-    from gateway.fleet.fastdecode import default_decoder
-    from gateway.fleet.ingest import LinkIntake
-    from gateway.fleet.security.tunnel import TunnelOpener
-
-    seconds = max(1.0, 40_000 / (airframes * 13))
-    plain = make_datagrams(airframes, seconds, False)
-    sealed = make_datagrams(airframes, seconds, True)
-    decode = default_decoder().decode
-    times: dict[str, list[float]] = {}
-
-    def timed(stage: str, run: Callable[[], object]) -> None:
-        start = time.process_time()
-        run()
-        times.setdefault(stage, []).append(time.process_time() - start)
-
-    def bare() -> None:
-        parser = mav.MAVLink(None)
-        parser.robust_parsing = True
-        for data in plain:
-            parser.parse_buffer(data)
-
-    def floor() -> None:
-        opener = TunnelOpener(
-            DayKeys(master=MASTER),
-            frozenset(airframe_id(i) for i in range(250)),
-            lambda: datetime.now(UTC),
-            freshness_s=3600,
-        )
-        opener.started_ms = 0  # sealed before it existed: see bare_pymavlink
-        now_ms = int(time.time() * 1000)
-        for data in sealed:
-            decode(opener.open_frame(data, "b", now_ms).payload)
-
-    def ingest_only() -> float:
-        sinks = {f"null{n}": NullSink(f"null{n}") for n in range(SINKS)}
-        gateway = Gateway(config(airframes, True, 0, key), sinks=dict(sinks))
-        opener = gateway.fleet.security.opener
-        assert opener is not None
-        opener.freshness_s, opener.started_ms = 3600, 0
-        ingest = gateway.fleet.ingest
-        ingest.register_link(LinkIntake("bench", "tunnel", is_stream=False))
-        ingest._publish = lambda _event: True  # snapshots are made, not published
-
-        async def run() -> float:
-            start = time.process_time()
-            for index, data in enumerate(sealed):
-                ingest.on_data("bench", "peer", data)
-                if index % 256 == 0:
-                    await anyio.lowlevel.checkpoint()  # a loop pass: the pass's snapshots
-            await anyio.lowlevel.checkpoint()
-            return time.process_time() - start
-
-        return anyio.run(run, backend_options={"use_uvloop": True})
-
-    for _ in range(rounds):
-        timed("pymavlink", bare)
-        timed("floor", floor)
-        times.setdefault("ingest", []).append(ingest_only())
-        rate = gateway_pipeline(sealed, airframes, True, key, clock=time.process_time)
-        times.setdefault("pipeline", []).append(len(sealed) / rate)
-    return {stage: 1e6 * sorted(t)[len(t) // 2] / len(plain) for stage, t in times.items()}
 
 
 def sender(
@@ -481,9 +403,6 @@ def main() -> None:
     parser.add_argument(
         "--pipeline-only", action="store_true", help="part A only (no daemon over UDP)"
     )
-    parser.add_argument(
-        "--floor", action="store_true", help="also where the CPU time goes, tunnel on"
-    )
     args = parser.parse_args()
     configure_logging("warning", sys.stderr)
     key_dir = Path(tempfile.mkdtemp())
@@ -514,20 +433,6 @@ def main() -> None:
             print(
                 f"| {n} | {mode} | {bare:,.0f} | {ours:,.0f} | {ours / bare:.2f} "
                 f"| {ours / bare_rates[n]:.2f} | {single:,.0f} | {single / bare:.3f} |"
-            )
-    if args.floor:
-        print("\n## A2. where a message's CPU time goes, tunnel on (µs per message)\n")
-        print(
-            "| airframes | pymavlink | floor: open + fast decode | floor ratio "
-            "| ingest, snapshots unpublished | pipeline, 5 sinks | pipeline ratio |"
-        )
-        print("| --- | --- | --- | --- | --- | --- | --- |")
-        for n in (int(x) for x in args.airframes.split(",")):
-            us = floor_split(n, str(key))
-            print(
-                f"| {n} | {us['pymavlink']:.2f} | {us['floor']:.2f} "
-                f"| {us['pymavlink'] / us['floor']:.2f} | {us['ingest']:.2f} "
-                f"| {us['pipeline']:.2f} | {us['pymavlink'] / us['pipeline']:.2f} |"
             )
     if args.pipeline_only:
         return
