@@ -70,7 +70,9 @@ __all__ = [
     "Velocity",
     "VideoFrameMetadata",
     "checked",
+    "checked_fields",
     "checked_from",
+    "checked_template",
     "declared_extensions",
     "event_adapter",
     "event_id",
@@ -112,9 +114,27 @@ def checked_from(cls: type[_M], values: dict[str, Any]) -> _M:
     """``checked`` from a dict of the values (the hot path builds one dict, not keywords)."""
     fields = _template(cls).copy()
     fields.update(values)
+    return checked_fields(cls, fields, set(values))
+
+
+def checked_template(cls: type[BaseModel]) -> dict[str, Any]:
+    """Every field of ``cls`` in declaration order, defaults filled in (None where required).
+
+    A builder that makes many instances keeps this, and gives ``checked_fields`` a copy of
+    it with its values written in.
+    """
+    return _template(cls).copy()
+
+
+def checked_fields(cls: type[_M], fields: dict[str, Any], given: set[str]) -> _M:
+    """``checked`` from every field's value and the names of those given (not defaulted).
+
+    ``fields`` is a copy of ``checked_template(cls)`` with the given values written in (the
+    instance keeps it as its ``__dict__``); the same rules as ``checked`` hold.
+    """
     instance = cls.__new__(cls)
     _set(instance, "__dict__", fields)
-    _set(instance, "__pydantic_fields_set__", set(values))
+    _set(instance, "__pydantic_fields_set__", given)
     _set(instance, "__pydantic_extra__", None)
     _set(instance, "__pydantic_private__", None)
     return instance

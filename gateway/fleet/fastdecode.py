@@ -136,7 +136,8 @@ class FastMessage(tuple[Any, ...]):
 
     def get_msgbuf(self) -> bytes | bytearray:
         """The whole frame, as it was decoded (signature included)."""
-        return cast("bytes | bytearray", self[-1])
+        frame: bytes | bytearray = self[-1]  # an annotation, not a cast: this runs per frame
+        return frame
 
     def get_srcSystem(self) -> int:
         """The sender's system id."""

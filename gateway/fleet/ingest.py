@@ -27,10 +27,11 @@ import time
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import asdict, dataclass, field
 from functools import partial
+from time import time_ns
 
 import structlog
 
-from gateway.clock import Clock
+from gateway.clock import Clock, utc_now
 from gateway.config import AirframeConfig
 from gateway.domain.terrain import TerrainModel
 from gateway.errors import FrameError
@@ -109,6 +110,12 @@ class Ingest:
         self._inst = instruments
         self._opener = opener
         self._clock = clock
+        #: The clock in milliseconds since 1970 (UTC), read once per datagram on a tunnel link;
+        #: None when the clock is the wall clock, whose own reading is taken instead (a
+        #: datetime per frame costs four times as much).
+        self._now_ms: Callable[[], int] | None = (
+            None if clock is utc_now else lambda: int(clock().timestamp() * 1000)
+        )
         self._by_sysid: dict[int, AirframeSession] = {}
         self._by_id: dict[str, AirframeSession] = {}
         for cfg in airframes:
@@ -119,7 +126,7 @@ class Ingest:
             verifier = (verifiers or {}).get(cfg.sysid)
             airframe = AirframeSession(cfg, state, health, labels, verifier, transmit=transmit)
             for name in NORMALISED_TYPES:
-                airframe.on(name, partial(self._telemetry, state.updater(name), cfg.id))
+                airframe.on(name, self._telemetry_handler(state.updater(name), cfg.id))
             airframe.on("FISCHER_DETECTION", self._detection)
             airframe.on("COMMAND_ACK", airframe.on_command_ack)
             view = CameraView(cfg.id, state, clock, terrain)
@@ -196,7 +203,7 @@ class Ingest:
             return
         if not intake.is_stream:
             # One datagram, one tunnel frame: the common case, without the stream's list.
-            now_ms = int(self._clock().timestamp() * 1000)
+            now_ms = time_ns() // 1_000_000 if self._now_ms is None else self._now_ms()
             try:
                 frame = opener.open_frame(data, label, now_ms)
             except FrameError as exc:
@@ -217,30 +224,31 @@ class Ingest:
             deframer.failed_in_a_row = 0
             intake.drop(peer)
         if opened:
-            now_ms = int(self._clock().timestamp() * 1000)
+            now_ms = time_ns() // 1_000_000 if self._now_ms is None else self._now_ms()
             for frame in opened:
                 self._opened(intake, peer, frame, now_ms)
 
     def _opened(self, intake: LinkIntake, peer: object, frame: Opened, now_ms: int) -> None:
         """One authenticated tunnel frame from ``peer``: its MAVLink frames, for its airframe."""
         label = intake.label
-        sealed = intake.sealed.get(frame.airframe)
+        sealed_by, payload, _day, sent_ms = frame
+        sealed = intake.sealed.get(sealed_by)
         if sealed is None:
-            airframe = self._by_id.get(frame.airframe)
+            airframe = self._by_id.get(sealed_by)
             if airframe is None or label not in airframe.labels:
                 # A valid key, but this link is not one of that airframe's links.
-                self._rejected(label, "foreign_link", f"{frame.airframe} is not configured here")
+                self._rejected(label, "foreign_link", f"{sealed_by} is not configured here")
                 return
             # Bounded: the airframes configured on this link.
-            histogram = self._inst.link_latency.labels(frame.airframe, label)
-            sealed = intake.sealed[frame.airframe] = (airframe, histogram)
+            histogram = self._inst.link_latency.labels(sealed_by, label)
+            sealed = intake.sealed[sealed_by] = (airframe, histogram)
         airframe, histogram = sealed
-        latency_s = (now_ms - frame.sent_ms) / 1000.0
+        latency_s = (now_ms - sent_ms) / 1000.0
         histogram.observe(latency_s if latency_s > 0.0 else 0.0)
         airframe.health.latency(label, latency_s)
         # The key authenticated the datagram, so the sender is this airframe's peer.
-        key = frame.airframe if not intake.is_stream else (peer, frame.airframe)
-        for msg in self._parse(intake, key, frame.payload):
+        key = sealed_by if not intake.is_stream else (peer, sealed_by)
+        for msg in self._parse(intake, key, payload):
             self._frame(intake, peer, msg, airframe)
 
     def _parse(self, intake: LinkIntake, peer: object, data: bytes) -> list[MavMessage]:
@@ -322,20 +330,20 @@ class Ingest:
                     "message_handler_failed", link=label, airframe=airframe.id, message=name
                 )
 
-    def _telemetry(
-        self,
-        update: Callable[[MavMessage], bool],
-        airframe_id: str,
-        airframe: AirframeSession,
-        _label: str,
-        msg: MavMessage,
-    ) -> None:
-        # The state's updater of this message type and the airframe's id are bound when the
-        # handler is registered: this runs for most frames, so it reads nothing it does not need.
-        if update(msg):
-            self._dirty[airframe_id] = airframe
-            if not self._flush_pending:
-                self._schedule_flush()
+    def _telemetry_handler(
+        self, update: Callable[[MavMessage], bool], airframe_id: str
+    ) -> Callable[[AirframeSession, str, MavMessage], None]:
+        """The handler of one telemetry message type of one airframe (``update`` merges it)."""
+
+        def telemetry(airframe: AirframeSession, _label: str, msg: MavMessage) -> None:
+            # The state's updater and the airframe's id are bound here: this runs for most
+            # frames, so it reads nothing it does not need.
+            if update(msg):
+                self._dirty[airframe_id] = airframe
+                if not self._flush_pending:
+                    self._schedule_flush()
+
+        return telemetry
 
     def _detection(self, airframe: AirframeSession, label: str, msg: MavMessage) -> None:
         # Detections are durable: published at once, never coalesced like telemetry.
@@ -373,8 +381,10 @@ class Ingest:
         """Publish one Telemetry snapshot for every airframe updated since the last flush."""
         self._flush_pending = False
         dirty, self._dirty = self._dirty, {}
-        for airframe in dirty.values():
-            self._publish(airframe.state.snapshot())
+        if dirty:
+            now = self._clock()  # one time for the snapshots made together
+            for airframe in dirty.values():
+                self._publish(airframe.state.snapshot(now))
 
     def _rejected(self, label: str, reason: str, detail: str, count: int = 1) -> None:
         self._inst.link_rejected.labels(label, reason).inc(count)

@@ -4,10 +4,18 @@ This is the one place where values from the wire are checked: MAVLink's "unknown
 (-1, UINT16_MAX, 0 for optional extensions, NaN) become None, units become SI, and a position
 of exactly 0,0 (an autopilot without a fix) becomes no position. After this, events are trusted.
 
-Because the checks are made here, on values the decoder already typed, Telemetry and Detection
-are built with ``events.checked`` (no second validation by pydantic). The small models inside
-them (Position, Velocity, Attitude) still go through pydantic: validating three to five floats
-costs less than building the instance by hand, and keeps the range checks.
+Because the checks are made here, on values the decoder already typed, no event is validated a
+second time by pydantic: Telemetry and Detection are built with ``events.checked``, and the
+small models inside them (Position, Velocity, Attitude) by ``position``, ``velocity`` and
+``attitude`` below, after the checks their fields declare (latitude and longitude in range,
+altitudes plausible, angles finite) were made by hand. A latitude or longitude out of range
+goes to the validating constructor, which refuses it as it always did (the message counts as
+a handler error and changes nothing). tests/gateway/fleet/test_normalise.py holds the fast
+path equal to validation on generated messages.
+
+Telemetry is latest-wins and under load many messages are merged into one snapshot, so the
+state keeps the checked values of the latest position, velocity and attitude and builds their
+models only when a snapshot (or ``field``) needs them.
 """
 
 from __future__ import annotations
@@ -31,7 +39,8 @@ from gateway.events import (
     Telemetry,
     Velocity,
     checked,
-    checked_from,
+    checked_fields,
+    checked_template,
     event_id,
     plausible_alt,
 )
@@ -73,6 +82,62 @@ def _finite(value: float) -> float | None:
     return value if math.isfinite(value) else None
 
 
+_set = object.__setattr__
+_INF = math.inf
+_POSITION_FIELDS = frozenset(Position.model_fields)
+_VELOCITY_FIELDS = frozenset(Velocity.model_fields)
+_ATTITUDE_FIELDS = frozenset(Attitude.model_fields)
+
+
+def position(
+    lat_deg: float,
+    lon_deg: float,
+    alt_msl_m: float | None,
+    alt_hae_m: float | None,
+    alt_rel_home_m: float | None,
+) -> Position:
+    """The Position of checked values (floats in the ranges Position declares), unvalidated.
+
+    Equal to ``Position(...)`` given every field: the same values, fields set and JSON.
+    """
+    instance = Position.__new__(Position)
+    _set(
+        instance,
+        "__dict__",
+        {
+            "lat_deg": lat_deg,
+            "lon_deg": lon_deg,
+            "alt_msl_m": alt_msl_m,
+            "alt_hae_m": alt_hae_m,
+            "alt_rel_home_m": alt_rel_home_m,
+        },
+    )
+    _set(instance, "__pydantic_fields_set__", set(_POSITION_FIELDS))
+    _set(instance, "__pydantic_extra__", None)
+    _set(instance, "__pydantic_private__", None)
+    return instance
+
+
+def velocity(north_mps: float, east_mps: float, down_mps: float) -> Velocity:
+    """The Velocity of three floats, unvalidated (equal to ``Velocity(...)``)."""
+    instance = Velocity.__new__(Velocity)
+    _set(instance, "__dict__", {"north_mps": north_mps, "east_mps": east_mps, "down_mps": down_mps})
+    _set(instance, "__pydantic_fields_set__", set(_VELOCITY_FIELDS))
+    _set(instance, "__pydantic_extra__", None)
+    _set(instance, "__pydantic_private__", None)
+    return instance
+
+
+def attitude(roll_rad: float, pitch_rad: float, yaw_rad: float) -> Attitude:
+    """The Attitude of three floats, unvalidated (equal to ``Attitude(...)``)."""
+    instance = Attitude.__new__(Attitude)
+    _set(instance, "__dict__", {"roll_rad": roll_rad, "pitch_rad": pitch_rad, "yaw_rad": yaw_rad})
+    _set(instance, "__pydantic_fields_set__", set(_ATTITUDE_FIELDS))
+    _set(instance, "__pydantic_extra__", None)
+    _set(instance, "__pydantic_private__", None)
+    return instance
+
+
 class AirframeState:
     """The merged latest state of one airframe, and the Telemetry it yields.
 
@@ -93,7 +158,16 @@ class AirframeState:
         self._id_prefix = event_id(airframe, "tel", BOOT_ID, "")
         self._endurance: tuple[float | None, float | None] = (None, None)
         self._fields: dict[str, Any] = {}
+        #: Every Telemetry field with its default, the airframe's in: a snapshot's start.
+        self._template = {**checked_template(Telemetry), "airframe": airframe}
         self._geoid_sep_m: float | None = None
+        #: The checked values of the latest position, velocity and attitude whose models are
+        #: not built yet (``_settle`` builds them); None when ``_fields`` holds the latest.
+        self._position_values: (
+            tuple[float, float, float | None, float | None, float | None] | None
+        ) = None
+        self._velocity_values: tuple[float, float, float] | None = None
+        self._attitude_values: tuple[float, float, float] | None = None
         self._handlers: dict[str, Callable[[MavMessage], bool]] = {
             "HEARTBEAT": self._heartbeat,
             "SYS_STATUS": self._sys_status,
@@ -120,27 +194,44 @@ class AirframeState:
 
     def field(self, name: str) -> Any:
         """The latest merged value of one Telemetry field (None if never reported)."""
+        self._settle()
         return self._fields.get(name)
 
-    def snapshot(self) -> Telemetry:
-        """The merged state now, as a new Telemetry event."""
-        self._seq += 1
-        values = {
-            "event_id": f"{self._id_prefix}{self._seq}",
-            "airframe": self.airframe,
-            "time": self._clock(),
-            "active_link": self.active_link,
-            **self._fields,
-        }
-        if self._enrichment is not None:
-            self._derive(self._enrichment, values)
-        # Every field was checked when it was merged (the update handlers, ``_derive``).
-        return checked_from(Telemetry, values)
+    def _settle(self) -> None:
+        """Build the models of the values merged since the last snapshot."""
+        f = self._fields
+        if self._position_values is not None:
+            f["position"] = position(*self._position_values)
+            self._position_values = None
+        if self._velocity_values is not None:
+            f["velocity"] = velocity(*self._velocity_values)
+            self._velocity_values = None
+        if self._attitude_values is not None:
+            f["attitude"] = attitude(*self._attitude_values)
+            self._attitude_values = None
 
-    def _derive(self, enrichment: Enrichment, out: dict[str, Any]) -> None:
+    def snapshot(self, now: datetime | None = None) -> Telemetry:
+        """The merged state now, as a new Telemetry event (made at ``now``, else the clock's
+        time: a caller that makes many at once reads the clock once)."""
+        self._seq += 1
+        self._settle()
+        merged = self._fields
+        fields = self._template.copy()  # declaration order, which the JSON keeps
+        fields.update(merged)
+        fields["event_id"] = f"{self._id_prefix}{self._seq}"
+        fields["time"] = self._clock() if now is None else now
+        fields["active_link"] = self.active_link
+        given = {"event_id", "airframe", "time", "active_link", *merged}
+        if self._enrichment is not None:
+            self._derive(self._enrichment, fields, given)
+        # Every field was checked when it was merged (the update handlers, ``_derive``).
+        return checked_fields(Telemetry, fields, given)
+
+    def _derive(self, enrichment: Enrichment, out: dict[str, Any], given: set[str]) -> None:
         """Height above ground (where a DEM covers the point) and predicted endurance, into
-        ``out``."""
+        ``out``, their names into ``given``."""
         out["ew_mode"] = self._ew_mode
+        given.add("ew_mode")
         position: Position | None = self._fields.get("position")
         terrain = enrichment.terrain
         if position is not None and position.alt_msl_m is not None and terrain is not None:
@@ -158,6 +249,7 @@ class AirframeState:
                     )
                 )
             out["alt_agl_m"], out["agl_sigma_m"] = self._agl
+            given.update(("alt_agl_m", "agl_sigma_m"))
         profile = enrichment.energy
         pct = self._fields.get("battery_pct")
         consumed = self._fields.get("battery_consumed_wh")
@@ -172,6 +264,7 @@ class AirframeState:
                 minutes = endurance_remaining_min(wh_left, profile, enrichment.ew_mode)
                 self._endurance = (wh_left, minutes)
             out["endurance_remaining_min"] = self._endurance[1]
+            given.add("endurance_remaining_min")
 
     def apply(self, name: str, msg: MavMessage) -> Telemetry | None:
         """``update`` then ``snapshot``; None if the message changed nothing."""
@@ -201,26 +294,34 @@ class AirframeState:
 
     def _global_position(self, msg: MavMessage) -> bool:
         f = self._fields
-        if msg.lat == 0 and msg.lon == 0:
+        lat_e7, lon_e7 = msg.lat, msg.lon  # each field read once: this runs per message
+        if lat_e7 == 0 and lon_e7 == 0:
             f["position"] = None
+            self._position_values = None
         else:
+            lat, lon = lat_e7 / 1e7, lon_e7 / 1e7
             alt_msl_m = plausible_alt(msg.alt / 1000.0)
             sep = self._geoid_sep_m
+            alt_hae_m = None if sep is None or alt_msl_m is None else plausible_alt(alt_msl_m + sep)
             rel = msg.relative_alt / 1000.0
-            f["position"] = Position(
-                lat_deg=msg.lat / 1e7,
-                lon_deg=msg.lon / 1e7,
-                alt_msl_m=alt_msl_m,
-                alt_hae_m=None
-                if sep is None or alt_msl_m is None
-                else plausible_alt(alt_msl_m + sep),
-                alt_rel_home_m=rel if -ALT_MAX_M <= rel <= ALT_MAX_M else None,
-            )
-        f["velocity"] = Velocity(
-            north_mps=msg.vx / 100.0, east_mps=msg.vy / 100.0, down_mps=msg.vz / 100.0
-        )
-        if msg.hdg != _UINT16_MAX:
-            f["heading_deg"] = msg.hdg / 100.0
+            alt_rel_home_m = rel if -ALT_MAX_M <= rel <= ALT_MAX_M else None
+            if -90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0:  # NaN compares False
+                self._position_values = (lat, lon, alt_msl_m, alt_hae_m, alt_rel_home_m)
+            else:
+                # Outside the ranges Position declares: its validation refuses the message
+                # (raises, so nothing of it is merged), as it always has.
+                f["position"] = Position(
+                    lat_deg=lat,
+                    lon_deg=lon,
+                    alt_msl_m=alt_msl_m,
+                    alt_hae_m=alt_hae_m,
+                    alt_rel_home_m=alt_rel_home_m,
+                )
+                self._position_values = None
+        self._velocity_values = (msg.vx / 100.0, msg.vy / 100.0, msg.vz / 100.0)
+        hdg = msg.hdg
+        if hdg != _UINT16_MAX:
+            f["heading_deg"] = hdg / 100.0
         return True
 
     def _gps_raw(self, msg: MavMessage) -> bool:
@@ -236,10 +337,11 @@ class AirframeState:
         return True
 
     def _attitude(self, msg: MavMessage) -> bool:
-        roll, pitch, yaw = _finite(msg.roll), _finite(msg.pitch), _finite(msg.yaw)
-        if roll is None or pitch is None or yaw is None:
+        roll, pitch, yaw = msg.roll, msg.pitch, msg.yaw
+        # Finite angles only (NaN and the infinities compare False).
+        if not (-_INF < roll < _INF and -_INF < pitch < _INF and -_INF < yaw < _INF):
             return False
-        self._fields["attitude"] = Attitude(roll_rad=roll, pitch_rad=pitch, yaw_rad=yaw)
+        self._attitude_values = (float(roll), float(pitch), float(yaw))
         return True
 
     def _vfr_hud(self, msg: MavMessage) -> bool:

@@ -62,6 +62,8 @@ _DAY_MS = 86_400_000
 _TAG = 16
 _NONCE = 12
 _FIXED = struct.Struct(">2sBHB")
+#: After the airframe id: sent_ms (6 bytes, read as 2 + 4), the nonce's salt and counter.
+_TAIL = struct.Struct(">HI8sI")
 _PLAIN_MAVLINK = (0xFD, 0xFE)  # MAVLink 2 and 1 start bytes
 #: Nonces remembered per airframe across links (about 25 min of frames at 50 Hz).
 _MAX_ACCEPTED = 65_536
@@ -188,6 +190,11 @@ class ReplayWindow:
     highest: int = 0
     bitmap: int = 0
     last_seen_ms: int = 0
+    mask: int = field(init=False, repr=False, compare=False)
+    """``size`` ones: the bits the window keeps."""
+
+    def __post_init__(self) -> None:
+        self.mask = (1 << self.size) - 1
 
     def check(self, counter: int) -> bool:
         """True if ``counter`` is new and inside the window (does not record it)."""
@@ -200,7 +207,7 @@ class ReplayWindow:
         """Mark ``counter`` as seen; call only after the frame authenticated."""
         if counter > self.highest:
             shift = counter - self.highest
-            self.bitmap = ((self.bitmap << shift) | 1) & ((1 << self.size) - 1)
+            self.bitmap = ((self.bitmap << shift) | 1) & self.mask
             self.highest = counter
         else:
             self.bitmap |= 1 << (self.highest - counter)
@@ -219,6 +226,11 @@ class Opened(NamedTuple):
     def sent(self) -> datetime:
         """``sent_ms`` as an aware datetime."""
         return datetime.fromtimestamp(self.sent_ms / 1000, tz=UTC)
+
+
+_new_tuple = tuple.__new__
+_Seen = dict[bytes, tuple[float, object]]
+_Header = tuple[str, int, date, AESGCM, _Seen]
 
 
 @dataclass(slots=True)
@@ -263,8 +275,9 @@ class TunnelOpener:
         # could be a capture from before a restart: refuse it (docs/tunnel.md, "Restarts").
         self.started_ms = int(clock().timestamp() * 1000)
         self._days: dict[int, date] = {}
-        #: Header bytes up to the airframe id, seen before -> airframe, key day, day, cipher.
-        self._headers: dict[bytes, tuple[str, int, date, AESGCM]] = {}
+        #: Header bytes up to the airframe id, seen before -> airframe, key day, day, cipher
+        #: and the airframe's accepted nonces (``cross_link_s``).
+        self._headers: dict[bytes, _Header] = {}
 
     def accepted_days(self, now: datetime) -> tuple[date, ...]:
         """The key days a frame may use at ``now``: today, plus neighbours near midnight."""
@@ -294,19 +307,20 @@ class TunnelOpener:
 
         ``now_ms``: the clock now (ms since 1970, UTC) when the caller has just read it.
         """
+        # This runs once per frame: one struct read for the counters, the window inline.
         size = len(frame)
         if size > self.max_frame_bytes:
             raise Oversize(size, self.max_frame_bytes)
-        if size < _FIXED.size:
+        if size < 6:  # _FIXED.size
             raise Malformed("shorter than a tunnel header")
-        id_end = _FIXED.size + frame[5]
+        id_end = 6 + frame[5]
         # Magic, version, key day and airframe id: checked once per airframe and key day,
-        # then found by one look-up (this runs once per frame).
+        # then found by one look-up.
         known = self._headers.get(frame[:id_end])
         if known is None:
             known = self._header(frame, size)
-        airframe, key_day, day, cipher = known
-        header_end = id_end + 6 + _NONCE
+        airframe, key_day, day, cipher, seen = known
+        header_end = id_end + 18  # sent_ms 6, nonce 12
         if size < header_end + _TAG:
             raise Malformed("tunnel header lengths are inconsistent")
         if now_ms is None:
@@ -314,34 +328,46 @@ class TunnelOpener:
         today = now_ms // _DAY_MS
         if key_day != today and key_day not in self._accepted_day_numbers(now_ms, today):
             raise AuthenticationFailed("key day outside the accepted range")
-        nonce = frame[id_end + 6 : header_end]
-        sent_ms = int.from_bytes(frame[id_end : id_end + 6], "big")
+        sent_high, sent_low, salt, counter = _TAIL.unpack_from(frame, id_end)
         sessions = self._streams.get((stream, airframe))
         if sessions is None:
             sessions = self._streams[(stream, airframe)] = _Sessions()
-        salt, counter = nonce[:8], int.from_bytes(nonce[8:], "big")
         window = sessions.windows.get(salt)
-        if window is not None and not window.check(counter):
-            raise Replayed("frame counter already seen or behind the window")
+        if window is not None and counter <= window.highest:
+            offset = window.highest - counter
+            if offset >= window.size or (window.bitmap >> offset) & 1:
+                raise Replayed("frame counter already seen or behind the window")
+        nonce = frame[id_end + 6 : header_end]
         try:
             payload = cipher.decrypt(nonce, frame[header_end:], frame[:header_end])
         except InvalidTag as exc:
             raise AuthenticationFailed("authentication tag did not verify") from exc
         # Freshness is judged only after authentication, so a forged timestamp costs nothing.
+        sent_ms = sent_high << 32 | sent_low
         if abs(now_ms - sent_ms) > self.freshness_s * 1000:
             raise Replayed("frame is older (or newer) than the freshness window")
         if sent_ms < self.started_ms:
             raise Replayed("frame sealed before the gateway started (a replay across a restart?)")
-        self._check_other_links(airframe, nonce, stream)
+        # A frame first accepted on another link more than ``cross_link_s`` ago is refused:
+        # the same sealed frame on two of an airframe's links at nearly the same time is
+        # redundancy (ingest delivers it once); on a second link seconds later it is a capture
+        # replayed there, which the per-link windows alone would accept.
+        first = seen.get(nonce)
+        if first is None:
+            seen[nonce] = (time.monotonic(), stream)
+            if len(seen) & _PRUNE_MASK == 0:
+                self._prune_accepted(seen, time.monotonic())
+        elif first[1] != stream and time.monotonic() - first[0] > self.cross_link_s:
+            raise Replayed("frame already accepted on another link (a replay there?)")
         if window is None:
             self._forget_idle(sessions, now_ms)
             window = ReplayWindow()
             sessions.windows[salt] = window
         window.record(counter)
         window.last_seen_ms = now_ms
-        return Opened(airframe, payload, day, sent_ms)
+        return _new_tuple(Opened, (airframe, payload, day, sent_ms))
 
-    def _header(self, frame: bytes, size: int) -> tuple[str, int, date, AESGCM]:
+    def _header(self, frame: bytes, size: int) -> _Header:
         """Check a header not seen before: magic, version, lengths, airframe, key day.
 
         Raises as ``open_frame`` documents; a header that passes is remembered (bounded:
@@ -375,29 +401,13 @@ class TunnelOpener:
             raise AuthenticationFailed("no key for this airframe and day")
         if len(self._headers) >= _MAX_HEADERS:
             self._headers.clear()  # days went by: the headers of today are learnt again
-        known = self._headers[bytes(frame[:id_end])] = (airframe, key_day, day, cipher)
-        return known
-
-    def _check_other_links(self, airframe: str, nonce: bytes, stream: object) -> None:
-        """Refuse a frame first accepted on another link longer ago than ``cross_link_s``.
-
-        The same sealed frame arriving on two of an airframe's links at nearly the same time
-        is redundancy (ingest delivers it once); arriving on a second link seconds later is a
-        capture replayed there, which the per-link windows alone would accept.
-        """
-        now = time.monotonic()
         seen = self._accepted.get(airframe)
         if seen is None:
             seen = self._accepted[airframe] = {}
-        first = seen.get(nonce)
-        if first is None:
-            seen[nonce] = (now, stream)
-            if len(seen) & _PRUNE_MASK == 0:
-                self._prune_accepted(seen, now)
-        elif first[1] != stream and now - first[0] > self.cross_link_s:
-            raise Replayed("frame already accepted on another link (a replay there?)")
+        known = self._headers[bytes(frame[:id_end])] = (airframe, key_day, day, cipher, seen)
+        return known
 
-    def _prune_accepted(self, seen: dict[bytes, tuple[float, object]], now: float) -> None:
+    def _prune_accepted(self, seen: _Seen, now: float) -> None:
         # Oldest first (a dict keeps insertion order): forget what the freshness window
         # refuses anyway, and cap the rest. Run every _PRUNE_MASK + 1 insertions, not per frame.
         horizon = now - 2 * self.freshness_s

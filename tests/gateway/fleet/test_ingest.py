@@ -102,6 +102,21 @@ class TestNormalise:
         assert tel.h_acc_m == 1.5
         assert tel.satellites_visible == 14
 
+    def test_a_position_off_the_globe_is_refused_and_counted_leaving_the_last_one(self) -> None:
+        ingest, events, inst = make_ingest(7)
+        m = encoder(7)
+        ingest.on_data("l", "p", gpi(m, 658252000, 216886000, 250500))
+        for lat, lon in ((900_000_001, 0), (0, -1_800_000_001), (2**31 - 1, 2**31 - 1)):
+            ingest.on_data("l", "p", gpi(m, lat, lon, 250500))
+        assert inst.link_ignored.labels("l", "handler_error").value == 3
+        assert inst.link_frames.labels("l").value == 4
+        tel = telemetry_of(events)
+        assert len(tel) == 1  # nothing of the refused messages was merged
+        ingest.on_data("l", "p", gpi(m, 900_000_000, -1_800_000_000, 250500))  # the edges
+        last = telemetry_of(events)[-1].position
+        assert last is not None
+        assert (last.lat_deg, last.lon_deg) == (90.0, -180.0)
+
     def test_position_at_zero_zero_is_no_fix_not_null_island(self) -> None:
         ingest, events, _ = make_ingest(7)
         ingest.on_data("l", "p", gpi(encoder(7), 0, 0, 0))
