@@ -543,12 +543,12 @@ class SinkRunner:
 
     def _delivered(self, items: list[Queued]) -> None:
         now = time.monotonic()
-        observe = self._latency.observe
+        self._latency.observe_many([now - item.ingest_mono for item in items])
         for item in items:
-            observe(now - item.ingest_mono)
-            # The field's value straight from the model's dict: on a kind without the field,
-            # getattr would fall into pydantic's slow __getattr__ for every event.
-            if item.event.__dict__.get("late_by_s") is not None:
+            # Only a spooled event (seq > 0) can be marked late (``Outbox.take``); the field's
+            # value straight from the model's dict: on a kind without the field, getattr
+            # would fall into pydantic's slow __getattr__ for every event.
+            if item.seq and item.event.__dict__.get("late_by_s") is not None:
                 self._late.labels(self.name, item.event.kind.value).inc()
         self._confirm(items)
         self._sent.inc(len(items))
