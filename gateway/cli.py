@@ -837,7 +837,8 @@ def _command(argv: Sequence[str] | None) -> int:
             soft, _hard = raise_open_files_limit()
             log.info("open_files_limit", soft=soft)
             gateway = Gateway(config, sinks=node.sinks, source=str(args.config))
-            settle_gc()  # freeze start-up, fewer young collections: gateway.ops.gcsetup
+            frozen, threshold = settle_gc()  # freeze start-up, fewer young collections
+            log.info("gc_settled", frozen_objects=frozen, threshold=list(threshold))
             _run_async(partial(_serve, config_path=args.config), gateway, None)
             return EXIT_OK
         if args.command == "demo":

@@ -27,10 +27,14 @@ __all__ = ["GEN0_THRESHOLD", "settle_gc"]
 GEN0_THRESHOLD = 5000
 
 
-def settle_gc() -> None:
-    """Freeze what exists now (once per process) and raise the young generation's threshold."""
+def settle_gc() -> tuple[int, tuple[int, int, int]]:
+    """Freeze what exists now (once per process) and raise the young generation's threshold.
+
+    Returns the objects frozen and the thresholds now in force (the daemon logs them).
+    """
     if gc.get_freeze_count() == 0:
         gc.collect()
         gc.freeze()
     _gen0, gen1, gen2 = gc.get_threshold()
     gc.set_threshold(GEN0_THRESHOLD, gen1, gen2)
+    return gc.get_freeze_count(), (GEN0_THRESHOLD, gen1, gen2)
