@@ -8,7 +8,6 @@ This is the only module that configures logging. Exit codes: 0 success, 1 runtim
 from __future__ import annotations
 
 import argparse
-import gc
 import json
 import math
 import os
@@ -42,6 +41,7 @@ from gateway.errors import ConfigError, ConfigIssue, GatewayError
 from gateway.fleet.hopdialect import HOP_RESULT_NAMES
 from gateway.fleet.security.keys import load_day_keys, read_key_file, write_day_keys
 from gateway.fleet.security.tunnel import DayKeys, Sealer
+from gateway.ops.gcsetup import settle_gc
 from gateway.ops.logsetup import configure_logging, install_loop_exception_handler
 from gateway.ops.version import package_version
 from gateway.ordercli import add_order_parser, order_command
@@ -453,16 +453,6 @@ async def _serve(
         tg.cancel_scope.cancel()
 
 
-def _freeze_start_up() -> None:
-    """Keep what start-up built (modules, schemas, the config, the gateway's objects) out of
-    the cyclic garbage collector: a full collection would otherwise walk all of it, tens of
-    milliseconds on the event loop, whenever one falls due while events flow. Once per
-    process; what is frozen and later dropped is still freed by its reference count."""
-    if gc.get_freeze_count() == 0:
-        gc.collect()
-        gc.freeze()
-
-
 def _run_async(fn: Any, *args: Any) -> None:
     try:
         import uvloop  # noqa: F401 - optional speed-up, absent on some platforms
@@ -847,7 +837,8 @@ def _command(argv: Sequence[str] | None) -> int:
             soft, _hard = raise_open_files_limit()
             log.info("open_files_limit", soft=soft)
             gateway = Gateway(config, sinks=node.sinks, source=str(args.config))
-            _freeze_start_up()
+            frozen, threshold = settle_gc()  # freeze start-up, fewer young collections
+            log.info("gc_settled", frozen_objects=frozen, threshold=list(threshold))
             _run_async(partial(_serve, config_path=args.config), gateway, None)
             return EXIT_OK
         if args.command == "demo":

@@ -15,6 +15,7 @@ from typing import IO, Any
 
 import pytest
 
+from gateway.ops.gcsetup import GEN0_THRESHOLD
 from gateway.ops.version import package_version
 from gateway.sim.airframe import SimulatedAirframe
 
@@ -191,7 +192,11 @@ def test_sighup_checks_the_config_again_and_keeps_running(tmp_path: Path) -> Non
     assert proc.stderr is not None
     assert proc.stdout is not None
     try:
-        list(read_until(proc.stderr, "gateway_started"))
+        started = list(read_until(proc.stderr, "gateway_started"))
+        # Start-up frozen and the young generation's threshold raised (gateway.ops.gcsetup).
+        (settled,) = [r for r in started if r["event"] == "gc_settled"]
+        assert settled["frozen_objects"] > 0
+        assert settled["threshold"][0] == GEN0_THRESHOLD
         config.write_text(config.read_text().replace("node_id: n1", "node_id: n2"))
         proc.send_signal(signal.SIGHUP)
         *_, checked = read_until(proc.stderr, "config_reload_checked")

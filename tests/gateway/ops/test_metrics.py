@@ -109,6 +109,23 @@ def test_histogram_buckets_are_cumulative_with_inf_sum_and_count() -> None:
     ]
 
 
+def test_a_batch_observed_at_once_scrapes_as_its_observations_one_by_one() -> None:
+    values = (0.0005, 0.002, 0.01, 5.0, 0.001)
+    scraped = []
+    for many in (False, True):
+        registry = Registry()
+        child = registry.histogram("fg_l_seconds", "L.", ("sink",), (0.001, 0.01)).labels("s")
+        if many:
+            child.observe_many(values[:2])
+            child.observe_many(iter(values[2:]))
+            child.observe_many([])
+        else:
+            for value in values:
+                child.observe(value)
+        scraped.append(parse(registry)["fg_l_seconds"])
+    assert scraped[0] == scraped[1]
+
+
 def test_histograms_use_the_default_latency_buckets() -> None:
     registry = Registry()
     registry.histogram("fg_delay_seconds", "Delay.").observe(0.003)
