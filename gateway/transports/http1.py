@@ -68,6 +68,8 @@ MAX_BUFFER_BYTES = 262_144
 CLOSE_WAIT_S = 0.25
 #: The longest chunk-size line of a chunked body.
 _MAX_CHUNK_LINE = 1_024
+#: What a chunk size is written in (RFC 9112 7.1: 1*HEXDIG).
+_HEX_DIGITS = b"0123456789abcdefABCDEF"
 #: Characters a request target keeps as they are (RFC 3986 pchar, "/" and escapes).
 _TARGET_SAFE = "/%:@!$&'()*+,;=-._~"
 #: How much of an unreadable answer is quoted in the error.
@@ -417,13 +419,11 @@ class Http1Origin:
         seen = 0
         while True:
             line = await wire.read_until(b"\r\n", _MAX_CHUNK_LINE, "a chunk-size line")
-            size_text = line[:-2].split(b";", 1)[0].strip()
-            try:
-                size = int(size_text, 16)
-            except ValueError:
-                raise HttpAnswerError(f"bad chunk size in the answer: {_quote(line)}") from None
-            if size < 0:
+            size_text = line[:-2].split(b";", 1)[0].strip(b" \t")
+            # Hex digits only: int(..., 16) alone also takes a sign, "0x" and underscores.
+            if not size_text or size_text.strip(_HEX_DIGITS):
                 raise HttpAnswerError(f"bad chunk size in the answer: {_quote(line)}")
+            size = int(size_text, 16)
             if size == 0:
                 break
             seen += size

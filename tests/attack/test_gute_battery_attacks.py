@@ -8,6 +8,12 @@ trickle of header bytes (``hostile_https_peer.HOSTILE``), then honestly.
 
 The daemon must neither crash nor hang on any of them: each is a retry (logged naming the URL
 and what was wrong), and the cue then reaches the battery, once, still only a recommendation.
+
+A second battery stalls, floods and lies (``WORSE``): 20 interim answers, a 30-digit or an
+unkept Content-Length, a chunk size of 40 hex digits or negative, a garbage or huge Retry-After,
+a redirect, a 503 with a 100 MB body, a slowloris status line and a kept connection closed
+unanswered. Each ends by the POST's deadline as a retry, the runner does not log a line per
+answer, and the cue arrives once.
 """
 
 from __future__ import annotations
@@ -18,7 +24,7 @@ from pathlib import Path
 
 import pytest
 from daemon_support import Airframe, free_udp_port, running, wait_until
-from hostile_https_peer import HOSTILE, ScriptedPeer
+from hostile_https_peer import HOSTILE, Script, ScriptedPeer
 
 from gateway.fleet.dialect import fischer_detection
 
@@ -102,3 +108,76 @@ def test_every_hostile_answer_is_a_named_retry_and_the_cue_arrives_once(
     assert cue["operator_authorisation_required"] is True
     # The cue's key reached the battery once per answer it got, never more.
     assert peer.keys.count(key) == len(HOSTILE) + 1
+
+
+_CREATED = b"HTTP/1.1 201 Created\r\n"
+_MB = b"x" * 1_000_000
+
+#: Beyond ``HOSTILE``: answers that stall, lie about their length, flood or redirect.
+WORSE = [
+    Script("1xx flood", (b"HTTP/1.1 100 Continue\r\n\r\n" * 20,), close=False),
+    Script("huge length, no body", (_CREATED + b"Content-Length: " + b"9" * 30 + b"\r\n\r\n",)),
+    Script("length, body never sent", (_CREATED + b"Content-Length: 50\r\n\r\n{",), close=False),
+    Script(
+        "huge chunk",
+        (_CREATED + b"Transfer-Encoding: chunked\r\n\r\n" + b"f" * 40 + b"\r\nab",),
+        close=False,
+    ),
+    Script("negative chunk", (_CREATED + b"Transfer-Encoding: chunked\r\n\r\n-5\r\nab",)),
+    Script(
+        "bad Retry-After",
+        (b"HTTP/1.1 503 Busy\r\nRetry-After: -1e400\r\nContent-Length: 0\r\n\r\n",),
+    ),
+    Script(
+        "huge Retry-After",
+        (b"HTTP/1.1 429 Slow\r\nRetry-After: " + b"9" * 60 + b"\r\nContent-Length: 0\r\n\r\n",),
+        close=False,
+    ),
+    Script(
+        "redirect",
+        (b"HTTP/1.1 307 Moved\r\nLocation: https://evil.example/x\r\nContent-Length: 0\r\n\r\n",),
+        close=False,
+    ),
+    # 100 MB of a 5xx's reason, then of a 409's: read up to a bound, the connection dropped.
+    Script("503 with 100 MB", (b"HTTP/1.1 503 Busy\r\n\r\n",) + (_MB,) * 100),
+    Script("slowloris head", (b"HTTP/1.1 2",) + (b"0",) * 100, pause_s=0.05),
+    Script("kept, then closed unanswered", (), delay_s=0.05),
+]
+
+
+def test_stalls_floods_and_lies_are_retries_and_the_cue_arrives_once(tmp_path: Path) -> None:
+    link = free_udp_port()
+    airframe = Airframe(1)
+    peer = ScriptedPeer(tmp_path / "pki", list(WORSE))
+    with peer.in_thread(), running(write_config(tmp_path, peer, link)) as daemon:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as out:
+            out.connect(("127.0.0.1", link))
+
+            def detect() -> bool:
+                airframe.detections += 1
+                frame = fischer_detection(
+                    time_usec=0,
+                    detection_id=airframe.detections,
+                    lat_e7=TARGET[0],
+                    lon_e7=TARGET[1],
+                    alt_msl_m=120.0,
+                    sigma_h_m=5.0,
+                    class_id=5,
+                    sensor=1,
+                    confidence_pct=97,
+                    frame_size=1,
+                )
+                out.send(bytes(frame.pack(airframe.mav)))
+                return bool(peer.accepted)
+
+            wait_until(detect, 60.0, "a cue accepted by the battery after the worse answers")
+        assert daemon.proc.poll() is None
+        assert daemon.status()
+        lines = list(daemon.lines)
+    assert peer.played == [s.name for s in WORSE]
+    ((key, body),) = peer.accepted.items()
+    assert json.loads(body)["operator_authorisation_required"] is True
+    assert peer.keys.count(key) == len(WORSE) + 1
+    # The runner paces its lines: not one per answer.
+    about = [line for line in lines if peer.url in json.dumps(line)]
+    assert len(about) <= len(WORSE), about

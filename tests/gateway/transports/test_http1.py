@@ -236,3 +236,23 @@ def test_the_request_target_is_percent_encoded_where_it_must_be() -> None:
         max_connections=1,
     )
     assert origin.target == "/gute%202/%C3%BC?site=Nord%201&x=%20"
+
+
+@pytest.mark.anyio
+@pytest.mark.parametrize("size", [b"0x0", b"+0", b"-0", b"0_0", b"-5", b""])
+async def test_a_chunk_size_not_in_hex_digits_is_unreadable(tmp_path: Path, size: bytes) -> None:
+    # int(text, 16) would take each of these (but the empty one): "0x0" as the last chunk.
+    lying = Script(
+        "chunk size not hex",
+        (b"HTTP/1.1 201 Created\r\nTransfer-Encoding: chunked\r\n\r\n" + size + b"\r\n\r\n",),
+        close=False,
+    )
+    with anyio.fail_after(20):
+        async with ScriptedPeer(tmp_path, [lying]) as peer:
+            poster = poster_for(peer)
+            try:
+                result, detail = await post(poster, 1)
+            finally:
+                await poster.aclose()
+    assert result == "retry"
+    assert "bad chunk size in the answer" in detail
