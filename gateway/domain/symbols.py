@@ -18,9 +18,16 @@ from typing import Literal
 import yaml
 
 from gateway.domain.geoid import DATA_DIR
-from gateway.domain.sidc import Hostility, symbol_codes
+from gateway.domain.sidc import Hostility, classes, symbol_codes
 
-__all__ = ["LoiteringMunition", "Symbol", "cot_type_from_sidc", "object_symbol", "own_symbol"]
+__all__ = [
+    "LoiteringMunition",
+    "Symbol",
+    "cot_type_from_sidc",
+    "load_tables",
+    "object_symbol",
+    "own_symbol",
+]
 
 LoiteringMunition = Literal["uav_attack", "missile"]
 
@@ -76,6 +83,16 @@ def _own_by_mav_type() -> tuple[dict[int, Symbol], Symbol, Symbol]:
             by_type[int(mav_type)] = symbol
     assert default is not None  # noqa: S101 - the mapping is non-empty (checked above)
     return by_type, default, _symbol(_table()["own_unlisted"])
+
+
+def load_tables() -> None:
+    """Read both tables now (a sink's ``open``), not at the first event drawn.
+
+    Parsing the YAML takes milliseconds: the first detection of a run would wait for it.
+    """
+    _own_by_mav_type()
+    _symbol(_table()["unknown_class"])
+    classes()  # the class table (``gateway.domain.sidc``)
 
 
 def own_symbol(mav_type: int | None) -> Symbol:

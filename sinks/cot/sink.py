@@ -56,6 +56,7 @@ from pydantic import (
 
 from gateway.c2.sink import SinkConfig
 from gateway.domain.geoid import GeoidGrid, bundled_geoid
+from gateway.domain.symbols import load_tables
 from gateway.errors import PermanentSinkError, TransientSinkError
 from gateway.events import Event, EventKind, Track
 from gateway.ops.logsetup import RateLimit
@@ -360,6 +361,7 @@ class CotSink:
 
     async def open(self) -> None:
         """Open every destination; ``TransientSinkError`` (retried) if one cannot be reached."""
+        load_tables()  # the symbol tables, before the first event rather than at it
         for transport in self._transports:
             await self._call(transport, None)
 

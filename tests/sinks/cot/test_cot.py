@@ -22,6 +22,7 @@ from test_cot_event import DETECTION, EVENTS, TELEMETRY, TRACK
 
 from gateway.c2.sinkrunner import SinkRunner
 from gateway.config import SinkEntry
+from gateway.domain import sidc, symbols
 from gateway.errors import PermanentSinkError, TransientSinkError
 from gateway.events import Position
 from gateway.ops.instruments import Instruments
@@ -684,3 +685,17 @@ class TestRefusals:
                 await cot.aclose()
         assert caught.value.event_ids == frozenset({"big"})
         assert [parse_cot(d).uid for d in received] == [UIDS[0], UIDS[2]]
+
+
+@pytest.mark.anyio
+async def test_opening_the_sink_reads_the_symbol_tables_before_the_first_event() -> None:
+    # Parsing them takes milliseconds: at the first detection it would delay its picture.
+    for cached in (symbols._table, symbols._own_by_mav_type, sidc._table):
+        cached.cache_clear()
+    sink = CotSink("cot", CotSinkConfig.model_validate({"destinations": ["udp://127.0.0.1:9"]}))
+    await sink.open()
+    try:
+        for cached in (symbols._table, symbols._own_by_mav_type, sidc._table):
+            assert cached.cache_info().currsize == 1, cached
+    finally:
+        await sink.aclose()
