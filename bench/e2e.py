@@ -11,7 +11,8 @@ Three processes per measurement, all on loopback:
   machine the daemon then waits for a CPU (issue #24). ``--pacing sleep`` sleeps at least
   1 ms and sends the frames that came due, each stamped as it goes out;
 - the **system under test**: ``python -m gateway run --config FILE`` with the spool on (a
-  file) and five CoT sinks, each to its own UDP port; or, for comparison in the same run, a
+  file) and five CoT sinks, each to its own UDP port (``--fusion``: and processors
+  ``fusion`` and ``counter_uas`` on the same detections); or, for comparison in the same run, a
   bare Python forwarder (receive a datagram, send it to five ports, nothing else) and
   MAVProxy (``--master udpin`` and five ``--out``);
 - a **receiver** with five sockets stamps the first arrival of each detection on each socket
@@ -222,7 +223,13 @@ class System:
 
 
 def start_gateway(
-    sinks: list[int], airframes: int, key_file: Path, workdir: Path, tree: Path | None = None
+    sinks: list[int],
+    airframes: int,
+    key_file: Path,
+    workdir: Path,
+    tree: Path | None = None,
+    *,
+    fusion: bool = False,
 ) -> System:
     port, health = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_STREAM)
     spool = workdir / f"spool-{port}.db"
@@ -251,6 +258,17 @@ def start_gateway(
         ],
         "routes": [{"sinks": [f"cot{n}" for n in range(len(sinks))]}],
     }
+    if fusion:  # every detection also feeds fusion, and its tracks counter_uas (--fusion)
+        battery = {
+            "id": "GUTE-1",
+            "lat_deg": 65.80,
+            "lon_deg": 21.70,
+            "effectors": ["EW_COUNTERMEASURES"],
+        }
+        cfg["processors"] = [
+            {"name": "fusion", "type": "fusion"},
+            {"name": "cuas", "type": "counter_uas", "options": {"batteries": [battery]}},
+        ]
     path = workdir / f"gateway-{port}.yaml"
     path.write_text(yaml.safe_dump(cfg))
     env = dict(os.environ)
@@ -336,7 +354,9 @@ def measure(kind: str, rate: float, args: argparse.Namespace, workdir: Path) -> 
         ready.wait(10)
         if is_gateway:
             tree = args.compare if kind == "compare" else None
-            system = start_gateway(sinks, args.airframes, args.key_file, workdir, tree)
+            system = start_gateway(
+                sinks, args.airframes, args.key_file, workdir, tree, fusion=args.fusion
+            )
             frames = detection_frames(count, args.airframes)
         elif kind == "forwarder":
             system = start_forwarder(sinks)
@@ -451,6 +471,11 @@ def main() -> None:
     )
     parser.add_argument("--no-mavproxy", action="store_true")
     parser.add_argument(
+        "--fusion",
+        action="store_true",
+        help="the daemon also runs processors fusion and counter_uas on the detections",
+    )
+    parser.add_argument(
         "--compare",
         type=Path,
         help="also run the daemon from this source tree (e.g. a checkout of main) in each round",
@@ -483,7 +508,8 @@ def main() -> None:
           f"Python {platform.python_version()}, {platform.platform()}; "
           f"load average {os.getloadavg()[0]:.1f}")  # fmt: skip
     print(f"command: python bench/e2e.py --rounds {args.rounds} --seconds {args.seconds} "
-          f"--airframes {args.airframes} --in-time-ms {args.in_time_ms:g} --pacing {args.pacing}; "
+          f"--airframes {args.airframes} --in-time-ms {args.in_time_ms:g} --pacing {args.pacing}"
+          f"{' --fusion' if args.fusion else ''}; "
           "min / median / max of the rounds\n")  # fmt: skip
     print("| system | capacity det/s | CPU % at capacity | p50 ms at 10 % | p99 ms at 10 % "
           "| p50 ms at 80 % | p99 ms at 80 % |")  # fmt: skip
