@@ -19,6 +19,9 @@ daemon from another source tree in the same run, interleaved). Prints a Markdown
   frame and says so (FISCHER_DETECTION ``frame_size`` 1; ``--frame-size 0`` sends it as a
   sender without the extension, whose frames fusion holds ``frame_wait_s``). A daemon from
   before the extension (``--compare``) reads the same frames without it.
+- **Track at the last CoT sink**: the same detection's send → the track's arrival at the
+  last of the CoT sinks. The track may come after the cue; the trial waits for it (a gap at
+  most) before the next target.
 
 The gateway recommends, it never commands: the cue is a recommendation for the battery's
 operator, and this bench only measures how soon the operator's screen has it.
@@ -313,7 +316,12 @@ def run_daemon(args: argparse.Namespace, tree: Path | None, workdir: Path) -> di
                         seen_tracks.add(track[0])
                     continue
                 latencies.append((arrived - sent_at) / 1e6)
+                # The track may reach the CoT sinks after the cue reached the battery: wait
+                # for it (a gap at most) so the next trial does not take it for its own.
                 track = tracks.new_track(seen_tracks, trial_start)
+                while track is None and time.monotonic_ns() < sent_at + gap_ns:
+                    time.sleep(0.0002)
+                    track = tracks.new_track(seen_tracks, trial_start)
                 if track is not None:
                     seen_tracks.add(track[0])
                     to_track.append((track[1] - sent_at) / 1e6)
