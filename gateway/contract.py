@@ -12,7 +12,9 @@ failure raises ``ContractViolation`` saying which rule and what was found.
 
 - ``check_sink``: ``kinds`` a non-empty frozenset of ``EventKind``; ``aclose`` safe before
   ``open``; ``open``, ``send`` of an empty batch and of one event of every kind it accepts,
-  and ``aclose``.
+  and ``aclose``; a ``send_now`` (optional, ``gateway.c2.sink.SendsNow``) a plain method
+  that, given the same events, returns how many it delivered (an ``int`` from 0 to their
+  number) without holding the loop.
 - ``check_source``: ``status()`` a dict before, during and after ``run``; ``drive`` (yours)
   gives the running source its input.
 - ``check_processor``: ``kinds`` as for a sink; ``extension_events`` (if declared) maps type
@@ -28,6 +30,7 @@ function::
 
 from __future__ import annotations
 
+import inspect
 import json
 import threading
 import time
@@ -270,6 +273,12 @@ def check_sink(
     sink = factory(name, config)
     if not isinstance(sink, Sink):
         raise ContractViolation(f"{factory!r}: builds {sink!r}, which lacks Sink's members")
+    send_now = getattr(sink, "send_now", None)
+    if send_now is not None and (not callable(send_now) or inspect.iscoroutinefunction(send_now)):
+        raise ContractViolation(
+            f"sink.send_now is {send_now!r}: it must be a plain (not async) method that "
+            "returns how many of the batch it delivered"
+        )
     if sink.name != name:
         raise ContractViolation(f"sink.name is {sink.name!r}, expected the given {name!r}")
     kinds = _kinds(sink.kinds)
@@ -288,6 +297,20 @@ async def _exercise(sink: Sink, batch: list[Event], deadline_s: float) -> None:
     await _timed("open()", sink.open, deadline_s)
     await _timed("send([])", lambda: sink.send([]), deadline_s)
     await _timed(f"send() of {len(batch)} events", lambda: sink.send(batch), deadline_s)
+    send_now = getattr(sink, "send_now", None)
+    if send_now is not None:
+        sent: list[object] = []
+
+        async def now() -> None:
+            sent.append(send_now(batch))
+
+        await _timed(f"send_now() of {len(batch)} events", now, deadline_s)
+        count = sent[0]
+        if type(count) is not int or not 0 <= count <= len(batch):
+            raise ContractViolation(
+                f"send_now() of {len(batch)} events returned {count!r}: expected an int "
+                f"from 0 to {len(batch)} (how many it delivered)"
+            )
     await _timed("aclose()", sink.aclose, deadline_s)
 
 

@@ -33,6 +33,7 @@ sink takes events again.
 from __future__ import annotations
 
 import asyncio
+import inspect
 import time
 from collections import deque
 from collections.abc import Mapping
@@ -119,6 +120,15 @@ class SinkRunner:
         self._waiter: asyncio.Future[None] | None = None
         self._waiting = False
         send_now = getattr(sink, "send_now", None)
+        if inspect.iscoroutinefunction(send_now):
+            # Called without an await it would only make a coroutine (and a warning) per
+            # pass: the sink is served by its task instead (``check_sink`` refuses it).
+            log.warning(
+                "sink_send_now_ignored",
+                sink=self.name,
+                reason="send_now is async; it must be a plain method (gateway.c2.sink.SendsNow)",
+            )
+            send_now = None
         #: The sink's synchronous send (``SendsNow``), None if it has none.
         self._send_now = send_now if callable(send_now) else None
         self._delivery = delivery if delivery is not None else DeliveryPass()

@@ -152,3 +152,34 @@ class TestViolations:
     def test_a_send_that_never_returns(self) -> None:
         with pytest.raises(ContractViolation, match=r"did not return within 0\.2 s"):
             check_sink(MemorySink, {"hang": True}, deadline_s=0.2)
+
+
+class AsyncSendNow(MemorySink):
+    async def send_now(self, batch: Sequence[Event]) -> int:
+        return len(batch)
+
+
+class CountsWrong(MemorySink):
+    def send_now(self, batch: Sequence[Event]) -> int:
+        return len(batch) + 1
+
+
+class SendsNowWell(MemorySink):
+    def send_now(self, batch: Sequence[Event]) -> int:
+        self.events.extend(batch[:1])
+        return min(1, len(batch))
+
+
+class TestSendNow:
+    """The optional synchronous send is checked when a sink has one."""
+
+    def test_an_async_send_now_is_refused(self) -> None:
+        with pytest.raises(ContractViolation, match="must be a plain"):
+            check_sink(AsyncSendNow)
+
+    def test_a_count_beyond_the_batch_is_refused(self) -> None:
+        with pytest.raises(ContractViolation, match=r"send_now\(\) of \d+ events returned"):
+            check_sink(CountsWrong)
+
+    def test_a_sink_that_sends_part_now_passes(self) -> None:
+        check_sink(SendsNowWell)

@@ -274,3 +274,32 @@ def test_a_runner_failing_in_the_pass_is_woken_and_the_others_served() -> None:
     anyio.run(main)
     assert (bad.served, bad.woken, good.served, good.woken) == (1, 1, 1, 0)
     assert delivery.passes == 1
+
+
+class AsyncNowSink(MemorySink):
+    """A plugin's mistake: ``send_now`` written as a coroutine."""
+
+    async def send_now(self, batch: Sequence[Event]) -> int:
+        raise AssertionError("never called: the runner does not serve it in the pass")
+
+
+@pytest.mark.anyio
+async def test_an_async_send_now_is_ignored_and_the_task_delivers() -> None:
+    """Called without an await it would make a coroutine (and a warning) per pass."""
+    spool = Spool()
+    inst = Instruments()
+    delivery = DeliveryPass()
+    sink = AsyncNowSink("s")
+    runner = SinkRunner(entry("s"), sink, inst, spool=spool, delivery=delivery)
+    bus = Bus([RouteConfig(sinks=("s",))], {"s": runner}, inst, spool=spool)
+    with anyio.fail_after(10):
+        async with anyio.create_task_group() as tg:
+            await tg.start(runner.run)
+            await eventually(lambda: runner.state == "open")
+            for n in range(3):
+                bus.publish(detection(n))
+                await anyio.lowlevel.checkpoint()
+            await eventually(lambda: len(sink.events) == 3)
+            tg.cancel_scope.cancel()
+    assert ids(sink.events) == ["det-0", "det-1", "det-2"]
+    assert runner.sent_in_pass == 0
