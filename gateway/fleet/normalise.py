@@ -82,7 +82,6 @@ def _finite(value: float) -> float | None:
     return value if math.isfinite(value) else None
 
 
-_set = object.__setattr__
 _INF = math.inf
 _POSITION_FIELDS = frozenset(Position.model_fields)
 _VELOCITY_FIELDS = frozenset(Velocity.model_fields)
@@ -100,42 +99,26 @@ def position(
 
     Equal to ``Position(...)`` given every field: the same values, fields set and JSON.
     """
-    instance = Position.__new__(Position)
-    _set(
-        instance,
-        "__dict__",
-        {
-            "lat_deg": lat_deg,
-            "lon_deg": lon_deg,
-            "alt_msl_m": alt_msl_m,
-            "alt_hae_m": alt_hae_m,
-            "alt_rel_home_m": alt_rel_home_m,
-        },
-    )
-    _set(instance, "__pydantic_fields_set__", set(_POSITION_FIELDS))
-    _set(instance, "__pydantic_extra__", None)
-    _set(instance, "__pydantic_private__", None)
-    return instance
+    values = {
+        "lat_deg": lat_deg,
+        "lon_deg": lon_deg,
+        "alt_msl_m": alt_msl_m,
+        "alt_hae_m": alt_hae_m,
+        "alt_rel_home_m": alt_rel_home_m,
+    }
+    return checked_fields(Position, values, set(_POSITION_FIELDS))
 
 
 def velocity(north_mps: float, east_mps: float, down_mps: float) -> Velocity:
     """The Velocity of three floats, unvalidated (equal to ``Velocity(...)``)."""
-    instance = Velocity.__new__(Velocity)
-    _set(instance, "__dict__", {"north_mps": north_mps, "east_mps": east_mps, "down_mps": down_mps})
-    _set(instance, "__pydantic_fields_set__", set(_VELOCITY_FIELDS))
-    _set(instance, "__pydantic_extra__", None)
-    _set(instance, "__pydantic_private__", None)
-    return instance
+    values = {"north_mps": north_mps, "east_mps": east_mps, "down_mps": down_mps}
+    return checked_fields(Velocity, values, set(_VELOCITY_FIELDS))
 
 
 def attitude(roll_rad: float, pitch_rad: float, yaw_rad: float) -> Attitude:
     """The Attitude of three floats, unvalidated (equal to ``Attitude(...)``)."""
-    instance = Attitude.__new__(Attitude)
-    _set(instance, "__dict__", {"roll_rad": roll_rad, "pitch_rad": pitch_rad, "yaw_rad": yaw_rad})
-    _set(instance, "__pydantic_fields_set__", set(_ATTITUDE_FIELDS))
-    _set(instance, "__pydantic_extra__", None)
-    _set(instance, "__pydantic_private__", None)
-    return instance
+    values = {"roll_rad": roll_rad, "pitch_rad": pitch_rad, "yaw_rad": yaw_rad}
+    return checked_fields(Attitude, values, set(_ATTITUDE_FIELDS))
 
 
 class AirframeState:
